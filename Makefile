@@ -1,0 +1,29 @@
+# Two commands on a fresh machine: `make demo` (agent on simulated drives) and `make test`.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test venv bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+## demo: run a bus agent on 4 simulated drives; in another shell: .venv/bin/drivectl status
+demo: $(STAMP)
+	$(VENV)/bin/bus-agent --sim 4
+
+## test: the whole suite (root tests create their own veth pairs and namespaces)
+test: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(PY) -m bench.run_all
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache
