@@ -1,0 +1,113 @@
+"""CiA 402 states, statusword decoding and controlword commands (IEC 61800-7-201 / CiA 402).
+
+Tables from the standard as data. Shared by the master-side controller and the device-side
+drive model. Pure; cycle-safe.
+"""
+
+from __future__ import annotations
+
+from enum import Enum, IntEnum
+
+
+class State(str, Enum):
+    """The eight states of the drive state machine, plus UNKNOWN for undefined statuswords.
+
+    Values are the wire names used in ``schemas.messages.DRIVE_STATES``.
+    """
+
+    NOT_READY_TO_SWITCH_ON = "not_ready_to_switch_on"
+    SWITCH_ON_DISABLED = "switch_on_disabled"
+    READY_TO_SWITCH_ON = "ready_to_switch_on"
+    SWITCHED_ON = "switched_on"
+    OPERATION_ENABLED = "operation_enabled"
+    QUICK_STOP_ACTIVE = "quick_stop_active"
+    FAULT_REACTION_ACTIVE = "fault_reaction_active"
+    FAULT = "fault"
+    UNKNOWN = "unknown"
+
+
+#: Statusword (0x6041) decoding: (mask, value) per state. The patterns are disjoint.
+STATUSWORD_PATTERNS: tuple[tuple[int, int, State], ...] = (
+    (0x004F, 0x0000, State.NOT_READY_TO_SWITCH_ON),
+    (0x004F, 0x0040, State.SWITCH_ON_DISABLED),
+    (0x006F, 0x0021, State.READY_TO_SWITCH_ON),
+    (0x006F, 0x0023, State.SWITCHED_ON),
+    (0x006F, 0x0027, State.OPERATION_ENABLED),
+    (0x006F, 0x0007, State.QUICK_STOP_ACTIVE),
+    (0x004F, 0x000F, State.FAULT_REACTION_ACTIVE),
+    (0x004F, 0x0008, State.FAULT),
+)
+
+#: The low bits (mask 0x006F) a device reports in each state; bit 4 (voltage enabled) is
+#: added by the device. Used by the drive model to build its statusword.
+STATUSWORD_OF_STATE: dict[State, int] = {
+    State.NOT_READY_TO_SWITCH_ON: 0x0000,
+    State.SWITCH_ON_DISABLED: 0x0040,
+    State.READY_TO_SWITCH_ON: 0x0021,
+    State.SWITCHED_ON: 0x0023,
+    State.OPERATION_ENABLED: 0x0027,
+    State.QUICK_STOP_ACTIVE: 0x0007,
+    State.FAULT_REACTION_ACTIVE: 0x000F,
+    State.FAULT: 0x0008,
+}
+
+
+def decode_statusword(statusword: int) -> State:
+    """Map a statusword to its state, or ``State.UNKNOWN`` when no pattern matches."""
+    for mask, value, state in STATUSWORD_PATTERNS:
+        if statusword & mask == value:
+            return state
+    return State.UNKNOWN
+
+
+class StatuswordBit(IntEnum):
+    READY_TO_SWITCH_ON = 0
+    SWITCHED_ON = 1
+    OPERATION_ENABLED = 2
+    FAULT = 3
+    VOLTAGE_ENABLED = 4
+    QUICK_STOP = 5
+    SWITCH_ON_DISABLED = 6
+    WARNING = 7
+    REMOTE = 9
+    TARGET_REACHED = 10
+    INTERNAL_LIMIT_ACTIVE = 11
+    OPERATION_MODE_SPECIFIC_12 = 12
+    OPERATION_MODE_SPECIFIC_13 = 13
+
+
+class Controlword(IntEnum):
+    """Controlword (0x6040) command values (bits 7,3,2,1,0). Halt is bit 8, OR-ed in separately."""
+
+    DISABLE_VOLTAGE = 0x0000       # transitions 7, 9, 10, 12
+    QUICK_STOP = 0x0002            # transitions 7, 10, 11
+    SHUTDOWN = 0x0006              # transitions 2, 6, 8
+    SWITCH_ON = 0x0007             # transition 3 (also "disable operation", transition 5)
+    ENABLE_OPERATION = 0x000F      # transitions 4, 16 (and 3+4 from Ready to switch on)
+    FAULT_RESET = 0x0080           # transition 15, on the rising edge of bit 7
+
+
+DISABLE_OPERATION = Controlword.SWITCH_ON  # same bits, transition 5
+CONTROLWORD_HALT = 0x0100
+CONTROLWORD_FAULT_RESET_BIT = 0x0080
+
+
+class Mode(IntEnum):
+    """Modes of operation, 0x6060 / 0x6061, and their bit in 0x6502 (supported drive modes)."""
+
+    PROFILE_POSITION = 1
+    PROFILE_VELOCITY = 3
+    PROFILE_TORQUE = 4
+    HOMING = 6
+    INTERPOLATED_POSITION = 7
+    CYCLIC_SYNC_POSITION = 8
+    CYCLIC_SYNC_VELOCITY = 9
+    CYCLIC_SYNC_TORQUE = 10
+
+    @property
+    def supported_bit(self) -> int:
+        """Bit of this mode in 0x6502."""
+        return {1: 0, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}[int(self)]
+
+
+CYCLIC_MODES = frozenset({Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE})
