@@ -1,0 +1,109 @@
+"""The boundary between the cycle (EtherCAT side) and the gateway (Zenoh side).
+
+Commands cross *in* through the cycle's bounded inbox, already validated, and are applied at a
+cycle start; every addressed axis later gets exactly one terminal :class:`Outcome` through the
+command's ``on_outcome`` callback, called from the cycle thread (it must only enqueue).
+State crosses *out* as one immutable :class:`CycleSnapshot` per cycle. The cycle never calls
+Zenoh, msgpack or blocking logs; the gateway never touches the bus or the controllers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Terminal answer for one axis (or for the agent when ``axis`` is '')."""
+
+    axis: str
+    outcome: str  # schemas.messages.OUTCOMES: done, failed, timeout, rejected, busy
+    state: str = "unknown"  # schemas.messages.DRIVE_STATES
+    error_code: int = 0
+    reason: str = ""
+    elapsed_s: float = 0.0
+    cycles: int = 0
+
+
+@dataclass(frozen=True)
+class DriveCommand:
+    """A validated drive command for axes of this host (ops: schemas.messages.DRIVE_OPS minus
+    lease/release, which the gateway handles itself)."""
+
+    request_id: str
+    op: str
+    axes: tuple[str, ...]
+    args: Mapping[str, Any] = field(default_factory=dict)
+    timeout_s: float = 5.0
+    supervisor: str = ""
+    received_ns: int = 0  # time.monotonic_ns() at receipt
+    on_outcome: Callable[[Outcome], None] = lambda outcome: None
+
+
+@dataclass(frozen=True)
+class AgentCommand:
+    """A validated agent command (op 'nmt', args {'command': ..., 'axis': optional})."""
+
+    request_id: str
+    op: str
+    args: Mapping[str, Any] = field(default_factory=dict)
+    timeout_s: float = 5.0
+    supervisor: str = ""
+    received_ns: int = 0
+    on_outcome: Callable[[Outcome], None] = lambda outcome: None
+
+
+@dataclass(frozen=True)
+class DriveSnapshot:
+    axis: str
+    slave: int
+    state: str
+    statusword: int
+    controlword: int
+    goal: str
+    halt: bool
+    mode: int
+    mode_display: int
+    position: int
+    velocity: int
+    torque: int
+    error_code: int
+    error_text: str
+    al_state: str
+    lost: bool
+
+
+@dataclass(frozen=True)
+class CycleEvent:
+    """Something worth an Event message (kinds: schemas.messages.EVENT_KINDS)."""
+
+    axis: str
+    kind: str
+    detail: str = ""
+    from_state: str = "unknown"
+    to_state: str = "unknown"
+    error_code: int = 0
+    request_id: str = ""
+
+
+@dataclass(frozen=True)
+class CycleStats:
+    cycles: int = 0
+    cycle_us: int = 1000
+    period_p50_us: float = 0.0
+    period_p99_us: float = 0.0
+    period_max_us: float = 0.0
+    overruns: int = 0
+    wkc_errors: int = 0
+    expected_wkc: int = 0
+
+
+@dataclass(frozen=True)
+class CycleSnapshot:
+    cycle: int
+    time_ns: int  # wall clock
+    drives: tuple[DriveSnapshot, ...]
+    events: tuple[CycleEvent, ...]
+    stats: CycleStats
+    agent_state: str = "running"  # schemas.messages.AGENT_STATES
