@@ -137,6 +137,17 @@ def parse(key: str) -> ParsedKey:
     raise InvalidKey(f"key {key!r} has no meaning in the {ROOT} key space")
 
 
+# Simulation control (fault injection), a separate verbatim root so production ACLs deny it whole:
+#   drives/@sim/<segment>/<slave>/<action>    slave = position (0-based) or '*'; action e.g. fault, unplug
+SIM_ROOT = f"{PREFIX}/@sim"
+
+
+def sim_control(segment: str, slave: int | str, action: str) -> str:
+    """Key of a simulator's fault-injection queryable (``ecat-sim`` and the in-process sim bus)."""
+    slave_chunk = str(slave) if isinstance(slave, int) else validate_selector_chunk(slave, "slave")
+    return f"{SIM_ROOT}/{validate_selector_chunk(segment, 'segment')}/{slave_chunk}/{validate_selector_chunk(action, 'action')}"
+
+
 # Wildcard selectors used by subscribers and fan-out queries.
 ALL_DRIVE_STATUS = f"{ROOT}/*/drive/*/status"
 ALL_DRIVE_EVENTS = f"{ROOT}/*/drive/*/event"
