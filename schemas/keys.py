@@ -12,11 +12,15 @@ Layout (every level fixed, so keys parse without guessing)::
 
 ``@v1`` and ``@sup`` are verbatim chunks: wildcards never match them.
 Host, axis and supervisor names are single legal chunks (see :func:`validate_name`).
-Selectors (``*``, ``**``, ``?``-free zenoh wildcards) are accepted where documented.
+Every builder also takes selector chunks (``*``, ``**``, ``ax*``; see
+:func:`validate_selector_chunk`) and returns a valid zenoh key expression (``ax*`` is written
+``ax$*``). User selectors ``host/axis`` with fnmatch wildcards go through
+:func:`selector_to_keyexpr` (for the query) and :func:`selector_matches` (to filter replies).
 """
 
 from __future__ import annotations
 
+import fnmatch
 import re
 from dataclasses import dataclass
 from enum import Enum
@@ -28,10 +32,13 @@ SUPERVISOR_CHUNK = "@sup"
 
 # A name is one key chunk: no '/', no wildcard characters, no leading '@' (verbatim),
 # no zenoh-reserved characters. Kept conservative so names are also valid file/unit names.
+NAME_MAX_LEN = 64
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}$")
-# A selector chunk: a name, '*', '**', or a name with '*' standing for any substring
-# (zenoh's "sub-chunk" wildcard, e.g. 'axis*' or 'h*').
-_SELECTOR_CHUNK_RE = re.compile(r"^(\*\*|\*|[A-Za-z0-9_.\-]*\*?[A-Za-z0-9_.\-]*(\*[A-Za-z0-9_.\-]*)*)$")
+#: The name rule as a regular expression (JSON Schema ``pattern``).
+NAME_PATTERN = _NAME_RE.pattern
+# One chunk of a selector once every sub-chunk wildcard is written '*': name characters and
+# single '*'s, not starting with '.', '-' or '@'. '**' alone is handled before this rule.
+_PATTERN_CHUNK_RE = re.compile(r"^[A-Za-z0-9_*][A-Za-z0-9_.\-*]*$")
 
 
 class KeyError_(ValueError):
@@ -51,11 +58,153 @@ def validate_name(name: str, what: str = "name") -> str:
     return name
 
 
+def is_name(name: object) -> bool:
+    """True if ``name`` is a legal single chunk (see :func:`validate_name`)."""
+    return isinstance(name, str) and _NAME_RE.match(name) is not None
+
+
+def _selector_chunk_error(chunk: object, what: str, why: str) -> InvalidKey:
+    return InvalidKey(
+        f"{what} {chunk!r} is not a legal name or wildcard chunk: {why} "
+        "(use a name of [A-Za-z0-9_.-], '*', '**', or a name with '*' for any substring, e.g. 'ax*')"
+    )
+
+
 def validate_selector_chunk(chunk: str, what: str = "selector") -> str:
-    """Return ``chunk`` if it is a name or a wildcard chunk (``*``, ``**``, ``ax*``)."""
-    if not isinstance(chunk, str) or not chunk or not _SELECTOR_CHUNK_RE.match(chunk) or "**" in chunk.replace("**", "", 1) or ("**" in chunk and chunk != "**"):
-        raise InvalidKey(f"{what} {chunk!r} is not a legal name or wildcard chunk")
+    """Return ``chunk`` if it is a name or a wildcard chunk, else raise :class:`InvalidKey`.
+
+    Accepted: a legal name (:func:`validate_name`), ``*`` (one chunk), ``**`` (any number of
+    chunks), or a name with ``*`` standing for any substring (``ax*``, ``h*1``); zenoh's own
+    spelling of that sub-chunk wildcard, ``$*``, is accepted too. Rejected: ``/``, ``?``, ``#``,
+    any other ``$``, a leading ``@`` (verbatim chunks are never selected), ``**`` inside a
+    chunk, adjacent wildcards and the empty string. The chunk is returned unchanged; the key
+    builders turn it into a zenoh key expression chunk (:func:`zenoh_chunk`).
+    """
+    if not isinstance(chunk, str):
+        raise _selector_chunk_error(chunk, what, f"expected a string, got {type(chunk).__name__}")
+    if chunk in ("*", "**"):
+        return chunk
+    if not chunk:
+        raise _selector_chunk_error(chunk, what, "empty")
+    for bad in ("/", "?", "#"):
+        if bad in chunk:
+            raise _selector_chunk_error(chunk, what, f"{bad!r} is not allowed")
+    if chunk.startswith("@"):
+        raise _selector_chunk_error(chunk, what, "a leading '@' marks a verbatim chunk")
+    plain = chunk.replace("$*", "*")
+    if "$" in plain:
+        raise _selector_chunk_error(chunk, what, "'$' is only allowed as zenoh's '$*'")
+    if "**" in plain:
+        raise _selector_chunk_error(chunk, what, "'**' must stand alone, and wildcards must not be adjacent")
+    if len(plain) > NAME_MAX_LEN or not _PATTERN_CHUNK_RE.match(plain):
+        raise _selector_chunk_error(chunk, what, "illegal character, leading '.'/'-', or longer than 64")
     return chunk
+
+
+def zenoh_chunk(chunk: str, what: str = "selector") -> str:
+    """Validate a selector chunk and spell it as zenoh wants it.
+
+    zenoh writes a sub-chunk wildcard ``$*`` (``ax*`` is an invalid key expression), a whole
+    chunk ``*``: so ``ax*`` -> ``ax$*``, ``$*`` -> ``*``, names, ``*`` and ``**`` unchanged.
+    """
+    validate_selector_chunk(chunk, what)
+    plain = chunk.replace("$*", "*")
+    if plain in ("*", "**"):
+        return plain
+    return plain.replace("*", "$*")
+
+
+# User selectors 'host/axis' with fnmatch wildcards: '*', '?', '[seq]', '[!seq]'.
+_SEL_TOKEN_RE = re.compile(r"\[!?\]?[^\]]*\]|\$\*|.", re.S)
+_SEL_LITERAL_RE = re.compile(r"^[A-Za-z0-9_.\-]$")
+_SEL_CLASS_RE = re.compile(r"^\[!?[A-Za-z0-9_.\-]+\]$")
+
+
+def _selector_part(part: str, what: str, selector: str) -> tuple[str, str]:
+    """One side of a user selector -> (zenoh chunk, fnmatch pattern)."""
+    if part in ("*", "**"):
+        return "*", "*"
+    if not part:
+        raise InvalidKey(f"selector {selector!r}: {what} is empty (use '*' for any {what})")
+    if part.startswith("@"):
+        raise InvalidKey(f"selector {selector!r}: {what} {part!r} starts with '@' (verbatim chunks are never selected)")
+    literal = 0
+    zparts: list[str] = []  # literal runs and '*' markers
+    fparts: list[str] = []
+    for tok in _SEL_TOKEN_RE.findall(part):
+        if tok in ("*", "$*"):
+            if fparts[-1:] == ["*"]:
+                continue  # 'a**b' means the same as 'a*b'
+            fparts.append("*")
+            wild = True
+        elif tok == "?" or (tok.startswith("[") and len(tok) > 1):
+            if tok != "?" and not _SEL_CLASS_RE.match(tok):
+                raise InvalidKey(f"selector {selector!r}: {what} character class {tok!r} may hold only [A-Za-z0-9_.-]")
+            fparts.append(tok)
+            wild = True
+        elif _SEL_LITERAL_RE.match(tok):
+            fparts.append(tok)
+            literal += 1
+            wild = False
+        else:
+            raise InvalidKey(
+                f"selector {selector!r}: {what} {part!r} has illegal character {tok!r} "
+                "(names use [A-Za-z0-9_.-]; wildcards are '*', '?', '[abc]', '[!abc]')"
+            )
+        if wild:
+            if zparts[-1:] != ["*"]:
+                zparts.append("*")
+        else:
+            zparts.append(tok)
+    if literal > NAME_MAX_LEN:
+        raise InvalidKey(f"selector {selector!r}: {what} {part!r} is longer than {NAME_MAX_LEN} characters")
+    if fparts and fparts[0] in (".", "-"):
+        raise InvalidKey(f"selector {selector!r}: {what} {part!r} starts with {fparts[0]!r}, which no name does")
+    zchunk = "".join(zparts)
+    return zenoh_chunk(zchunk, what), "".join(fparts)
+
+
+def _split_selector(selector: str) -> tuple[str, str]:
+    if not isinstance(selector, str):
+        raise InvalidKey(f"selector {selector!r} must be a string 'host/axis'")
+    parts = selector.split("/")
+    if len(parts) != 2:
+        raise InvalidKey(
+            f"selector {selector!r} must be 'host/axis' with exactly one '/', "
+            "e.g. 'h1/x', 'h1/*', '*/x', 'h*/axis?'"
+        )
+    return parts[0], parts[1]
+
+
+def selector_to_keyexpr(selector: str) -> tuple[str, str]:
+    """Turn a user selector ``host/axis`` into zenoh-ready ``(host_chunk, axis_chunk)``.
+
+    Both sides take fnmatch wildcards: ``*`` (any substring), ``?`` (one character),
+    ``[abc]``/``[!abc]`` (one character of/not of a set); ``**`` means ``*``. zenoh has no
+    single-character wildcard, so ``?`` and classes widen to ``$*`` (``*`` when the whole chunk
+    is wild): the query may return more than asked, and callers keep only the replies for
+    which :func:`selector_matches` is true. The chunks are accepted by every key builder.
+    Examples: ``h1/*`` -> (``h1``, ``*``); ``h*/axis?`` -> (``h$*``, ``axis$*``).
+    Raise :class:`InvalidKey` for anything else.
+    """
+    host, axis = _split_selector(selector)
+    return _selector_part(host, "host", selector)[0], _selector_part(axis, "axis", selector)[0]
+
+
+def selector_matches(selector: str, host: str, axis: str) -> bool:
+    """True if drive ``host/axis`` is selected by ``selector`` (fnmatch, case-sensitive).
+
+    Raise :class:`InvalidKey` if the selector is malformed (see :func:`selector_to_keyexpr`).
+    """
+    h, a = _split_selector(selector)
+    hpat = _selector_part(h, "host", selector)[1]
+    apat = _selector_part(a, "axis", selector)[1]
+    return (
+        isinstance(host, str)
+        and isinstance(axis, str)
+        and fnmatch.fnmatchcase(host, hpat)
+        and fnmatch.fnmatchcase(axis, apat)
+    )
 
 
 class KeyKind(str, Enum):
@@ -80,34 +229,41 @@ class ParsedKey:
 
 
 def agent_status(host: str) -> str:
-    return f"{ROOT}/{validate_selector_chunk(host, 'host')}/agent"
+    """Key of the agent status of ``host`` (message ``agent_status``)."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent"
 
 
 def agent_cmd(host: str, op: str) -> str:
-    return f"{ROOT}/{validate_selector_chunk(host, 'host')}/agent/cmd/{validate_selector_chunk(op, 'op')}"
+    """Key of agent command ``op`` on ``host`` (a query; op ``nmt``)."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent/cmd/{zenoh_chunk(op, 'op')}"
 
 
 def alive(host: str) -> str:
-    return f"{ROOT}/{validate_selector_chunk(host, 'host')}/alive"
+    """Key of the liveliness token of the agent on ``host``."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/alive"
 
 
 def drive_status(host: str, axis: str) -> str:
-    return f"{ROOT}/{validate_selector_chunk(host, 'host')}/drive/{validate_selector_chunk(axis, 'axis')}/status"
+    """Key of the status of drive ``host/axis`` (message ``drive_status``)."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/drive/{zenoh_chunk(axis, 'axis')}/status"
 
 
 def drive_event(host: str, axis: str) -> str:
-    return f"{ROOT}/{validate_selector_chunk(host, 'host')}/drive/{validate_selector_chunk(axis, 'axis')}/event"
+    """Key of the events of drive ``host/axis`` (message ``event``)."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/drive/{zenoh_chunk(axis, 'axis')}/event"
 
 
 def drive_cmd(host: str, axis: str, op: str) -> str:
+    """Key of drive command ``op`` for ``host/axis`` (a query with a ``command_request``)."""
     return (
-        f"{ROOT}/{validate_selector_chunk(host, 'host')}/drive/"
-        f"{validate_selector_chunk(axis, 'axis')}/cmd/{validate_selector_chunk(op, 'op')}"
+        f"{ROOT}/{zenoh_chunk(host, 'host')}/drive/"
+        f"{zenoh_chunk(axis, 'axis')}/cmd/{zenoh_chunk(op, 'op')}"
     )
 
 
 def supervisor_alive(name: str) -> str:
-    return f"{ROOT}/{SUPERVISOR_CHUNK}/{validate_selector_chunk(name, 'supervisor')}"
+    """Key of the liveliness token of supervisor ``name`` (held while it holds leases)."""
+    return f"{ROOT}/{SUPERVISOR_CHUNK}/{zenoh_chunk(name, 'supervisor')}"
 
 
 def parse(key: str) -> ParsedKey:
@@ -144,8 +300,10 @@ SIM_ROOT = f"{PREFIX}/@sim"
 
 def sim_control(segment: str, slave: int | str, action: str) -> str:
     """Key of a simulator's fault-injection queryable (``ecat-sim`` and the in-process sim bus)."""
-    slave_chunk = str(slave) if isinstance(slave, int) else validate_selector_chunk(slave, "slave")
-    return f"{SIM_ROOT}/{validate_selector_chunk(segment, 'segment')}/{slave_chunk}/{validate_selector_chunk(action, 'action')}"
+    if isinstance(slave, bool) or (isinstance(slave, int) and not 0 <= slave <= 65535):
+        raise InvalidKey(f"slave {slave!r} is not a slave position 0..65535 or a selector chunk")
+    slave_chunk = str(slave) if isinstance(slave, int) else zenoh_chunk(slave, "slave")
+    return f"{SIM_ROOT}/{zenoh_chunk(segment, 'segment')}/{slave_chunk}/{zenoh_chunk(action, 'action')}"
 
 
 # Wildcard selectors used by subscribers and fan-out queries.
@@ -154,3 +312,48 @@ ALL_DRIVE_EVENTS = f"{ROOT}/*/drive/*/event"
 ALL_AGENT_STATUS = f"{ROOT}/*/agent"
 ALL_ALIVE = f"{ROOT}/*/alive"
 ALL_SUPERVISORS = f"{ROOT}/{SUPERVISOR_CHUNK}/*"
+
+
+def parse_sim_control(key: str) -> tuple[str, int, str]:
+    """Parse a concrete :func:`sim_control` key into (segment, slave position, action)."""
+    parts = str(key).split("/")
+    if len(parts) != 5 or "/".join(parts[:2]) != SIM_ROOT:
+        raise InvalidKey(f"key {key!r} is not a {SIM_ROOT}/<segment>/<slave>/<action> key")
+    segment = validate_name(parts[2], "segment")
+    if not parts[3].isdigit() or not 0 <= int(parts[3]) <= 65535:
+        raise InvalidKey(f"key {key!r}: slave {parts[3]!r} is not a slave position 0..65535")
+    return segment, int(parts[3]), validate_name(parts[4], "action")
+
+
+@dataclass(frozen=True)
+class KeyInfo:
+    """One row of the key table: the pattern, what lives there, and who declares it."""
+
+    pattern: str
+    kind: str
+    meaning: str
+    zenoh: str  # put, queryable, liveliness token
+    message: str = ""  # message type name carried, '' if none
+
+
+#: The key space as data: source of ``python -m schemas keys`` and docs/contract.md.
+KEY_TABLE: tuple[KeyInfo, ...] = (
+    KeyInfo(f"{ROOT}/<host>/agent", KeyKind.AGENT_STATUS.value,
+            "agent status: AL states, cycle statistics, leases", "put (periodic)", "agent_status"),
+    KeyInfo(f"{ROOT}/<host>/agent/cmd/<op>", KeyKind.AGENT_CMD.value,
+            "agent commands; op: nmt", "queryable", "command_request -> command_reply"),
+    KeyInfo(f"{ROOT}/<host>/alive", KeyKind.ALIVE.value,
+            "liveliness token of the agent", "liveliness token"),
+    KeyInfo(f"{ROOT}/<host>/drive/<axis>/status", KeyKind.DRIVE_STATUS.value,
+            "drive status, on change and as a heartbeat; a get returns the current one",
+            "put + queryable", "drive_status"),
+    KeyInfo(f"{ROOT}/<host>/drive/<axis>/event", KeyKind.DRIVE_EVENT.value,
+            "transitions, faults, command outcomes", "put", "event"),
+    KeyInfo(f"{ROOT}/<host>/drive/<axis>/cmd/<op>", KeyKind.DRIVE_CMD.value,
+            "drive commands; one reply per addressed drive on its own key",
+            "queryable", "command_request -> command_reply"),
+    KeyInfo(f"{ROOT}/{SUPERVISOR_CHUNK}/<name>", KeyKind.SUPERVISOR.value,
+            "liveliness token of a supervisor that holds leases", "liveliness token"),
+    KeyInfo(f"{SIM_ROOT}/<segment>/<slave>/<action>", "sim_control",
+            "simulator fault injection (test beds only; deny in production ACLs)", "queryable"),
+)

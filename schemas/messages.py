@@ -19,6 +19,8 @@ from typing import Any, ClassVar
 
 import msgpack
 
+from . import keys as _keys
+
 SCHEMA_VERSION = 1
 
 
@@ -86,6 +88,37 @@ def _f(default: Any = dataclasses.MISSING, **meta: Any) -> Any:
     return field(default=default, metadata=meta)
 
 
+# ---- nested value rules ------------------------------------------------------------------
+# Metadata keys of a field (or of an op argument, see OP_ARGS):
+#   doc       one-line meaning
+#   range     (lo, hi) inclusive, for int/float
+#   choices   the allowed values
+#   max_len   longest str in characters
+#   name      str must be a legal key chunk (schemas.keys.validate_name); '' only where the
+#             default is '' (or allow_empty is set)
+#   items     rule for every element of a list (a Meta)
+#   keys      rule for every key of a map (a Meta, type str)
+#   values    rule for every value of a map (a Meta)
+#   arg_value map values are JSON-like: nil, bool, int (64 bit), finite float, str, and
+#             lists/maps of these (depth <= ARG_MAX_DEPTH)
+# The codec, the JSON Schema export and docs/contract.md all read these.
+
+
+@dataclass(frozen=True)
+class Meta:
+    """A rule for a nested value: its Python type and the same metadata keys as a field."""
+
+    type: type
+    meta: dict = field(default_factory=dict)
+
+
+NAME = Meta(str, {"name": True})
+MEMBER = Meta(str, {"member": True, "doc": "'host/axis' of legal names"})
+AL_STATE = Meta(str, {"choices": AL_STATES})
+ARG_MAX_DEPTH = 8
+ARG_INT = (-(2**63), 2**64 - 1)
+
+
 # ---- messages -----------------------------------------------------------------------------
 
 
@@ -94,8 +127,8 @@ class DriveStatus:
     """Published on ``drives/@v1/<host>/drive/<axis>/status`` on change and as a heartbeat."""
 
     TYPE: ClassVar[str] = "drive_status"
-    host: str = _f(max_len=NAME_LEN, doc="agent host name")
-    axis: str = _f(max_len=NAME_LEN, doc="axis name")
+    host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
+    axis: str = _f(max_len=NAME_LEN, name=True, doc="axis name")
     seq: int = _f(range=U64, doc="per-drive sequence number, +1 per publication")
     time_ns: int = _f(range=U64, doc="agent wall clock at the snapshot, ns since the epoch")
     cycle: int = _f(range=U64, doc="agent cycle counter at the snapshot")
@@ -113,7 +146,7 @@ class DriveStatus:
     error_text: str = _f("", max_len=200, doc="meaning of error_code, or the agent's reason")
     al_state: str = _f("op", choices=AL_STATES, doc="EtherCAT AL state of the slave")
     lost: bool = _f(False, doc="slave not answering (working counter or AL state)")
-    lease_holder: str = _f("", max_len=NAME_LEN, doc="supervisor holding the lease, '' if none")
+    lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="supervisor holding the lease, '' if none")
     slave: int = _f(0, range=(0, 65535), doc="slave position on the segment (0-based)")
 
 
@@ -122,23 +155,23 @@ class AgentStatus:
     """Published on ``drives/@v1/<host>/agent``: the agent and its cycle."""
 
     TYPE: ClassVar[str] = "agent_status"
-    host: str = _f(max_len=NAME_LEN)
-    seq: int = _f(range=U64)
-    time_ns: int = _f(range=U64)
-    state: str = _f(choices=AGENT_STATES)
+    host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
+    seq: int = _f(range=U64, doc="sequence number, +1 per publication")
+    time_ns: int = _f(range=U64, doc="agent wall clock, ns since the epoch")
+    state: str = _f(choices=AGENT_STATES, doc="agent lifecycle state")
     backend: str = _f(max_len=32, doc="'pysoem' or 'sim'")
     cycle_us: int = _f(range=(1, 10_000_000), doc="configured cycle period")
-    cycles: int = _f(range=U64)
+    cycles: int = _f(range=U64, doc="cycles run since start")
     period_p50_us: float = _f(doc="measured period, over the last statistics window")
-    period_p99_us: float = _f()
-    period_max_us: float = _f()
+    period_p99_us: float = _f(doc="measured period, 99th percentile")
+    period_max_us: float = _f(doc="measured period, maximum")
     overruns: int = _f(range=U64, doc="cycles that started later than one period after their deadline")
     wkc_errors: int = _f(range=U64, doc="cycles whose working counter was not the expected one")
-    expected_wkc: int = _f(range=(0, 65535))
-    axes: list = _f([], doc="axis names in slave order")
-    al_states: dict = _f({}, doc="axis -> AL state name")
-    leases: dict = _f({}, doc="axis -> lease holder, for leased axes")
-    groups: dict = _f({}, doc="group name -> list of member keys 'host/axis'")
+    expected_wkc: int = _f(range=(0, 65535), doc="working counter expected per cycle")
+    axes: list = _f([], items=NAME, doc="axis names in slave order")
+    al_states: dict = _f({}, keys=NAME, values=AL_STATE, doc="axis -> AL state name")
+    leases: dict = _f({}, keys=NAME, values=NAME, doc="axis -> lease holder, for leased axes")
+    groups: dict = _f({}, keys=NAME, values=Meta(list, {"items": MEMBER}), doc="group name -> list of member keys 'host/axis'")
 
 
 @dataclass(frozen=True)
@@ -146,29 +179,33 @@ class Event:
     """Published on ``drives/@v1/<host>/drive/<axis>/event``."""
 
     TYPE: ClassVar[str] = "event"
-    host: str = _f(max_len=NAME_LEN)
-    axis: str = _f(max_len=NAME_LEN)
+    host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
+    axis: str = _f(max_len=NAME_LEN, name=True, doc="axis name")
     seq: int = _f(range=U64, doc="per-drive event sequence number")
-    time_ns: int = _f(range=U64)
-    cycle: int = _f(range=U64)
-    kind: str = _f(choices=EVENT_KINDS)
-    detail: str = _f("", max_len=400)
-    from_state: str = _f("unknown", choices=DRIVE_STATES)
-    to_state: str = _f("unknown", choices=DRIVE_STATES)
-    error_code: int = _f(0, range=U16)
-    request_id: str = _f("", max_len=128)
+    time_ns: int = _f(range=U64, doc="agent wall clock at the event, ns since the epoch")
+    cycle: int = _f(range=U64, doc="agent cycle counter at the event")
+    kind: str = _f(choices=EVENT_KINDS, doc="what happened")
+    detail: str = _f("", max_len=400, doc="human-readable detail")
+    from_state: str = _f("unknown", choices=DRIVE_STATES, doc="CiA 402 state before (transition)")
+    to_state: str = _f("unknown", choices=DRIVE_STATES, doc="CiA 402 state after (transition)")
+    error_code: int = _f(0, range=U16, doc="0x603F error code (fault), 0 = none")
+    request_id: str = _f("", max_len=128, doc="request the event belongs to ('' if none)")
 
 
 @dataclass(frozen=True)
 class CommandRequest:
-    """Payload of a query on a ``cmd/<op>`` key. ``op`` must equal the key's op."""
+    """Payload of a query on a ``cmd/<op>`` key. ``op`` must equal the key's op.
+
+    ``args`` must fit the op (see :data:`OP_ARGS` and :func:`validate_args`): decode rejects
+    unknown, missing and out-of-range arguments.
+    """
 
     TYPE: ClassVar[str] = "command_request"
-    request_id: str = _f(max_len=128, doc="caller-chosen id; a repeat returns the first outcome")
-    op: str = _f(choices=DRIVE_OPS + AGENT_OPS)
-    args: dict = _f({}, doc="op arguments (mode, on, holder, ttl_s, takeover, command, slave)")
+    request_id: str = _f(max_len=128, min_len=1, doc="caller-chosen id; a repeat returns the first outcome")
+    op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op, equal to the last chunk of the key")
+    args: dict = _f({}, arg_value=True, doc="op arguments, see the op argument table")
     timeout_s: float = _f(5.0, range=(0.0, 3600.0), doc="deadline for the goal, from receipt")
-    supervisor: str = _f("", max_len=NAME_LEN, doc="sender identity, for leases ('' = anonymous)")
+    supervisor: str = _f("", max_len=NAME_LEN, name=True, doc="sender identity, for leases ('' = anonymous)")
 
 
 @dataclass(frozen=True)
@@ -176,48 +213,146 @@ class CommandReply:
     """One terminal answer per addressed drive, on that drive's own ``cmd/<op>`` key."""
 
     TYPE: ClassVar[str] = "command_reply"
-    request_id: str = _f(max_len=128)
-    host: str = _f(max_len=NAME_LEN)
-    op: str = _f(choices=DRIVE_OPS + AGENT_OPS)
-    outcome: str = _f(choices=OUTCOMES)
-    axis: str = _f("", max_len=NAME_LEN, doc="'' for agent commands")
+    request_id: str = _f(max_len=128, doc="request_id of the request answered")
+    host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
+    op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op of the request")
+    outcome: str = _f(choices=OUTCOMES, doc="terminal outcome for this drive")
+    axis: str = _f("", max_len=NAME_LEN, name=True, doc="'' for agent commands")
     state: str = _f("unknown", choices=DRIVE_STATES, doc="state when the outcome was decided")
-    error_code: int = _f(0, range=U16)
-    reason: str = _f("", max_len=400)
+    error_code: int = _f(0, range=U16, doc="0x603F error code reached (failed), 0 = none")
+    reason: str = _f("", max_len=400, doc="why (failed, rejected, busy, timeout)")
     elapsed_s: float = _f(0.0, doc="receipt to outcome")
     cycles: int = _f(0, range=U64, doc="agent cycles from receipt to outcome")
-    lease_holder: str = _f("", max_len=NAME_LEN)
+    lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="holder of the lease (busy), '' if none")
 
 
 MESSAGE_TYPES: tuple[type, ...] = (DriveStatus, AgentStatus, Event, CommandRequest, CommandReply)
 _BY_TYPE = {cls.TYPE: cls for cls in MESSAGE_TYPES}
 
 
+# ---- op arguments -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Arg:
+    """One argument of a command op: type, rule metadata (as a field's), required or default."""
+
+    type: type
+    required: bool = False
+    default: Any = None
+    meta: dict = field(default_factory=dict)
+
+
+#: Default lease duration when ``lease`` is sent without ``ttl_s``.
+LEASE_TTL_DEFAULT_S = 10.0
+
+#: Arguments of every op that takes any; every other op takes none.
+OP_ARGS: dict[str, dict[str, Arg]] = {
+    "set_mode": {
+        "mode": Arg(int, required=True, meta={"choices": MODES, "doc": "0x6060 modes of operation"}),
+    },
+    "halt": {
+        "on": Arg(bool, required=True, meta={"doc": "set (true) or clear (false) controlword bit 8"}),
+    },
+    "lease": {
+        "holder": Arg(str, required=True, meta={"name": True, "max_len": NAME_LEN, "doc": "supervisor taking the lease"}),
+        "ttl_s": Arg(float, default=LEASE_TTL_DEFAULT_S, meta={"range": (0.1, 3600.0), "doc": "lease duration; renew before it ends"}),
+        "takeover": Arg(bool, default=False, meta={"doc": "take the lease even if another supervisor holds it"}),
+    },
+    "release": {
+        "holder": Arg(str, required=True, meta={"name": True, "max_len": NAME_LEN, "doc": "supervisor giving the lease back"}),
+    },
+    "nmt": {
+        "command": Arg(str, required=True, meta={"choices": NMT_COMMANDS, "doc": "network management command"}),
+        "axis": Arg(str, meta={"name": True, "max_len": NAME_LEN, "doc": "only this axis' slave (default: the whole segment)"}),
+    },
+}
+
+
+def _validate_args(op: Any, args: Any, where: str) -> dict:
+    if op not in DRIVE_OPS + AGENT_OPS:
+        raise SchemaError(f"op: {op!r} is not one of {', '.join(DRIVE_OPS + AGENT_OPS)}")
+    if args is None:
+        args = {}
+    if not isinstance(args, dict) or not all(isinstance(k, str) for k in args):
+        raise SchemaError(f"{where}: expected a map with string keys")
+    spec = OP_ARGS.get(op, {})
+    unknown = sorted(set(args) - set(spec))
+    if unknown:
+        takes = ", ".join(spec) if spec else "no arguments"
+        raise SchemaError(f"{where}: unknown argument(s) {', '.join(unknown)} for op {op} (takes {takes})")
+    out = {}
+    for name, arg in spec.items():
+        if name in args:
+            out[name] = _check_value(f"{where}.{name}", arg.type, arg.meta, args[name], allow_empty=False)
+        elif arg.required:
+            raise SchemaError(f"{where}.{name}: required for op {op}")
+        elif arg.default is not None:
+            out[name] = arg.default
+    return out
+
+
+def validate_args(op: str, args: dict) -> dict:
+    """Check the arguments of command ``op``; return them normalised, defaults filled in.
+
+    ``set_mode``: ``mode`` in :data:`MODES` (0x6060); ``halt``: ``on`` bool (controlword
+    bit 8); ``lease``: ``holder`` name, ``ttl_s`` 0.1..3600 (default 10), ``takeover`` bool
+    (default false); ``release``: ``holder`` name; ``nmt``: ``command`` in
+    :data:`NMT_COMMANDS`, optional ``axis`` name; every other op: no arguments.
+    Raise :class:`SchemaError` naming the field otherwise. Pure; cycle-safe.
+    """
+    return _validate_args(op, args, "args")
+
+
 # ---- codec --------------------------------------------------------------------------------
 
+_HINTS: dict[type, dict[str, type]] = {}
 
-def encode(msg: Any) -> bytes:
-    """Encode a message dataclass as msgpack (fields + ``v`` + ``type``)."""
-    if type(msg) not in _BY_TYPE.values():
-        raise SchemaError(f"cannot encode {type(msg).__name__}: not a message type")
-    body = {"v": SCHEMA_VERSION, "type": msg.TYPE}
-    for f in dataclasses.fields(msg):
-        body[f.name] = getattr(msg, f.name)
-    return msgpack.packb(body, use_bin_type=True)
+
+def _field_types(cls: type) -> dict[str, type]:
+    """Base runtime type of every field (``list`` for ``list[str]``, ``X`` for ``X | None``)."""
+    hints = _HINTS.get(cls)
+    if hints is None:
+        hints = {}
+        for name, t in typing.get_type_hints(cls).items():
+            if isinstance(t, types.UnionType) or typing.get_origin(t) is typing.Union:
+                t = next(a for a in typing.get_args(t) if a is not type(None))
+            hints[name] = typing.get_origin(t) or t
+        _HINTS[cls] = hints
+    return hints
 
 
 def _base_type(cls: type, name: str) -> type:
-    hints = typing.get_type_hints(cls)
-    t = hints[name]
-    if isinstance(t, types.UnionType) or typing.get_origin(t) is typing.Union:
-        t = next(a for a in typing.get_args(t) if a is not type(None))
-    return typing.get_origin(t) or t
+    return _field_types(cls)[name]
 
 
-def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
-    where = f"{cls.TYPE}.{f.name}"
-    t = _base_type(cls, f.name)
-    meta = f.metadata
+def _check_arg_value(where: str, value: Any, depth: int) -> Any:
+    """A JSON-like msgpack value: nil, bool, 64-bit int, finite float, str, list, str-keyed map."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int):
+        if not ARG_INT[0] <= value <= ARG_INT[1]:
+            raise SchemaError(f"{where}: integer {value} does not fit 64 bits")
+        return value
+    if isinstance(value, float):
+        if value != value or value in (float("inf"), float("-inf")):
+            raise SchemaError(f"{where}: must be a finite number")
+        return value
+    if depth >= ARG_MAX_DEPTH and isinstance(value, (list, tuple, dict)):
+        raise SchemaError(f"{where}: nested deeper than {ARG_MAX_DEPTH} levels")
+    if isinstance(value, (list, tuple)):
+        return [_check_arg_value(f"{where}[{i}]", v, depth + 1) for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        if not all(isinstance(k, str) for k in value):
+            raise SchemaError(f"{where}: expected a map with string keys")
+        return {k: _check_arg_value(f"{where}.{k}", v, depth + 1) for k, v in value.items()}
+    raise SchemaError(
+        f"{where}: {type(value).__name__} is not allowed (nil, bool, int, float, str, list or map)"
+    )
+
+
+def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) -> Any:
+    """Check ``value`` against type ``t`` and rule metadata; return it normalised."""
     if t is bool:
         if not isinstance(value, bool):
             raise SchemaError(f"{where}: expected bool, got {type(value).__name__}")
@@ -227,7 +362,10 @@ def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
     elif t is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise SchemaError(f"{where}: expected number, got {type(value).__name__}")
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:
+            raise SchemaError(f"{where}: number too large") from None
         if value != value or value in (float("inf"), float("-inf")):
             raise SchemaError(f"{where}: must be a finite number")
     elif t is str:
@@ -235,13 +373,41 @@ def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
             raise SchemaError(f"{where}: expected str, got {type(value).__name__}")
         if "max_len" in meta and len(value) > meta["max_len"]:
             raise SchemaError(f"{where}: longer than {meta['max_len']} characters")
+        if "min_len" in meta and len(value) < meta["min_len"]:
+            raise SchemaError(f"{where}: shorter than {meta['min_len']} characters")
+        if meta.get("name") and not (value == "" and (allow_empty or meta.get("allow_empty"))):
+            if not _keys.is_name(value):
+                raise SchemaError(
+                    f"{where}: {value!r} is not a legal name (1-64 of [A-Za-z0-9_.-], "
+                    "not starting with '.' or '-')"
+                )
+        if meta.get("member"):
+            host, sep, axis = value.partition("/")
+            if not (sep and _keys.is_name(host) and _keys.is_name(axis)):
+                raise SchemaError(f"{where}: {value!r} is not 'host/axis' of legal names")
     elif t is dict:
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
             raise SchemaError(f"{where}: expected a map with string keys")
+        kmeta, vmeta = meta.get("keys"), meta.get("values")
+        out = {}
+        for k, v in value.items():
+            if kmeta is not None:
+                _check_value(f"{where}: key {k!r}", kmeta.type, kmeta.meta, k, allow_empty=False)
+            if vmeta is not None:
+                v = _check_value(f"{where}[{k!r}]", vmeta.type, vmeta.meta, v, allow_empty=False)
+            elif meta.get("arg_value"):
+                v = _check_arg_value(f"{where}.{k}", v, 1)
+            out[k] = v
+        value = out
     elif t is list:
         if not isinstance(value, (list, tuple)):
-            raise SchemaError(f"{where}: expected a list")
-        value = list(value)
+            raise SchemaError(f"{where}: expected a list, got {type(value).__name__}")
+        imeta = meta.get("items")
+        if imeta is None:
+            value = list(value)
+        else:
+            value = [_check_value(f"{where}[{i}]", imeta.type, imeta.meta, v, allow_empty=False)
+                     for i, v in enumerate(value)]
     if "range" in meta:
         lo, hi = meta["range"]
         if not lo <= value <= hi:
@@ -251,41 +417,98 @@ def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
     return value
 
 
-def decode(data: bytes, expected: type | None = None) -> Any:
-    """Decode and validate ``data``; raise :class:`SchemaError` (and nothing else) if invalid.
-
-    ``expected`` restricts the accepted message type.
-    """
-    try:
-        body = msgpack.unpackb(data, raw=False, strict_map_key=True)
-    except Exception as exc:  # msgpack raises several types; the contract is one.
-        raise SchemaError(f"payload is not valid msgpack: {exc}") from None
-    return from_dict(body, expected)
+def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
+    return _check_value(f"{cls.TYPE}.{f.name}", _base_type(cls, f.name), f.metadata, value,
+                        allow_empty=f.default == "")
 
 
-def from_dict(body: Any, expected: type | None = None) -> Any:
-    """Validate a decoded map (see :func:`decode`)."""
-    if not isinstance(body, dict):
-        raise SchemaError("payload is not a map")
-    v = body.get("v")
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise SchemaError("v: missing schema version")
-    if v != SCHEMA_VERSION:
-        raise SchemaError(f"v: schema version {v!r} is not supported (this side speaks {SCHEMA_VERSION})")
-    tname = body.get("type")
-    cls = _BY_TYPE.get(tname) if isinstance(tname, str) else None
-    if cls is None:
-        raise SchemaError(f"type: {tname!r} is not a message type")
-    if expected is not None and cls is not expected:
-        raise SchemaError(f"type: expected {expected.TYPE}, got {tname}")
+def _validated(cls: type, body: dict) -> dict:
+    """Field values of ``cls`` taken from ``body``, checked and normalised."""
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = set(body) - known - {"v", "type"}
     if unknown:
-        raise SchemaError(f"{cls.TYPE}: unknown field(s) {', '.join(sorted(map(str, unknown)))}")
+        raise SchemaError(f"{cls.TYPE}: unknown field(s) {', '.join(sorted(map(repr, unknown)))}")
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name in body:
             kwargs[f.name] = _check_field(cls, f, body[f.name])
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise SchemaError(f"{cls.TYPE}.{f.name}: required field missing")
-    return cls(**kwargs)
+    if cls is CommandRequest:
+        _validate_args(kwargs["op"], kwargs.get("args", {}), f"{cls.TYPE}.args")
+    return kwargs
+
+
+def to_dict(msg: Any) -> dict:
+    """The wire map of a message (``v``, ``type`` and every field), without validation."""
+    if type(msg) not in _BY_TYPE.values():
+        raise SchemaError(f"not a message type: {type(msg).__name__}")
+    body: dict[str, Any] = {"v": SCHEMA_VERSION, "type": msg.TYPE}
+    for f in dataclasses.fields(msg):
+        body[f.name] = getattr(msg, f.name)
+    return body
+
+
+def validate(msg: Any) -> Any:
+    """Check a message object against its schema; return it, or raise :class:`SchemaError`."""
+    _validated(type(msg), to_dict(msg))
+    return msg
+
+
+def encode(msg: Any) -> bytes:
+    """Validate and encode a message dataclass as msgpack (fields + ``v`` + ``type``).
+
+    Raise :class:`SchemaError` if ``msg`` would not decode on the other side, so an invalid
+    message never reaches the wire.
+    """
+    if type(msg) not in _BY_TYPE.values():
+        raise SchemaError(f"cannot encode {type(msg).__name__}: not a message type")
+    body: dict[str, Any] = {"v": SCHEMA_VERSION, "type": msg.TYPE}
+    body.update(_validated(type(msg), to_dict(msg)))
+    try:
+        return msgpack.packb(body, use_bin_type=True)
+    except Exception as exc:  # defensive: validation admits only packable values
+        raise SchemaError(f"cannot encode {msg.TYPE}: {exc}") from None
+
+
+def decode(data: bytes, expected: type | None = None) -> Any:
+    """Decode and validate ``data``; raise :class:`SchemaError` (and nothing else) if invalid.
+
+    ``data`` is bytes-like (or has ``to_bytes()``, as a zenoh ``ZBytes``). ``expected``
+    restricts the accepted message type.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)) and hasattr(data, "to_bytes"):
+        try:
+            data = data.to_bytes()
+        except Exception as exc:
+            raise SchemaError(f"payload cannot be read as bytes: {exc}") from None
+    try:
+        body = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several types; the contract is one.
+        raise SchemaError(f"payload is not valid msgpack: {exc}") from None
+    try:
+        return from_dict(body, expected)
+    except SchemaError:
+        raise
+    except Exception as exc:  # last line of defence for the "only SchemaError" contract
+        raise SchemaError(f"internal error while validating payload: {type(exc).__name__}: {exc}") from None
+
+
+def from_dict(body: Any, expected: type | None = None) -> Any:
+    """Validate a decoded map (see :func:`decode`)."""
+    if not isinstance(body, dict):
+        raise SchemaError(f"payload is not a map (got {type(body).__name__})")
+    if "v" not in body:
+        raise SchemaError("v: missing schema version")
+    v = body["v"]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise SchemaError(f"v: schema version must be an integer, got {type(v).__name__}")
+    if v != SCHEMA_VERSION:
+        raise SchemaError(f"v: schema version {v!r} is not supported (this side speaks {SCHEMA_VERSION})")
+    tname = body.get("type")
+    cls = _BY_TYPE.get(tname) if isinstance(tname, str) else None
+    if cls is None:
+        raise SchemaError(f"type: {tname!r} is not a message type ({', '.join(_BY_TYPE)})")
+    if expected is not None and cls is not expected:
+        raise SchemaError(f"type: expected {expected.TYPE}, got {tname}")
+    return cls(**_validated(cls, body))
