@@ -1,0 +1,736 @@
+"""A simulated CiA 402 servo drive: the device side, pure (no clock, no I/O, no threads).
+
+Shared by every simulator (the in-process :class:`bus_agent.bus.sim_bus.SimBus` and the
+``ecat-sim`` virtual EtherCAT segment). Time advances only through :meth:`DriveModel.step`.
+
+What it models (IEC 61800-7-201 / CiA 402, CiA 301):
+
+- the drive state machine, all eight states and transitions 0..16, driven by the controlword
+  (0x6040) decoded from bits 7,3,2,1,0; the fault reset (transition 15) on the rising edge of
+  bit 7 across steps;
+- quick stop option code 0x605A (0 coast, 1..4 ramp then Switch on disabled by transition 12,
+  5..8 ramp and stay in Quick stop active, transition 16 back on Enable operation);
+- the fault reaction (0x605E) in Fault reaction active, then Fault (transition 14); 0x603F error
+  code, 0x1001 error register and an EMCY record on fault, an EMCY with code 0 on reset;
+- modes PP 1, PV 3, PT 4, CSP 8, CSV 9, CST 10 with the 0x6061 echo; halt (controlword bit 8);
+  simple kinematics (position integrates velocity); CSP following error (0x8611, window 0x6065);
+- an object dictionary as a constant table of :class:`ObjectEntry`, values per instance, SDO
+  access with CoE abort codes (:class:`SdoAbort`).
+
+Units: position in increments, velocity in increments/s, accelerations in increments/s^2,
+torque in per mille of rated torque.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+from dataclasses import dataclass, field
+from typing import Mapping
+
+from bus_agent.cia402.states import (
+    CONTROLWORD_FAULT_RESET_BIT,
+    CONTROLWORD_HALT,
+    STATUSWORD_OF_STATE,
+    Mode,
+    State,
+    StatuswordBit,
+)
+from bus_agent.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, DriveInputs, DriveOutputs, mapping_entry
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------------------------
+# CoE SDO abort codes (ETG.1000.6 Table 41 / CiA 301 Table 22)
+
+ABORT_WRITE_ONLY = 0x06010001
+ABORT_READ_ONLY = 0x06010002
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_LENGTH_MISMATCH = 0x06070010
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_VALUE_RANGE = 0x06090030
+ABORT_DEVICE_STATE = 0x08000022
+
+SDO_ABORT_TEXT: dict[int, str] = {
+    ABORT_WRITE_ONLY: "attempt to read a write only object",
+    ABORT_READ_ONLY: "attempt to write a read only object",
+    ABORT_NO_OBJECT: "object does not exist in the object dictionary",
+    ABORT_NOT_MAPPABLE: "object cannot be mapped to the PDO",
+    ABORT_LENGTH_MISMATCH: "data type does not match, length of service parameter does not match",
+    ABORT_NO_SUBINDEX: "subindex does not exist",
+    ABORT_VALUE_RANGE: "value range of parameter exceeded",
+    ABORT_DEVICE_STATE: "data cannot be transferred because of the present device state",
+}
+
+
+class SdoAbort(Exception):
+    """An SDO request the drive refuses; ``code`` is the u32 CoE abort code."""
+
+    def __init__(self, code: int, message: str = "") -> None:
+        self.code = code
+        text = message or SDO_ABORT_TEXT.get(code, "SDO abort")
+        super().__init__(f"SDO abort 0x{code:08X}: {text}")
+
+
+# --------------------------------------------------------------------------------------------
+# Error codes (CiA 301 Table 21 / CiA 402 error codes) the model produces
+
+ERROR_COMMUNICATION_LOST = 0x8130   # CiA 301: life guard error or heartbeat error
+ERROR_FOLLOWING_ERROR = 0x8611      # CiA 402: control, position controller, following error
+ERROR_GENERIC = 0x1000              # CiA 301: generic error
+
+# 0x1001 error register bits (CiA 301 7.5.2.2)
+ERR_REG_GENERIC = 0x01
+ERR_REG_CURRENT = 0x02
+ERR_REG_VOLTAGE = 0x04
+ERR_REG_TEMPERATURE = 0x08
+ERR_REG_COMMUNICATION = 0x10
+ERR_REG_PROFILE = 0x20
+ERR_REG_MANUFACTURER = 0x80
+
+
+def error_register_for(error_code: int) -> int:
+    """0x1001 value for an active error code (bit 0 always; the class bit by the code's group)."""
+    if error_code == 0:
+        return 0
+    reg = ERR_REG_GENERIC
+    group = error_code >> 12
+    if group == 0x2:
+        reg |= ERR_REG_CURRENT
+    elif group == 0x3:
+        reg |= ERR_REG_VOLTAGE
+    elif group == 0x4:
+        reg |= ERR_REG_TEMPERATURE
+    elif error_code >> 8 == 0x81:
+        reg |= ERR_REG_COMMUNICATION
+    elif group in (0x6, 0x7, 0x8, 0x9):
+        reg |= ERR_REG_PROFILE
+    elif error_code >> 8 == 0xFF:
+        reg |= ERR_REG_MANUFACTURER
+    return reg
+
+
+# --------------------------------------------------------------------------------------------
+# Object dictionary
+
+_INT_FORMATS: dict[str, str] = {"u8": "<B", "i8": "<b", "u16": "<H", "i16": "<h", "u32": "<I", "i32": "<i"}
+_INT_RANGES: dict[str, tuple[int, int]] = {
+    "u8": (0, 0xFF), "i8": (-0x80, 0x7F), "u16": (0, 0xFFFF), "i16": (-0x8000, 0x7FFF),
+    "u32": (0, 0xFFFFFFFF), "i32": (-0x80000000, 0x7FFFFFFF),
+}
+
+
+@dataclass(frozen=True)
+class ObjectEntry:
+    """One object dictionary entry: (index, subindex), type, access and PDO mappability.
+
+    ``low``/``high`` narrow the value range the drive accepts (SDO abort 0x06090030 beyond);
+    ``default`` is the power-on value (identity values come from the profile instead).
+    """
+
+    index: int
+    subindex: int
+    name: str
+    datatype: str           # "u8","i8","u16","i16","u32","i32","str"
+    access: str             # "ro","rw","wo"
+    pdo_mappable: bool
+    default: int | str = 0
+    low: int | None = None
+    high: int | None = None
+
+    @property
+    def size(self) -> int:
+        """Size in bytes; 0 for "str" (variable: the length of the current value)."""
+        fmt = _INT_FORMATS.get(self.datatype)
+        return struct.calcsize(fmt) if fmt else 0
+
+    @property
+    def bits(self) -> int:
+        return self.size * 8
+
+    def value_range(self) -> tuple[int, int]:
+        lo, hi = _INT_RANGES[self.datatype]
+        return (lo if self.low is None else self.low, hi if self.high is None else self.high)
+
+
+def _e(index: int, sub: int, name: str, dt: str, access: str, pdo: bool = False,
+       default: int | str = 0, low: int | None = None, high: int | None = None) -> ObjectEntry:
+    return ObjectEntry(index, sub, name, dt, access, pdo, default, low, high)
+
+
+_MAX_MAP_ENTRIES = 8
+
+#: The object dictionary (constant). Values live per DriveModel instance.
+OBJECT_TABLE: tuple[ObjectEntry, ...] = (
+    _e(0x1000, 0, "device type", "u32", "ro", default=0x00020192),
+    _e(0x1001, 0, "error register", "u8", "ro", pdo=True),
+    _e(0x1008, 0, "manufacturer device name", "str", "ro", default=""),
+    _e(0x1018, 0, "identity: number of entries", "u8", "ro", default=4),
+    _e(0x1018, 1, "vendor id", "u32", "ro"),
+    _e(0x1018, 2, "product code", "u32", "ro"),
+    _e(0x1018, 3, "revision number", "u32", "ro"),
+    _e(0x1018, 4, "serial number", "u32", "ro"),
+    # Sync manager communication types (ETG.1000.6): mailbox out/in, outputs, inputs
+    _e(0x1C00, 0, "sync manager types: number", "u8", "ro", default=4),
+    _e(0x1C00, 1, "SM0 type", "u8", "ro", default=1),
+    _e(0x1C00, 2, "SM1 type", "u8", "ro", default=2),
+    _e(0x1C00, 3, "SM2 type", "u8", "ro", default=3),
+    _e(0x1C00, 4, "SM3 type", "u8", "ro", default=4),
+    # PDO assignment and mapping: data only (the model always exchanges the default layout);
+    # writable only while the PDO configuration is unlocked (PRE-OP), else 0x08000022.
+    _e(0x1C12, 0, "RxPDO assign: number", "u8", "rw", default=1, low=0, high=1),
+    _e(0x1C12, 1, "RxPDO assign 1", "u16", "rw", default=RXPDO_INDEX, low=0x1600, high=0x17FF),
+    _e(0x1C13, 0, "TxPDO assign: number", "u8", "rw", default=1, low=0, high=1),
+    _e(0x1C13, 1, "TxPDO assign 1", "u16", "rw", default=TXPDO_INDEX, low=0x1A00, high=0x1BFF),
+    _e(RXPDO_INDEX, 0, "RxPDO mapping: number", "u8", "rw", default=len(RXPDO_DEFAULT), low=0, high=_MAX_MAP_ENTRIES),
+    *(_e(RXPDO_INDEX, i + 1, f"RxPDO mapping {i + 1}", "u32", "rw",
+         default=(mapping_entry(*RXPDO_DEFAULT[i][:3]) if i < len(RXPDO_DEFAULT) else 0))
+      for i in range(_MAX_MAP_ENTRIES)),
+    _e(TXPDO_INDEX, 0, "TxPDO mapping: number", "u8", "rw", default=len(TXPDO_DEFAULT), low=0, high=_MAX_MAP_ENTRIES),
+    *(_e(TXPDO_INDEX, i + 1, f"TxPDO mapping {i + 1}", "u32", "rw",
+         default=(mapping_entry(*TXPDO_DEFAULT[i][:3]) if i < len(TXPDO_DEFAULT) else 0))
+      for i in range(_MAX_MAP_ENTRIES)),
+    # CiA 402
+    _e(0x603F, 0, "error code", "u16", "ro", pdo=True),
+    _e(0x6040, 0, "controlword", "u16", "rw", pdo=True),
+    _e(0x6041, 0, "statusword", "u16", "ro", pdo=True),
+    _e(0x605A, 0, "quick stop option code", "i16", "rw", default=2, low=0, high=8),
+    _e(0x605B, 0, "shutdown option code", "i16", "rw", default=0, low=0, high=1),
+    _e(0x605C, 0, "disable operation option code", "i16", "rw", default=1, low=0, high=1),
+    _e(0x605D, 0, "halt option code", "i16", "rw", default=1, low=1, high=4),
+    _e(0x605E, 0, "fault reaction option code", "i16", "rw", default=2, low=0, high=4),
+    _e(0x6060, 0, "modes of operation", "i8", "rw", pdo=True),
+    _e(0x6061, 0, "modes of operation display", "i8", "ro", pdo=True),
+    _e(0x6064, 0, "position actual value", "i32", "ro", pdo=True),
+    _e(0x6065, 0, "following error window", "u32", "rw", default=10_000),
+    _e(0x606C, 0, "velocity actual value", "i32", "ro", pdo=True),
+    _e(0x6071, 0, "target torque", "i16", "rw", pdo=True),
+    _e(0x6072, 0, "max torque", "u16", "rw", default=3000),
+    _e(0x6077, 0, "torque actual value", "i16", "ro", pdo=True),
+    _e(0x607A, 0, "target position", "i32", "rw", pdo=True),
+    _e(0x607F, 0, "max profile velocity", "u32", "rw", default=1_000_000),
+    _e(0x6081, 0, "profile velocity", "u32", "rw", pdo=True, default=100_000),
+    _e(0x6083, 0, "profile acceleration", "u32", "rw", pdo=True, default=1_000_000),
+    _e(0x6084, 0, "profile deceleration", "u32", "rw", pdo=True, default=1_000_000),
+    _e(0x6085, 0, "quick stop deceleration", "u32", "rw", default=10_000_000),
+    _e(0x60FF, 0, "target velocity", "i32", "rw", pdo=True),
+    _e(0x6502, 0, "supported drive modes", "u32", "ro"),
+)
+
+OBJECTS: Mapping[tuple[int, int], ObjectEntry] = {(e.index, e.subindex): e for e in OBJECT_TABLE}
+_INDEXES = frozenset(e.index for e in OBJECT_TABLE)
+_PDO_CONFIG_INDEXES = frozenset({0x1C12, 0x1C13, RXPDO_INDEX, TXPDO_INDEX})
+
+
+# --------------------------------------------------------------------------------------------
+# Emergency and profiles
+
+
+@dataclass(frozen=True)
+class Emcy:
+    """CoE emergency (service 1): error code u16, error register u8 (0x1001), 5 manufacturer bytes."""
+
+    error_code: int
+    error_register: int
+    data: bytes = b"\0" * 5
+
+
+def _modes_bitmap(*modes: Mode) -> int:
+    bits = 0
+    for m in modes:
+        bits |= 1 << m.supported_bit
+    return bits
+
+
+_COMMON_MODES = _modes_bitmap(Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY, Mode.PROFILE_TORQUE,
+                              Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE)
+
+
+@dataclass(frozen=True)
+class DriveProfile:
+    """What makes one simulated drive type differ from another."""
+
+    name: str               # "generic" | "indy7"
+    vendor_id: int
+    product_code: int
+    revision: int
+    device_name: str
+    supported_modes: int    # 0x6502 bitmap
+    statusword_extra: int   # bits OR-ed into the statusword (indy7: 0x0200 remote bit)
+    not_ready_on_power_up: bool  # indy7: sits in not_ready_to_switch_on (0x0220), accepts Shutdown there
+    self_test_steps: int = 2     # generic: steps in not_ready_to_switch_on before transition 1
+    mode_echo_delay_steps: int = 0  # extra steps before 0x6061 echoes 0x6060
+    torque_accel: float = 10_000.0  # increments/s^2 per per-mille of torque (PT/CST kinematics)
+
+
+PROFILES: dict[str, DriveProfile] = {
+    "generic": DriveProfile(
+        name="generic", vendor_id=0x00000ABC, product_code=0x00402001, revision=0x00010000,
+        device_name="SimDrive402", supported_modes=_COMMON_MODES, statusword_extra=0x0200,
+        not_ready_on_power_up=False,
+    ),
+    # Neuromeka Indy7 joint as seed 004 reports it: 0x0220 -> 0x0221 -> 0x0233 -> 0x0237.
+    # Identity values are the simulator's own, not the real drive's.
+    "indy7": DriveProfile(
+        name="indy7", vendor_id=0x00000ABC, product_code=0x00402007, revision=0x00010000,
+        device_name="SimIndy7Joint", supported_modes=_COMMON_MODES, statusword_extra=0x0200,
+        not_ready_on_power_up=True,
+    ),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Controlword decoding (CiA 402 Table "command coding", bits 7,3,2,1,0)
+
+
+class _Cmd:
+    SHUTDOWN = "shutdown"
+    SWITCH_ON = "switch_on"
+    ENABLE_OPERATION = "enable_operation"
+    DISABLE_VOLTAGE = "disable_voltage"
+    QUICK_STOP = "quick_stop"
+
+
+def decode_command(controlword: int) -> str:
+    """The device command of a controlword's bits 3,2,1,0 (bit 7 is handled as an edge).
+
+    Disable voltage (bit 1 = 0) wins over quick stop (bit 2 = 0), as in the standard's table.
+    """
+    b0 = controlword & 0x1
+    b1 = controlword & 0x2
+    b2 = controlword & 0x4
+    b3 = controlword & 0x8
+    if not b1:
+        return _Cmd.DISABLE_VOLTAGE
+    if not b2:
+        return _Cmd.QUICK_STOP
+    if not b0:
+        return _Cmd.SHUTDOWN
+    return _Cmd.ENABLE_OPERATION if b3 else _Cmd.SWITCH_ON
+
+
+_POWERED = frozenset({State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
+_POSITION_WINDOW = 10  # increments: target reached (statusword bit 10) in position modes
+_VELOCITY_WINDOW = 10  # increments/s: target reached in velocity modes
+
+
+class DriveModel:
+    """One CiA 402 drive (device side). Pure and single-threaded: the caller serialises access.
+
+    Controlword writes (SDO or :meth:`apply_outputs`) are evaluated at the next :meth:`step`.
+    """
+
+    objects: Mapping[tuple[int, int], ObjectEntry] = OBJECTS
+
+    def __init__(self, profile: DriveProfile = PROFILES["generic"], serial: int = 0) -> None:
+        if isinstance(profile, str):  # tolerated convenience
+            profile = PROFILES[profile]
+        self.profile = profile
+        self.serial = serial
+        self.pdo_config_locked = False
+        self._emcy: list[Emcy] = []
+        self._reset_power_on()
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def _reset_power_on(self) -> None:
+        p = self.profile
+        self._values: dict[tuple[int, int], int | str] = {k: e.default for k, e in OBJECTS.items()}
+        self._values[(0x1008, 0)] = p.device_name
+        self._values[(0x1018, 1)] = p.vendor_id
+        self._values[(0x1018, 2)] = p.product_code
+        self._values[(0x1018, 3)] = p.revision
+        self._values[(0x1018, 4)] = self.serial & 0xFFFFFFFF
+        self._values[(0x6502, 0)] = p.supported_modes
+        self._state = State.NOT_READY_TO_SWITCH_ON       # transition 0
+        self._steps_in_state = 0
+        self._prev_fault_reset_bit = False
+        self._position = 0.0
+        self._velocity = 0.0
+        self._torque = 0.0
+        self._mode_pending: int | None = None
+        self._mode_delay = 0
+        self._pp_target: float | None = None
+        self._prev_new_setpoint = False
+        self._following_error = False
+        self._target_reached = False
+        self._update_statusword()
+
+    def power_cycle(self) -> None:
+        """Power off and on: every value back to its default, state Not ready (transition 0)."""
+        log.info("drive model serial=%d: power cycle", self.serial)
+        self._emcy.clear()
+        self._reset_power_on()
+
+    @property
+    def state(self) -> State:
+        return self._state
+
+    @property
+    def statusword(self) -> int:
+        return int(self._values[(0x6041, 0)])
+
+    @property
+    def error_code(self) -> int:
+        return int(self._values[(0x603F, 0)])
+
+    @property
+    def position(self) -> float:
+        return self._position
+
+    @property
+    def velocity(self) -> float:
+        return self._velocity
+
+    # ---------------------------------------------------------------- object access (SDO)
+
+    def _entry(self, index: int, subindex: int) -> ObjectEntry:
+        entry = OBJECTS.get((index, subindex))
+        if entry is None:
+            if index in _INDEXES:
+                raise SdoAbort(ABORT_NO_SUBINDEX, f"0x{index:04X} has no subindex {subindex}")
+            raise SdoAbort(ABORT_NO_OBJECT, f"no object 0x{index:04X}")
+        return entry
+
+    def read(self, index: int, subindex: int) -> int | str:
+        """SDO upload of one entry (value as int, or str for "str" entries). Raises SdoAbort."""
+        entry = self._entry(index, subindex)
+        if entry.access == "wo":
+            raise SdoAbort(ABORT_WRITE_ONLY, f"0x{index:04X}:{subindex} is write only")
+        return self._values[(index, subindex)]
+
+    def write(self, index: int, subindex: int, value: int) -> None:
+        """SDO download of one entry. Raises SdoAbort (unknown, read only, range, state);
+        a refused write changes nothing."""
+        entry = self._entry(index, subindex)
+        if entry.access == "ro":
+            raise SdoAbort(ABORT_READ_ONLY, f"0x{index:04X}:{subindex} ({entry.name}) is read only")
+        if entry.datatype == "str" or not isinstance(value, int) or isinstance(value, bool):
+            raise SdoAbort(ABORT_LENGTH_MISMATCH, f"0x{index:04X}:{subindex} takes an integer")
+        lo, hi = entry.value_range()
+        if not lo <= value <= hi:
+            raise SdoAbort(ABORT_VALUE_RANGE, f"0x{index:04X}:{subindex} ({entry.name}) = {value} outside {lo}..{hi}")
+        if index in _PDO_CONFIG_INDEXES:
+            self._check_pdo_config_write(entry, value)
+        if (index, subindex) == (0x6060, 0):
+            if not self._mode_supported(value):
+                raise SdoAbort(ABORT_VALUE_RANGE, f"mode {value} not in 0x6502=0x{self.profile.supported_modes:08X}")
+            self._request_mode(value)
+        self._values[(index, subindex)] = value
+
+    def _check_pdo_config_write(self, entry: ObjectEntry, value: int) -> None:
+        if self.pdo_config_locked:
+            raise SdoAbort(ABORT_DEVICE_STATE, f"0x{entry.index:04X} writable only in PRE-OP")
+        if entry.index in (RXPDO_INDEX, TXPDO_INDEX) and entry.subindex > 0 and value != 0:
+            mapped = OBJECTS.get((value >> 16, (value >> 8) & 0xFF))
+            if mapped is None or not mapped.pdo_mappable or mapped.bits != value & 0xFF:
+                raise SdoAbort(ABORT_NOT_MAPPABLE, f"0x{value:08X} cannot be mapped")
+
+    def read_bytes(self, index: int, subindex: int) -> bytes:
+        """SDO upload as little-endian bytes of the entry's size (UTF-8 for strings)."""
+        entry = self._entry(index, subindex)
+        value = self.read(index, subindex)
+        if entry.datatype == "str":
+            return str(value).encode()
+        return struct.pack(_INT_FORMATS[entry.datatype], int(value))
+
+    def write_bytes(self, index: int, subindex: int, data: bytes) -> None:
+        """SDO download from little-endian bytes; the length must be the entry's (0x06070010)."""
+        entry = self._entry(index, subindex)
+        if entry.access == "ro":
+            raise SdoAbort(ABORT_READ_ONLY, f"0x{index:04X}:{subindex} ({entry.name}) is read only")
+        if entry.datatype == "str" or len(data) != entry.size:
+            raise SdoAbort(ABORT_LENGTH_MISMATCH,
+                           f"0x{index:04X}:{subindex} takes {entry.size} bytes, got {len(data)}")
+        (value,) = struct.unpack(_INT_FORMATS[entry.datatype], bytes(data))
+        self.write(index, subindex, value)
+
+    def set_pdo_config_locked(self, locked: bool) -> None:
+        """Lock 0x1C12/0x1C13/0x1600/0x1A00 against writes (SAFE-OP and OP: abort 0x08000022)."""
+        self.pdo_config_locked = locked
+
+    # ---------------------------------------------------------------- process data
+
+    def apply_outputs(self, outputs: DriveOutputs) -> None:
+        """RxPDO: 0x6040, 0x607A, 0x60FF, 0x6071, 0x6060. A mode outside 0x6502 is ignored
+        (0x6061 keeps the old value); the controlword is evaluated at the next step."""
+        v = self._values
+        v[(0x6040, 0)] = outputs.controlword & 0xFFFF
+        v[(0x607A, 0)] = _clamp_int(outputs.target_position, "i32")
+        v[(0x60FF, 0)] = _clamp_int(outputs.target_velocity, "i32")
+        v[(0x6071, 0)] = _clamp_int(outputs.target_torque, "i16")
+        mode = outputs.modes_of_operation
+        if mode != v[(0x6060, 0)]:
+            if self._mode_supported(mode):
+                v[(0x6060, 0)] = mode
+                self._request_mode(mode)
+            elif mode != 0:
+                log.debug("drive model serial=%d: PDO mode %d not supported, ignored", self.serial, mode)
+
+    def inputs(self) -> DriveInputs:
+        """TxPDO: 0x6041, 0x6064, 0x606C, 0x6077, 0x6061, 0x603F."""
+        v = self._values
+        return DriveInputs(
+            statusword=int(v[(0x6041, 0)]), position_actual=int(v[(0x6064, 0)]),
+            velocity_actual=int(v[(0x606C, 0)]), torque_actual=int(v[(0x6077, 0)]),
+            modes_of_operation_display=int(v[(0x6061, 0)]), error_code=int(v[(0x603F, 0)]),
+        )
+
+    # ---------------------------------------------------------------- modes
+
+    def _mode_supported(self, mode: int) -> bool:
+        try:
+            m = Mode(mode)
+        except ValueError:
+            return False
+        return bool(self.profile.supported_modes >> m.supported_bit & 1)
+
+    def _request_mode(self, mode: int) -> None:
+        if mode == self._values[(0x6061, 0)]:
+            self._mode_pending = None
+            return
+        self._mode_pending = mode
+        self._mode_delay = self.profile.mode_echo_delay_steps
+
+    # ---------------------------------------------------------------- faults and emergencies
+
+    def inject_fault(self, error_code: int) -> None:
+        """A fault detected now (transition 13 from any state): 0x603F, 0x1001, an EMCY,
+        then the fault reaction (0x605E) in Fault reaction active and Fault (transition 14)."""
+        if not isinstance(error_code, int) or not 0 < error_code <= 0xFFFF:
+            raise ValueError(f"error code must be 1..0xFFFF, got {error_code!r}")
+        reg = error_register_for(error_code)
+        self._values[(0x603F, 0)] = error_code
+        self._values[(0x1001, 0)] = reg
+        self._emcy.append(Emcy(error_code, reg))
+        if self._state not in (State.FAULT_REACTION_ACTIVE, State.FAULT):
+            log.warning("drive model serial=%d: fault 0x%04X in %s (transition 13)",
+                        self.serial, error_code, self._state.value)
+            self._enter(State.FAULT_REACTION_ACTIVE)
+        self._update_statusword()
+
+    def communication_lost(self) -> None:
+        """Outputs stopped (SM watchdog, AL left OP): a drive in Operation enabled or Quick stop
+        active performs a fault reaction with 0x8130 (CiA 301 heartbeat/life guard error).
+        In the other states it holds no torque and nothing changes."""
+        if self._state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            self.inject_fault(ERROR_COMMUNICATION_LOST)
+
+    def take_emcy(self) -> list[Emcy]:
+        """EMCY records produced since the last call (oldest first)."""
+        out, self._emcy = self._emcy, []
+        return out
+
+    # ---------------------------------------------------------------- the step
+
+    def _enter(self, state: State) -> None:
+        self._state = state
+        self._steps_in_state = 0
+        if state is State.OPERATION_ENABLED:
+            self._pp_target = None
+
+    def step(self, dt_s: float) -> None:
+        """Advance the drive by ``dt_s`` seconds: controlword commands, automatic transitions,
+        fault reaction, mode echo and motion. Never raises on any controlword."""
+        if not dt_s >= 0.0 or math.isinf(dt_s):
+            raise ValueError(f"dt_s must be a finite number >= 0, got {dt_s!r}")
+        cw = int(self._values[(0x6040, 0)])
+        reset_bit = bool(cw & CONTROLWORD_FAULT_RESET_BIT)
+        reset_edge = reset_bit and not self._prev_fault_reset_bit
+        self._prev_fault_reset_bit = reset_bit
+        self._steps_in_state += 1
+        self._transition(cw, reset_edge)
+        if self._mode_pending is not None:
+            if self._mode_delay <= 0:
+                self._values[(0x6061, 0)] = self._mode_pending
+                self._mode_pending = None
+            else:
+                self._mode_delay -= 1
+        self._motion(cw, dt_s)
+        self._update_statusword()
+
+    def _transition(self, cw: int, reset_edge: bool) -> None:
+        s = self._state
+        cmd = decode_command(cw)
+        S = State
+        if s is S.NOT_READY_TO_SWITCH_ON:
+            if self.profile.not_ready_on_power_up:
+                if cmd == _Cmd.SHUTDOWN:       # indy7: accepts Shutdown here (seed 004)
+                    self._enter(S.READY_TO_SWITCH_ON)
+            elif self._steps_in_state >= self.profile.self_test_steps:
+                self._enter(S.SWITCH_ON_DISABLED)     # transition 1
+        elif s is S.SWITCH_ON_DISABLED:
+            if cmd == _Cmd.SHUTDOWN:
+                self._enter(S.READY_TO_SWITCH_ON)     # 2
+        elif s is S.READY_TO_SWITCH_ON:
+            if cmd in (_Cmd.SWITCH_ON, _Cmd.ENABLE_OPERATION):
+                self._enter(S.SWITCHED_ON)            # 3 (Enable operation: 3 now, 4 next step)
+            elif cmd in (_Cmd.DISABLE_VOLTAGE, _Cmd.QUICK_STOP):
+                self._enter(S.SWITCH_ON_DISABLED)     # 7
+        elif s is S.SWITCHED_ON:
+            if cmd == _Cmd.ENABLE_OPERATION:
+                self._enter(S.OPERATION_ENABLED)      # 4
+            elif cmd == _Cmd.SHUTDOWN:
+                self._enter(S.READY_TO_SWITCH_ON)     # 6
+            elif cmd in (_Cmd.DISABLE_VOLTAGE, _Cmd.QUICK_STOP):
+                self._enter(S.SWITCH_ON_DISABLED)     # 10
+        elif s is S.OPERATION_ENABLED:
+            if cmd == _Cmd.SWITCH_ON:
+                self._enter(S.SWITCHED_ON)            # 5 (disable operation)
+            elif cmd == _Cmd.SHUTDOWN:
+                self._enter(S.READY_TO_SWITCH_ON)     # 8
+            elif cmd == _Cmd.DISABLE_VOLTAGE:
+                self._enter(S.SWITCH_ON_DISABLED)     # 9
+            elif cmd == _Cmd.QUICK_STOP:
+                self._enter(S.QUICK_STOP_ACTIVE)      # 11
+                if self._quick_stop_option() == 0:    # coast: torque off at once
+                    self._velocity = 0.0
+        elif s is S.QUICK_STOP_ACTIVE:
+            option = self._quick_stop_option()
+            if cmd == _Cmd.DISABLE_VOLTAGE:
+                self._enter(S.SWITCH_ON_DISABLED)     # 12 (disable voltage)
+            elif cmd == _Cmd.ENABLE_OPERATION and option >= 5:
+                self._enter(S.OPERATION_ENABLED)      # 16
+            elif option <= 4 and self._velocity == 0.0:
+                self._enter(S.SWITCH_ON_DISABLED)     # 12 (quick stop completed)
+        elif s is S.FAULT_REACTION_ACTIVE:
+            if self._velocity == 0.0 and self._steps_in_state > 1:
+                self._enter(S.FAULT)                  # 14
+        elif s is S.FAULT:
+            if reset_edge:                            # 15
+                log.info("drive model serial=%d: fault 0x%04X reset (transition 15)",
+                         self.serial, self.error_code)
+                self._values[(0x603F, 0)] = 0
+                self._values[(0x1001, 0)] = 0
+                self._following_error = False
+                self._emcy.append(Emcy(0, 0))
+                self._enter(S.SWITCH_ON_DISABLED)
+
+    def _quick_stop_option(self) -> int:
+        return int(self._values[(0x605A, 0)])
+
+    def _decel_for_option(self, option: int) -> float:
+        """Deceleration of a stop option: 1 slow-down ramp (0x6084), 2..4 quick stop (0x6085)."""
+        if option == 1:
+            return float(self._values[(0x6084, 0)]) or 1.0
+        return float(self._values[(0x6085, 0)]) or 1.0
+
+    # ---------------------------------------------------------------- motion
+
+    def _ramp_to(self, target_v: float, accel: float, decel: float, dt: float) -> None:
+        v = self._velocity
+        rate = decel if abs(target_v) < abs(v) or target_v * v < 0 else accel
+        dv = rate * dt
+        if abs(target_v - v) <= dv:
+            self._velocity = target_v
+        else:
+            self._velocity = v + math.copysign(dv, target_v - v)
+
+    def _stop(self, option: int, dt: float) -> None:
+        if option == 0:
+            self._velocity = 0.0
+        else:
+            self._ramp_to(0.0, 0.0, self._decel_for_option(option), dt)
+
+    def _motion(self, cw: int, dt: float) -> None:
+        v = self._values
+        s = self._state
+        self._target_reached = False
+        self._torque = 0.0
+        if s is State.OPERATION_ENABLED:
+            if cw & CONTROLWORD_HALT:
+                self._stop(int(v[(0x605D, 0)]), dt)
+                self._target_reached = self._velocity == 0.0
+            else:
+                self._operate(cw, dt)
+        elif s is State.QUICK_STOP_ACTIVE:
+            option = self._quick_stop_option()
+            self._stop(option - 4 if option >= 5 else option, dt)  # 5..8 ramp like 1..4
+            self._target_reached = self._velocity == 0.0
+        elif s is State.FAULT_REACTION_ACTIVE:
+            self._stop(int(v[(0x605E, 0)]), dt)
+        else:
+            self._velocity = 0.0  # no torque: modelled without load inertia
+        self._position += self._velocity * dt
+        self._position = max(min(self._position, 0x7FFFFFFF), -0x80000000)
+        if (s is State.OPERATION_ENABLED and int(v[(0x6061, 0)]) == Mode.CYCLIC_SYNC_POSITION
+                and not cw & CONTROLWORD_HALT):
+            error = abs(int(v[(0x607A, 0)]) - self._position)
+            window = int(v[(0x6065, 0)])
+            self._target_reached = error <= _POSITION_WINDOW
+            if window != 0xFFFFFFFF and error > window:  # 0xFFFFFFFF: following error check off
+                self._following_error = True
+                self.inject_fault(ERROR_FOLLOWING_ERROR)
+        v[(0x6064, 0)] = int(round(self._position))
+        v[(0x606C, 0)] = _clamp_int(int(round(self._velocity)), "i32")
+        v[(0x6077, 0)] = _clamp_int(int(round(self._torque)), "i16")
+
+    def _operate(self, cw: int, dt: float) -> None:
+        v = self._values
+        mode = int(v[(0x6061, 0)])
+        vmax = float(v[(0x607F, 0)])
+        accel = float(v[(0x6083, 0)]) or 1.0
+        decel = float(v[(0x6084, 0)]) or 1.0
+        if mode == Mode.CYCLIC_SYNC_POSITION:
+            # follow the target with the speed limit 0x607F; following error checked in _motion
+            limit = vmax * dt
+            delta = max(-limit, min(limit, float(int(v[(0x607A, 0)])) - self._position))
+            self._velocity = delta / dt if dt > 0 else 0.0
+        elif mode == Mode.CYCLIC_SYNC_VELOCITY:
+            self._velocity = max(-vmax, min(vmax, float(int(v[(0x60FF, 0)]))))
+            self._target_reached = True
+        elif mode in (Mode.CYCLIC_SYNC_TORQUE, Mode.PROFILE_TORQUE):
+            tmax = float(v[(0x6072, 0)])
+            self._torque = max(-tmax, min(tmax, float(int(v[(0x6071, 0)]))))
+            self._velocity += self._torque * self.profile.torque_accel * dt
+            self._velocity = max(-vmax, min(vmax, self._velocity))
+        elif mode == Mode.PROFILE_VELOCITY:
+            target_v = max(-vmax, min(vmax, float(int(v[(0x60FF, 0)]))))
+            self._ramp_to(target_v, accel, decel, dt)
+            self._target_reached = abs(self._velocity - target_v) <= _VELOCITY_WINDOW
+        elif mode == Mode.PROFILE_POSITION:
+            new_setpoint = bool(cw & 0x10)
+            if new_setpoint and not self._prev_new_setpoint:
+                target = float(int(v[(0x607A, 0)]))
+                if cw & 0x40:  # relative
+                    target += self._pp_target if self._pp_target is not None else self._position
+                self._pp_target = target
+            self._prev_new_setpoint = new_setpoint
+            if self._pp_target is None:
+                self._ramp_to(0.0, accel, decel, dt)
+            else:
+                dist = self._pp_target - self._position
+                # the fastest speed that can still stop at the target with 0x6084
+                want = math.copysign(min(float(v[(0x6081, 0)]), vmax, math.sqrt(2.0 * decel * abs(dist))), dist)
+                self._ramp_to(want, accel, decel, dt)
+                if dt > 0 and abs(dist) <= abs(self._velocity) * dt:
+                    self._velocity = dist / dt  # land on the target this step
+                self._target_reached = abs(dist - self._velocity * dt) < 0.5
+        else:
+            self._ramp_to(0.0, accel, decel, dt)  # no mode: hold
+
+    def _update_statusword(self) -> None:
+        s = self._state
+        sw = STATUSWORD_OF_STATE[s] | self.profile.statusword_extra
+        if s in _POWERED:
+            sw |= 1 << StatuswordBit.VOLTAGE_ENABLED
+        if s in (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED):
+            sw |= 1 << StatuswordBit.QUICK_STOP  # quick stop bit is low-active: not active here
+        if self._target_reached:
+            sw |= 1 << StatuswordBit.TARGET_REACHED
+        mode = int(self._values[(0x6061, 0)])
+        if s is State.OPERATION_ENABLED:
+            if mode in (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE):
+                sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # drive follows the command value
+            elif mode == Mode.PROFILE_POSITION and int(self._values[(0x6040, 0)]) & 0x10:
+                sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # set-point acknowledge
+        if self._following_error and mode == Mode.CYCLIC_SYNC_POSITION:
+            sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_13
+        self._values[(0x6041, 0)] = sw
+
+
+def _clamp_int(value: int, datatype: str) -> int:
+    lo, hi = _INT_RANGES[datatype]
+    return max(lo, min(hi, int(value)))
