@@ -1,0 +1,124 @@
+"""One place that turns the project's few Zenoh settings into a ``zenoh.Config``.
+
+Used by the bus agent, the supervisor and the tests, so every session of the project has the
+same defaults (see shared/docs/zenoh.md):
+
+- multicast scouting off (it only works on one L2 segment and leaks between test runs);
+- a short link lease (``transport/link/tx/lease``, default 10 s in zenoh) so a cut network is
+  noticed in about :data:`DEFAULT_LINK_LEASE_MS` and liveliness tokens of the far side vanish;
+- peers and routers retry their ``connect`` endpoints in the background (``timeout_ms`` -1:
+  ``open`` returns at once and the link comes up when the router does); clients wait at most
+  :data:`DEFAULT_CLIENT_CONNECT_TIMEOUT_MS` in ``open`` and fail with a clear error otherwise.
+
+``make_zenoh_config(mode, listen, connect)`` is a stable signature: other packages import it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any, Iterable, Mapping
+
+import zenoh
+
+log = logging.getLogger(__name__)
+
+MODES = ("peer", "client", "router")
+#: Link lease: a silent link is declared dead after this long (zenoh default 10000 ms).
+DEFAULT_LINK_LEASE_MS = 3000
+#: Keep-alive messages per lease period (zenoh's default ratio).
+DEFAULT_KEEP_ALIVE = 4
+#: How long a client's ``open`` waits for a router before it raises.
+DEFAULT_CLIENT_CONNECT_TIMEOUT_MS = 5000
+#: Background reconnection back-off of peers and routers.
+CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 2000, "period_increase_factor": 2}
+
+
+class ZenohConfigError(ValueError):
+    """A Zenoh setting that cannot work (unknown mode, malformed endpoint)."""
+
+
+def _check_endpoint(ep: str) -> str:
+    # Zenoh's own error for a malformed locator comes late (at open) and is cryptic.
+    if not isinstance(ep, str) or "/" not in ep or ep.startswith("/") or ep.endswith("/"):
+        raise ZenohConfigError(
+            f"endpoint {ep!r} is not a zenoh locator: expected <protocol>/<address>, e.g. tcp/127.0.0.1:7447"
+        )
+    return ep
+
+
+def make_zenoh_config(
+    mode: str = "peer",
+    listen: Iterable[str] = (),
+    connect: Iterable[str] = (),
+    *,
+    multicast_scouting: bool = False,
+    link_lease_ms: int = DEFAULT_LINK_LEASE_MS,
+    connect_timeout_ms: int | None = None,
+    extra: Mapping[str, Any] | None = None,
+    base: zenoh.Config | None = None,
+) -> zenoh.Config:
+    """Build a ``zenoh.Config``.
+
+    ``mode``: 'peer', 'client' or 'router'. ``listen``/``connect``: endpoint lists
+    (``tcp/127.0.0.1:7447``). ``connect_timeout_ms``: None picks -1 (retry in the background)
+    for peers and routers and :data:`DEFAULT_CLIENT_CONNECT_TIMEOUT_MS` for clients.
+    ``extra``: further settings as ``{"path/to/key": json-serialisable value}`` (TLS, ACL, auth).
+    ``base``: a config (e.g. loaded from a JSON5 file) to apply these settings on top of.
+    Raises :class:`ZenohConfigError` on an unknown mode or a malformed endpoint.
+    """
+    if mode not in MODES:
+        raise ZenohConfigError(f"zenoh mode {mode!r} is not one of {', '.join(MODES)}")
+    listen = [_check_endpoint(ep) for ep in listen]
+    connect = [_check_endpoint(ep) for ep in connect]
+    if link_lease_ms < 100:
+        raise ZenohConfigError(f"link lease {link_lease_ms} ms is too short (at least 100 ms)")
+    if connect_timeout_ms is None:
+        connect_timeout_ms = DEFAULT_CLIENT_CONNECT_TIMEOUT_MS if mode == "client" else -1
+    settings: dict[str, Any] = {
+        "mode": mode,
+        "connect/endpoints": connect,
+        "connect/timeout_ms": connect_timeout_ms,
+        "connect/exit_on_failure": mode == "client",
+        "connect/retry": CONNECT_RETRY,
+        "scouting/multicast/enabled": bool(multicast_scouting),
+        "transport/link/tx/lease": int(link_lease_ms),
+        "transport/link/tx/keep_alive": DEFAULT_KEEP_ALIVE,
+    }
+    if listen or mode != "client":
+        # An empty list keeps a peer from listening on a random port of every interface.
+        settings["listen/endpoints"] = listen
+    settings.update(extra or {})
+    return _apply(zenoh.Config() if base is None else base, settings)
+
+
+def _apply(conf: zenoh.Config, settings: Mapping[str, Any]) -> zenoh.Config:
+    for key, value in settings.items():
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except Exception as exc:  # zenoh raises ZError; the caller wants the setting named
+            raise ZenohConfigError(f"zenoh setting {key}={value!r} rejected: {exc}") from None
+    return conf
+
+
+def from_settings(zc: Any) -> zenoh.Config:
+    """Build from an object with ``mode``, ``listen``, ``connect`` and optional ``scouting``
+    (multicast), ``link_lease_ms``, ``connect_timeout_ms``, ``config_file`` attributes (the
+    agent's ``[zenoh]`` section, ``bus_agent.config.ZenohConfig``). A ``config_file`` (JSON5: TLS, ACL, auth) is loaded first and the
+    other settings are applied on top of it."""
+    base = None
+    path = getattr(zc, "config_file", None)
+    if path:
+        try:
+            base = zenoh.Config.from_file(str(path))
+        except Exception as exc:
+            raise ZenohConfigError(f"zenoh config file {path}: {exc}") from None
+    return make_zenoh_config(
+        getattr(zc, "mode", "peer"),
+        getattr(zc, "listen", ()) or (),
+        getattr(zc, "connect", ()) or (),
+        multicast_scouting=bool(getattr(zc, "multicast_scouting", getattr(zc, "scouting", False))),
+        link_lease_ms=int(getattr(zc, "link_lease_ms", None) or DEFAULT_LINK_LEASE_MS),
+        connect_timeout_ms=getattr(zc, "connect_timeout_ms", None),
+        base=base,
+    )
