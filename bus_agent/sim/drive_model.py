@@ -425,7 +425,10 @@ class DriveModel:
             raise SdoAbort(ABORT_DEVICE_STATE, f"0x{entry.index:04X} writable only in PRE-OP")
         if entry.index in (RXPDO_INDEX, TXPDO_INDEX) and entry.subindex > 0 and value != 0:
             mapped = OBJECTS.get((value >> 16, (value >> 8) & 0xFF))
-            if mapped is None or not mapped.pdo_mappable or mapped.bits != value & 0xFF:
+            # RxPDOs carry writable objects only, TxPDOs readable ones
+            wrong_way = mapped is not None and (
+                mapped.access == "ro" if entry.index == RXPDO_INDEX else mapped.access == "wo")
+            if mapped is None or not mapped.pdo_mappable or mapped.bits != value & 0xFF or wrong_way:
                 raise SdoAbort(ABORT_NOT_MAPPABLE, f"0x{value:08X} cannot be mapped")
 
     def read_bytes(self, index: int, subindex: int) -> bytes:
