@@ -7,6 +7,7 @@ drive model. Pure; cycle-safe.
 from __future__ import annotations
 
 from enum import Enum, IntEnum
+from typing import NamedTuple
 
 
 class State(str, Enum):
@@ -111,3 +112,107 @@ class Mode(IntEnum):
 
 
 CYCLIC_MODES = frozenset({Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE})
+
+
+# --- Transition table (IEC 61800-7-201 / CiA 402, drive state machine) -----------------------
+
+
+class Transition(NamedTuple):
+    """One numbered transition of the drive state machine.
+
+    ``from_state`` is None for transition 0 (power-on: no state yet) and 13 (from any state).
+    ``command`` is the controlword (0x6040) that requests it, None for the automatic transitions
+    0, 1, 13 and 14; ``alternatives`` are other commands the standard defines for it (quick stop
+    in 7 and 10). Transition 12 also happens automatically when a quick stop with 0x605A 0..4
+    completes (``automatic_too``).
+    """
+
+    number: int
+    from_state: State | None
+    to_state: State
+    command: Controlword | None
+    alternatives: tuple[Controlword, ...] = ()
+    automatic_too: bool = False
+
+
+_S = State
+_C = Controlword
+
+#: The 17 standard transitions, indexed by number (TRANSITIONS[n].number == n).
+TRANSITIONS: tuple[Transition, ...] = (
+    Transition(0, None, _S.NOT_READY_TO_SWITCH_ON, None),
+    Transition(1, _S.NOT_READY_TO_SWITCH_ON, _S.SWITCH_ON_DISABLED, None),
+    Transition(2, _S.SWITCH_ON_DISABLED, _S.READY_TO_SWITCH_ON, _C.SHUTDOWN),
+    Transition(3, _S.READY_TO_SWITCH_ON, _S.SWITCHED_ON, _C.SWITCH_ON),
+    Transition(4, _S.SWITCHED_ON, _S.OPERATION_ENABLED, _C.ENABLE_OPERATION),
+    Transition(5, _S.OPERATION_ENABLED, _S.SWITCHED_ON, DISABLE_OPERATION),
+    Transition(6, _S.SWITCHED_ON, _S.READY_TO_SWITCH_ON, _C.SHUTDOWN),
+    Transition(7, _S.READY_TO_SWITCH_ON, _S.SWITCH_ON_DISABLED, _C.DISABLE_VOLTAGE, (_C.QUICK_STOP,)),
+    Transition(8, _S.OPERATION_ENABLED, _S.READY_TO_SWITCH_ON, _C.SHUTDOWN),
+    Transition(9, _S.OPERATION_ENABLED, _S.SWITCH_ON_DISABLED, _C.DISABLE_VOLTAGE),
+    Transition(10, _S.SWITCHED_ON, _S.SWITCH_ON_DISABLED, _C.DISABLE_VOLTAGE, (_C.QUICK_STOP,)),
+    Transition(11, _S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE, _C.QUICK_STOP),
+    Transition(12, _S.QUICK_STOP_ACTIVE, _S.SWITCH_ON_DISABLED, _C.DISABLE_VOLTAGE, (), True),
+    Transition(13, None, _S.FAULT_REACTION_ACTIVE, None),
+    Transition(14, _S.FAULT_REACTION_ACTIVE, _S.FAULT, None),
+    Transition(15, _S.FAULT, _S.SWITCH_ON_DISABLED, _C.FAULT_RESET),
+    Transition(16, _S.QUICK_STOP_ACTIVE, _S.OPERATION_ENABLED, _C.ENABLE_OPERATION),
+)
+
+#: Transitions the drive makes by itself (the master only observes them).
+AUTOMATIC_TRANSITIONS = frozenset({0, 1, 13, 14})
+
+
+def transition_between(from_state: State, to_state: State) -> int | None:
+    """Number of the standard transition from ``from_state`` to ``to_state``, or None.
+
+    Transition 13 (fault detected) matches from any state except the two fault states;
+    transition 0 (power-on) has no from-state and is never returned here.
+    """
+    for t in TRANSITIONS:
+        if t.to_state is not to_state or t.number == 0:
+            continue
+        if t.from_state is from_state:
+            return t.number
+        if t.number == 13 and from_state not in (
+            State.FAULT_REACTION_ACTIVE, State.FAULT, State.UNKNOWN
+        ):
+            return t.number
+    return None
+
+
+#: The command that keeps each state (no transition): where the standard defines no command in a
+#: state (not ready, fault reaction active, fault), Disable voltage is the neutral one.
+STATE_KEEP_COMMANDS: dict[State, frozenset[Controlword]] = {
+    _S.NOT_READY_TO_SWITCH_ON: frozenset({_C.DISABLE_VOLTAGE}),
+    _S.SWITCH_ON_DISABLED: frozenset({_C.DISABLE_VOLTAGE, _C.QUICK_STOP}),
+    _S.READY_TO_SWITCH_ON: frozenset({_C.SHUTDOWN}),
+    _S.SWITCHED_ON: frozenset({_C.SWITCH_ON}),
+    _S.OPERATION_ENABLED: frozenset({_C.ENABLE_OPERATION}),
+    _S.QUICK_STOP_ACTIVE: frozenset({_C.QUICK_STOP}),
+    _S.FAULT_REACTION_ACTIVE: frozenset({_C.DISABLE_VOLTAGE}),
+    _S.FAULT: frozenset({_C.DISABLE_VOLTAGE}),
+}
+
+
+def allowed_controlwords(state: State) -> frozenset[Controlword]:
+    """Controlword commands (bits 7,3,2,1,0 of 0x6040) the standard defines for ``state``.
+
+    The commands that request a transition out of ``state``, the command that keeps it
+    (:data:`STATE_KEEP_COMMANDS`), and Switch on + Enable operation (3+4) in Ready to switch on.
+    UNKNOWN is no standard state: anything except Enable operation and Fault reset.
+    """
+    if state is State.UNKNOWN:
+        return frozenset(Controlword) - {_C.ENABLE_OPERATION, _C.FAULT_RESET}
+    allowed = set(STATE_KEEP_COMMANDS[state])
+    for t in TRANSITIONS:
+        if t.from_state is state and t.command is not None:
+            allowed.add(t.command)
+            allowed.update(t.alternatives)
+    if state is State.READY_TO_SWITCH_ON:
+        allowed.add(_C.ENABLE_OPERATION)  # 3+4
+    return frozenset(allowed)
+
+
+#: Mask of the command bits (7, 3, 2, 1, 0) of the controlword.
+CONTROLWORD_COMMAND_MASK = 0x008F
