@@ -30,6 +30,7 @@ VERSION_CHUNK = "@v1"
 ROOT = f"{PREFIX}/{VERSION_CHUNK}"
 SUPERVISOR_CHUNK = "@sup"
 
+# Matched with fullmatch: '$' alone would accept a trailing newline.
 # A name is one key chunk: no '/', no wildcard characters, no leading '@' (verbatim),
 # no zenoh-reserved characters. Kept conservative so names are also valid file/unit names.
 NAME_MAX_LEN = 64
@@ -50,7 +51,7 @@ InvalidKey = KeyError_
 
 def validate_name(name: str, what: str = "name") -> str:
     """Return ``name`` if it is a legal single chunk, else raise :class:`InvalidKey`."""
-    if not isinstance(name, str) or not _NAME_RE.match(name):
+    if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
         raise InvalidKey(
             f"{what} {name!r} is not a legal key chunk: use 1-64 of [A-Za-z0-9_.-], "
             "not starting with '.' or '-', no '/', '*', '@', '$', '?' or '#'"
@@ -60,7 +61,7 @@ def validate_name(name: str, what: str = "name") -> str:
 
 def is_name(name: object) -> bool:
     """True if ``name`` is a legal single chunk (see :func:`validate_name`)."""
-    return isinstance(name, str) and _NAME_RE.match(name) is not None
+    return isinstance(name, str) and _NAME_RE.fullmatch(name) is not None
 
 
 def _selector_chunk_error(chunk: object, what: str, why: str) -> InvalidKey:
@@ -96,7 +97,7 @@ def validate_selector_chunk(chunk: str, what: str = "selector") -> str:
         raise _selector_chunk_error(chunk, what, "'$' is only allowed as zenoh's '$*'")
     if "**" in plain:
         raise _selector_chunk_error(chunk, what, "'**' must stand alone, and wildcards must not be adjacent")
-    if len(plain) > NAME_MAX_LEN or not _PATTERN_CHUNK_RE.match(plain):
+    if len(plain) > NAME_MAX_LEN or not _PATTERN_CHUNK_RE.fullmatch(plain):
         raise _selector_chunk_error(chunk, what, "illegal character, leading '.'/'-', or longer than 64")
     return chunk
 
@@ -138,11 +139,11 @@ def _selector_part(part: str, what: str, selector: str) -> tuple[str, str]:
             fparts.append("*")
             wild = True
         elif tok == "?" or (tok.startswith("[") and len(tok) > 1):
-            if tok != "?" and not _SEL_CLASS_RE.match(tok):
+            if tok != "?" and not _SEL_CLASS_RE.fullmatch(tok):
                 raise InvalidKey(f"selector {selector!r}: {what} character class {tok!r} may hold only [A-Za-z0-9_.-]")
             fparts.append(tok)
             wild = True
-        elif _SEL_LITERAL_RE.match(tok):
+        elif _SEL_LITERAL_RE.fullmatch(tok):
             fparts.append(tok)
             literal += 1
             wild = False
