@@ -1,0 +1,372 @@
+"""Agent configuration: frozen dataclasses loaded from TOML, with errors that name the key.
+
+One file configures one bus agent (one host, one EtherCAT segment). ``deploy/agent.example.toml``
+documents every key. Loading is pure apart from reading the file; :meth:`AgentConfig.with_overrides`
+applies CLI flags and re-validates. Bad input raises :class:`ConfigError` and builds nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from bus_agent.cia402.states import Mode
+from bus_agent.pdo import RXPDO_INDEX, TXPDO_INDEX
+from schemas.keys import InvalidKey, validate_name
+
+ZENOH_MODES = ("peer", "client", "router")
+#: What a drive does when its lease holder disappears (carried out by the gateway as a DriveCommand).
+LEASE_REACTIONS = ("quick_stop_then_disable", "quick_stop", "disable")
+#: What the other local members of a group do when one member faults or is lost.
+REFLEXES = ("quick_stop", "disable")
+SIM_PROFILES = ("generic", "indy7")
+
+
+class ConfigError(ValueError):
+    """An invalid configuration; the message names the key (``drives[2].identity.vendor_id``)."""
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    mode: str = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    scouting: bool = False  # multicast scouting: off unless asked (tests and plants set endpoints)
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Expected 0x1018 identity of a slave; a mismatch stops start-up. ``revision`` None = any."""
+
+    vendor_id: int
+    product_code: int
+    revision: int | None = None
+
+    def matches(self, vendor_id: int, product_code: int, revision: int) -> bool:
+        return (vendor_id == self.vendor_id and product_code == self.product_code
+                and (self.revision is None or revision == self.revision))
+
+    def __str__(self) -> str:
+        rev = "any" if self.revision is None else f"0x{self.revision:08X}"
+        return f"vendor 0x{self.vendor_id:08X} product 0x{self.product_code:08X} revision {rev}"
+
+
+@dataclass(frozen=True)
+class PdoMapping:
+    """PDO mapping override, written by SDO in PRE-OP (0x1C12/0x1C13 assignment, 0x16xx/0x1Axx).
+
+    The mapped objects are always the project's default layout (``bus_agent.pdo``: the records
+    ``DriveOutputs``/``DriveInputs`` have a fixed layout); the override chooses which PDO objects
+    carry it, for drives whose power-on mapping differs from it.
+    """
+
+    rx_pdo: int = RXPDO_INDEX
+    tx_pdo: int = TXPDO_INDEX
+
+
+@dataclass(frozen=True)
+class AutoReset:
+    """Bounded, backed-off automatic fault reset. Off by default: faults are reset on command."""
+
+    enabled: bool = False
+    max_attempts: int = 3          # per window; then it stops and reports
+    backoff_s: float = 1.0         # wait in Fault before the first attempt; doubled per attempt
+    backoff_max_s: float = 30.0
+    window_s: float = 60.0         # attempts are forgotten after this long without a fault
+
+
+@dataclass(frozen=True)
+class DrivePolicy:
+    transition_timeout_s: float = 5.0   # per goal (seed 000's 5 s)
+    fault_reset_retries: int = 3        # bounded rising edges on controlword bit 7
+    auto_reset: AutoReset = AutoReset()
+    lease_reaction: str = "quick_stop_then_disable"
+    lease_ttl_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    slave: int                          # 0-based position on the segment
+    axis: str = ""                      # default f"axis{slave}"
+    identity: Identity | None = None    # None: any identity accepted (logged)
+    mode: int = int(Mode.CYCLIC_SYNC_POSITION)
+    pdo: PdoMapping | None = None
+    policy: DrivePolicy = DrivePolicy()
+
+    def __post_init__(self) -> None:
+        if not self.axis:
+            object.__setattr__(self, "axis", f"axis{self.slave}")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    host: str
+    zenoh: ZenohConfig = ZenohConfig()
+    ifname: str | None = None           # pysoem backend: NIC or veth end
+    sim_drives: int = 0                 # sim backend: number of in-process drive models
+    sim_profile: str = "generic"
+    cycle_us: int = 1000
+    drives: tuple[DriveConfig, ...] = ()  # empty: every slave found, with defaults
+    groups: Mapping[str, tuple[str, ...]] = field(default_factory=dict)  # name -> "host/axis"
+    reflex: str = "quick_stop"
+    heartbeat_s: float = 1.0
+    default_policy: DrivePolicy = DrivePolicy()
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @property
+    def backend(self) -> str:
+        return "pysoem" if self.ifname else "sim"
+
+    def drive_configs(self, n_slaves: int) -> tuple[DriveConfig, ...]:
+        """The drives to control on a segment of ``n_slaves``: the configured ones, or one per
+        slave with defaults when none are configured. Raises ConfigError if a configured slave
+        position is not on the segment."""
+        if not self.drives:
+            return tuple(DriveConfig(slave=i, policy=self.default_policy) for i in range(n_slaves))
+        for i, d in enumerate(self.drives):
+            if d.slave >= n_slaves:
+                raise ConfigError(f"drives[{i}].slave: position {d.slave} configured for axis {d.axis!r} "
+                                  f"but the segment has {n_slaves} slave(s)")
+        return self.drives
+
+    def with_overrides(self, **overrides: Any) -> "AgentConfig":
+        """A copy with CLI flags applied (``host``, ``ifname``, ``sim_drives``, ``sim_profile``,
+        ``cycle_us``, ``reflex``, ``heartbeat_s``, ``zenoh_mode``, ``listen``, ``connect``,
+        ``scouting``); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
+        o = {k: v for k, v in overrides.items() if v is not None}
+        zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting"}
+        top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s"}
+        unknown = set(o) - top - set(zkeys)
+        if unknown:
+            raise ConfigError(f"unknown override(s): {', '.join(sorted(unknown))}")
+        z = {zkeys[k]: (tuple(v) if k in ("listen", "connect") else v) for k, v in o.items() if k in zkeys}
+        t = {k: v for k, v in o.items() if k in top}
+        if t.get("ifname"):
+            t.setdefault("sim_drives", 0)
+        elif t.get("sim_drives"):
+            t.setdefault("ifname", None)
+        return dataclasses.replace(self, zenoh=dataclasses.replace(self.zenoh, **z), **t)
+
+
+# ---- validation -----------------------------------------------------------------------------
+
+
+def _name(value: Any, key: str) -> str:
+    try:
+        return validate_name(value, key)
+    except InvalidKey as e:
+        raise ConfigError(str(e)) from None
+
+
+def _validate(c: AgentConfig) -> None:
+    _name(c.host, "host")
+    if c.zenoh.mode not in ZENOH_MODES:
+        raise ConfigError(f"zenoh.mode: {c.zenoh.mode!r} is not one of {', '.join(ZENOH_MODES)}")
+    if c.ifname and c.sim_drives:
+        raise ConfigError("ifname and sim_drives: choose one backend (a NIC, or simulated drives)")
+    if not c.ifname and c.sim_drives <= 0:
+        raise ConfigError("ifname or sim_drives: one is required (a NIC name, or a number of simulated drives > 0)")
+    if c.sim_profile not in SIM_PROFILES:
+        raise ConfigError(f"sim_profile: {c.sim_profile!r} is not one of {', '.join(SIM_PROFILES)}")
+    if not 100 <= c.cycle_us <= 1_000_000:
+        raise ConfigError(f"cycle_us: {c.cycle_us} is outside 100..1000000")
+    if c.reflex not in REFLEXES:
+        raise ConfigError(f"reflex: {c.reflex!r} is not one of {', '.join(REFLEXES)}")
+    if not c.heartbeat_s > 0:
+        raise ConfigError(f"status.heartbeat_s: {c.heartbeat_s} must be > 0")
+    _validate_policy(c.default_policy, "defaults")
+    slaves: dict[int, int] = {}
+    axes: dict[str, int] = {}
+    for i, d in enumerate(c.drives):
+        key = f"drives[{i}]"
+        if not isinstance(d.slave, int) or d.slave < 0 or d.slave > 65535:
+            raise ConfigError(f"{key}.slave: {d.slave!r} must be a position 0..65535")
+        _name(d.axis, f"{key}.axis")
+        if d.slave in slaves:
+            raise ConfigError(f"{key}.slave: position {d.slave} already used by drives[{slaves[d.slave]}]")
+        if d.axis in axes:
+            raise ConfigError(f"{key}.axis: {d.axis!r} already used by drives[{axes[d.axis]}]")
+        slaves[d.slave], axes[d.axis] = i, i
+        if d.mode not in {int(m) for m in Mode}:
+            raise ConfigError(f"{key}.mode: {d.mode!r} is not a CiA 402 mode (0x6060: 1,3,4,6,7,8,9,10)")
+        _validate_policy(d.policy, key)
+    for g, members in c.groups.items():
+        _name(g, f"groups.{g}")
+        if not members:
+            raise ConfigError(f"groups.{g}: a group needs at least one member")
+        for m in members:
+            host, sep, axis = m.partition("/") if isinstance(m, str) else ("", "", "")
+            if not sep:
+                raise ConfigError(f"groups.{g}: member {m!r} must be 'host/axis'")
+            _name(host, f"groups.{g} member host")
+            _name(axis, f"groups.{g} member axis")
+            if host == c.host and c.drives and axis not in axes:
+                raise ConfigError(f"groups.{g}: member {m!r} is on this host but no drive has axis {axis!r}")
+
+
+def _validate_policy(p: DrivePolicy, key: str) -> None:
+    if not p.transition_timeout_s > 0:
+        raise ConfigError(f"{key}.transition_timeout_s: {p.transition_timeout_s} must be > 0")
+    if not 1 <= p.fault_reset_retries <= 100:
+        raise ConfigError(f"{key}.fault_reset_retries: {p.fault_reset_retries} must be 1..100")
+    if p.lease_reaction not in LEASE_REACTIONS:
+        raise ConfigError(f"{key}.lease_reaction: {p.lease_reaction!r} is not one of {', '.join(LEASE_REACTIONS)}")
+    if not p.lease_ttl_s > 0:
+        raise ConfigError(f"{key}.lease_ttl_s: {p.lease_ttl_s} must be > 0")
+    a = p.auto_reset
+    if not 1 <= a.max_attempts <= 100:
+        raise ConfigError(f"{key}.auto_reset.max_attempts: {a.max_attempts} must be 1..100")
+    if not 0 < a.backoff_s <= a.backoff_max_s:
+        raise ConfigError(f"{key}.auto_reset.backoff_s: must be > 0 and <= backoff_max_s")
+    if not a.window_s > 0:
+        raise ConfigError(f"{key}.auto_reset.window_s: must be > 0")
+
+
+# ---- TOML -----------------------------------------------------------------------------------
+
+
+class _Table:
+    """A TOML table being consumed: typed getters that name the key; leftovers are errors."""
+
+    def __init__(self, data: Mapping[str, Any], path: str) -> None:
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{path or 'top level'}: expected a table, got {type(data).__name__}")
+        self.data = dict(data)
+        self.path = path
+
+    def key(self, name: str) -> str:
+        return f"{self.path}.{name}" if self.path else name
+
+    def get(self, name: str, types: type | tuple[type, ...], default: Any = dataclasses.MISSING) -> Any:
+        if name not in self.data:
+            if default is dataclasses.MISSING:
+                raise ConfigError(f"{self.key(name)}: required key missing")
+            return default
+        v = self.data.pop(name)
+        if isinstance(v, bool) and bool not in (types if isinstance(types, tuple) else (types,)):
+            raise ConfigError(f"{self.key(name)}: expected {_tn(types)}, got a boolean")
+        if not isinstance(v, types):
+            raise ConfigError(f"{self.key(name)}: expected {_tn(types)}, got {type(v).__name__} {v!r}")
+        if isinstance(types, tuple) and float in types and isinstance(v, int):
+            v = float(v)
+        return v
+
+    def table(self, name: str) -> "_Table":
+        return _Table(self.get(name, dict, {}), self.key(name))
+
+    def strings(self, name: str) -> tuple[str, ...]:
+        v = self.get(name, list, [])
+        for i, s in enumerate(v):
+            if not isinstance(s, str):
+                raise ConfigError(f"{self.key(name)}[{i}]: expected a string, got {s!r}")
+        return tuple(v)
+
+    def done(self) -> None:
+        if self.data:
+            raise ConfigError(f"{self.key(sorted(self.data)[0])}: unknown key")
+
+
+def _tn(types: type | tuple[type, ...]) -> str:
+    ts = types if isinstance(types, tuple) else (types,)
+    names = {int: "an integer", float: "a number", str: "a string", bool: "a boolean", list: "an array", dict: "a table"}
+    return " or ".join(names.get(t, t.__name__) for t in ts)
+
+
+_NUM = (int, float)
+
+
+def _policy(t: _Table, base: DrivePolicy) -> DrivePolicy:
+    a = t.table("auto_reset")
+    b = base.auto_reset
+    auto = AutoReset(
+        enabled=a.get("enabled", bool, b.enabled),
+        max_attempts=a.get("max_attempts", int, b.max_attempts),
+        backoff_s=a.get("backoff_s", _NUM, b.backoff_s),
+        backoff_max_s=a.get("backoff_max_s", _NUM, b.backoff_max_s),
+        window_s=a.get("window_s", _NUM, b.window_s),
+    )
+    a.done()
+    return DrivePolicy(
+        transition_timeout_s=t.get("transition_timeout_s", _NUM, base.transition_timeout_s),
+        fault_reset_retries=t.get("fault_reset_retries", int, base.fault_reset_retries),
+        auto_reset=auto,
+        lease_reaction=t.get("lease_reaction", str, base.lease_reaction),
+        lease_ttl_s=t.get("lease_ttl_s", _NUM, base.lease_ttl_s),
+    )
+
+
+def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
+    """Build an AgentConfig from parsed TOML (or any mapping of the same shape)."""
+    t = _Table(data, "")
+    z = t.table("zenoh")
+    zenoh = ZenohConfig(mode=z.get("mode", str, "peer"), listen=z.strings("listen"),
+                        connect=z.strings("connect"), scouting=z.get("scouting", bool, False))
+    z.done()
+    s = t.table("status")
+    heartbeat_s = s.get("heartbeat_s", _NUM, 1.0)
+    s.done()
+    defaults_t = t.table("defaults")
+    defaults = _policy(defaults_t, DrivePolicy())
+    defaults_t.done()
+    drives = []
+    for i, raw in enumerate(t.get("drives", list, [])):
+        d = _Table(raw, f"drives[{i}]")
+        slave = d.get("slave", int)
+        ident = None
+        if "identity" in d.data:
+            it = d.table("identity")
+            ident = Identity(vendor_id=it.get("vendor_id", int), product_code=it.get("product_code", int),
+                             revision=it.get("revision", int, None))
+            it.done()
+        pdo = None
+        if "pdo" in d.data:
+            pt = d.table("pdo")
+            pdo = PdoMapping(rx_pdo=pt.get("rx_pdo", int, RXPDO_INDEX), tx_pdo=pt.get("tx_pdo", int, TXPDO_INDEX))
+            pt.done()
+            if not 0x1600 <= pdo.rx_pdo <= 0x17FF:
+                raise ConfigError(f"drives[{i}].pdo.rx_pdo: 0x{pdo.rx_pdo:04X} is not an RxPDO mapping (0x1600..0x17FF)")
+            if not 0x1A00 <= pdo.tx_pdo <= 0x1BFF:
+                raise ConfigError(f"drives[{i}].pdo.tx_pdo: 0x{pdo.tx_pdo:04X} is not a TxPDO mapping (0x1A00..0x1BFF)")
+        drives.append(DriveConfig(slave=slave, axis=d.get("axis", str, ""), identity=ident,
+                                  mode=d.get("mode", int, int(Mode.CYCLIC_SYNC_POSITION)), pdo=pdo,
+                                  policy=_policy(d, defaults)))
+        d.done()
+    g = t.table("groups")
+    groups = {name: g.strings(name) for name in list(g.data)}
+    g.done()
+    cfg = AgentConfig(
+        host=t.get("host", str),
+        zenoh=zenoh,
+        ifname=t.get("ifname", str, None),
+        sim_drives=t.get("sim_drives", int, 0),
+        sim_profile=t.get("sim_profile", str, "generic"),
+        cycle_us=t.get("cycle_us", int, 1000),
+        drives=tuple(drives),
+        groups=groups,
+        reflex=t.get("reflex", str, "quick_stop"),
+        heartbeat_s=heartbeat_s,
+        default_policy=defaults,
+    )
+    t.done()
+    return cfg
+
+
+def load_config(path: str | Path) -> AgentConfig:
+    """Read and validate an agent TOML file. Raises ConfigError (file, syntax or key)."""
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            data = tomllib.load(f)
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read: {e.strerror}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: TOML syntax error: {e}") from None
+    try:
+        return config_from_dict(data)
+    except ConfigError as e:
+        raise ConfigError(f"{p}: {e}") from None

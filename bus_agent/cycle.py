@@ -1,0 +1,937 @@
+"""The agent's cyclic loop: process data, CiA 402 controllers, group reflexes, commands, snapshots.
+
+Only this module (its thread) touches the bus and the drive controllers. The gateway talks to it
+through three thread-safe doors and one callback:
+
+- :meth:`Cycle.submit` -- a validated ``DriveCommand``/``AgentCommand`` into a bounded inbox;
+  applied at the next cycle start; every addressed axis later gets exactly one ``Outcome``.
+- :meth:`Cycle.trigger_group` -- a group triggered on another host; local members react.
+- :attr:`Cycle.snapshot_sink` -- called with one immutable ``CycleSnapshot`` per cycle (must only
+  enqueue); :attr:`Cycle.latest` holds the last one for pulls.
+- :attr:`Cycle.group_sink` -- called ``(group, reason)`` when a *local* member faults or is lost,
+  so the gateway can carry the trigger to the other hosts (must only enqueue).
+
+One cycle (``_cycle``): exchange -> working counter check (AL status on a mismatch; lost/found)
+-> commands and remote triggers -> group reflexes -> step every controller -> write outputs ->
+pending-command deadlines -> snapshot. Timing: drift-free deadlines ``t0 + k * period`` from a
+monotonic clock; sleep coarse, spin the last :data:`SPIN_NS`; a cycle that starts more than one
+period late counts as an overrun and the schedule skips the missed slots (no burst of catch-up
+cycles). See docs/agent-cycle.md for the decisions (outcomes, NMT, shutdown, GC).
+"""
+
+from __future__ import annotations
+
+import collections
+import gc
+import logging
+import sys
+import threading
+import time
+from array import array
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+from bus_agent.bus.base import ALState, Bus, BusError, SlaveALStatus, SlaveInfo, al_status_text
+from bus_agent.cia402.controller import (ControllerConfig, ControllerEvent, DriveController, EventKind,
+                                         Goal)
+from bus_agent.cia402.states import Mode, State, decode_statusword
+from bus_agent.config import AgentConfig, ConfigError, DriveConfig
+from bus_agent.groups import Groups
+from bus_agent.pdo import DriveInputs, DriveOutputs
+from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand,
+                               DriveSnapshot, Outcome)
+
+log = logging.getLogger(__name__)
+
+#: Spin (busy-wait) this long before a deadline; sleep before that. time.sleep overshoots by
+#: ~50-100 us on Linux, so the spin absorbs it.
+SPIN_NS = 150_000
+#: Bounded inbox: submit() returns False beyond this many waiting commands.
+INBOX_MAX = 256
+#: Periods kept for p50/p99/max (one statistics window), and how often they are recomputed.
+STATS_WINDOW = 1000
+STATS_EVERY = 250
+#: Read every slave's AL status at least this often (cycles), and on a working counter error.
+AL_POLL_CYCLES = 100
+#: While the working counter stays wrong for a known reason, poll the AL status at most this often.
+AL_POLL_MIN_CYCLES = 10
+#: Call bus.recover() for a lost slave every this many cycles (each call is a few round trips).
+RECOVER_EVERY_CYCLES = 10
+
+GOAL_OF_OP = {
+    "enable": Goal.ENABLED,
+    "switch_on": Goal.SWITCHED_ON,
+    "shutdown": Goal.READY,
+    "disable": Goal.DISABLED,
+    "quick_stop": Goal.QUICK_STOP,
+}
+#: Goals that move a drive towards torque; withdrawn when nobody waits for them any more.
+_UPWARD_GOALS = (Goal.READY, Goal.SWITCHED_ON, Goal.ENABLED)
+_FAULT_STATES = (State.FAULT, State.FAULT_REACTION_ACTIVE)
+#: States in which a drive counts as down for the ordered shutdown.
+_DOWN_STATES = (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT)
+NMT_TARGET = {"start": ALState.OP, "stop": ALState.SAFEOP, "preop": ALState.PREOP,
+              "reset_comm": ALState.PREOP, "reset_node": ALState.OP}
+_VALID_MODES = frozenset(int(m) for m in Mode)
+
+
+class IdentityMismatch(BusError):
+    """A slave's 0x1018 identity is not the configured one; start-up stops."""
+
+
+@dataclass(slots=True)
+class _Pending:
+    cmd: DriveCommand
+    kind: str                 # "goal" | "mode" | "fault_reset"
+    start_cycle: int
+    start_ns: int
+    deadline_ns: int
+
+
+@dataclass(slots=True)
+class _Drive:
+    cfg: DriveConfig
+    axis: str
+    slave: int
+    ctrl: DriveController
+    out: DriveOutputs = field(default_factory=DriveOutputs)
+    inputs: DriveInputs = field(default_factory=DriveInputs)
+    state: State = State.UNKNOWN
+    controlword: int = 0
+    lost: bool = False
+    al: SlaveALStatus = SlaveALStatus(ALState.NONE, False, 0)
+    pending: _Pending | None = None
+    target_position: int = 0
+    target_velocity: int = 0
+    target_torque: int = 0
+    # auto reset bookkeeping
+    fault_since_ns: int = 0
+    last_fault_ns: int = 0
+    auto_attempts: int = 0
+    auto_exhausted: bool = False
+
+
+@dataclass(slots=True)
+class _Nmt:
+    cmd: AgentCommand
+    command: str
+    slaves: tuple[int, ...]
+    phase: str                # "bring_down" | "to_init" | "to_target" | "recover"
+    start_cycle: int
+    start_ns: int
+    deadline_ns: int
+    down_deadline_ns: int
+    note: str = ""
+
+
+class Cycle:
+    """The cyclic process-data loop of one bus agent.
+
+    ``Cycle(bus, config, clock_ns=time.monotonic_ns)``; :meth:`open` brings the segment to OP
+    (identity checked), :meth:`start` runs the loop in its own thread, :meth:`stop` performs the
+    ordered shutdown. :meth:`tick` runs one cycle synchronously (tests, tools; not while the
+    thread runs). Not re-startable after stop.
+    """
+
+    def __init__(self, bus: Bus, config: AgentConfig, clock_ns: Callable[[], int] = time.monotonic_ns, *,
+                 sleep: Callable[[float], None] = time.sleep, wall_ns: Callable[[], int] = time.time_ns,
+                 manage_gc: bool = True, switch_interval_s: float | None = 0.0005,
+                 record_periods: int = 0) -> None:
+        self.bus = bus
+        self.config = config
+        self.clock_ns = clock_ns
+        self._sleep = sleep
+        self._wall_ns = wall_ns
+        self.period_ns = config.cycle_us * 1000
+        self.manage_gc = manage_gc
+        self.switch_interval_s = switch_interval_s
+        #: Called with each CycleSnapshot from the cycle thread; must only enqueue.
+        self.snapshot_sink: Callable[[CycleSnapshot], None] | None = None
+        #: Called (group, reason) from the cycle thread when a local member triggers a group.
+        self.group_sink: Callable[[str, str], None] | None = None
+        self.latest: CycleSnapshot | None = None
+        self.state = "starting"            # schemas.messages.AGENT_STATES
+        self.slaves: list[SlaveInfo] = []
+        self.drives: list[_Drive] = []
+        self._by_axis: dict[str, _Drive] = {}
+        self.groups = Groups(config.host, config.groups, ())
+        self._inbox: collections.deque[DriveCommand | AgentCommand] = collections.deque()
+        self._inbox_lock = threading.Lock()
+        self._triggers: collections.deque[tuple[str, str]] = collections.deque(maxlen=INBOX_MAX)
+        self._events: list[CycleEvent] = []
+        self._lost_origins: list[tuple[str, str]] = []
+        self._ordered_stop = True
+        self._desired_al: dict[int, ALState] = {}
+        self._al_status: list[SlaveALStatus] = []
+        self._nmt: _Nmt | None = None
+        self._thread: threading.Thread | None = None
+        self._stop_requested = threading.Event()
+        self._stopped = threading.Event()
+        self._stop_lock = threading.Lock()
+        self._stopping_since_ns = 0
+        self._stop_deadline_ns = 0
+        self._opened = False
+        self._closed = False
+        self.error: BaseException | None = None
+        # statistics
+        self.cycles = 0
+        self.overruns = 0
+        self.wkc_errors = 0
+        self._last_wkc = 0
+        self._periods = array("q", bytes(8 * STATS_WINDOW))
+        self._period_max_ns = 0
+        self._last_start_ns = 0
+        self._stats = CycleStats(cycle_us=config.cycle_us)
+        self._last_al_poll = -AL_POLL_CYCLES
+        self._al_poll_ok = True
+        #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.
+        self.period_log = array("q", bytes(8 * record_periods)) if record_periods else None
+        self.period_log_len = 0
+
+    # ---- lifecycle --------------------------------------------------------------------------
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return tuple(d.axis for d in self.drives)
+
+    def open(self) -> list[SlaveInfo]:
+        """Open the bus, check every configured identity (0x1018), map PDOs and reach OP.
+
+        Raises IdentityMismatch / BusError / ConfigError; on error the bus is closed. Not cycle-safe
+        (blocking, seconds)."""
+        if self._opened:
+            return self.slaves
+        try:
+            self.slaves = list(self.bus.open())
+            configs = self.config.drive_configs(len(self.slaves))
+            for d in configs:
+                info = self.slaves[d.slave]
+                ident = info.identity
+                if d.identity is not None and not d.identity.matches(ident.vendor_id, ident.product_code,
+                                                                     ident.revision):
+                    raise IdentityMismatch(
+                        f"slave {d.slave} ({info.name!r}, axis {d.axis!r}): identity vendor 0x{ident.vendor_id:08X} "
+                        f"product 0x{ident.product_code:08X} revision 0x{ident.revision:08X} does not match the "
+                        f"configured {d.identity}")
+                if d.identity is None:
+                    log.info("slave %d (%s) axis %s: identity not configured, accepting vendor 0x%08X product 0x%08X",
+                             d.slave, info.name, d.axis, ident.vendor_id, ident.product_code)
+            overrides = {d.slave: d.pdo for d in configs if d.pdo is not None}
+            self.bus.start(overrides or None)
+        except BaseException:
+            self.state = "error"
+            self._close_bus()
+            raise
+        for d in configs:
+            p = d.policy
+            cc = ControllerConfig(transition_timeout_s=p.transition_timeout_s, fault_reset_retries=p.fault_reset_retries,
+                                  mode_timeout_s=p.transition_timeout_s)
+            drv = _Drive(cfg=d, axis=d.axis, slave=d.slave, ctrl=DriveController(cc, mode=d.mode))
+            self.drives.append(drv)
+        self._by_axis = {d.axis: d for d in self.drives}
+        self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
+        self._al_status = [SlaveALStatus(ALState.OP, False, 0)] * len(self.slaves)
+        for d in self.drives:
+            d.al = self._al_status[d.slave]
+        self.groups = Groups(self.config.host, self.config.groups, self.axes)
+        self._stats = CycleStats(cycle_us=self.config.cycle_us, expected_wkc=self.bus.expected_wkc)
+        self._opened = True
+        self.state = "running"
+        log.info("host %s: %d slave(s) in OP, %d drive(s) %s, expected working counter %d",
+                 self.config.host, len(self.slaves), len(self.drives), ",".join(self.axes), self.bus.expected_wkc)
+        return self.slaves
+
+    def start(self) -> None:
+        """Open (if not yet) and run the loop in its own thread. Returns once the thread runs."""
+        if self._thread is not None:
+            return
+        self.open()
+        self._thread = threading.Thread(target=self._run, name=f"cycle-{self.config.host}", daemon=True)
+        self._thread.start()
+
+    def stop(self, ordered: bool = True, timeout_s: float | None = None) -> None:
+        """Ordered shutdown: every drive to goal DISABLED (seed order: disable operation 0x0007,
+        shutdown 0x0006, disable voltage 0x0000), wait until all are down or ``timeout_s``
+        (default: the longest transition timeout), then AL INIT and close. Idempotent.
+        ``ordered=False`` skips the drive sequence (the SM watchdog of each slave stops the drives)."""
+        with self._stop_lock:
+            if self._closed:
+                return
+            if timeout_s is None:
+                timeout_s = max([d.cfg.policy.transition_timeout_s for d in self.drives] or [5.0])
+            if self._thread is not None and self._thread.is_alive():
+                self._begin_stop(ordered, timeout_s)
+                self._thread.join(timeout_s + 5.0)
+                if self._thread.is_alive():
+                    log.error("host %s: cycle thread did not stop", self.config.host)
+                    return
+            elif self._opened and self.state in ("running", "stopping"):
+                self._begin_stop(ordered, timeout_s)
+                while not self._stop_done():
+                    self.tick()
+                self._finish_stop()
+            self._close_bus()
+
+    def _begin_stop(self, ordered: bool, timeout_s: float) -> None:
+        self._ordered_stop = ordered
+        self._stop_deadline_ns = self.clock_ns() + int(timeout_s * 1e9) if ordered else 0
+        self._stop_requested.set()
+
+    def _stop_done(self) -> bool:
+        if self.state != "stopping":
+            return False
+        if self.clock_ns() >= self._stop_deadline_ns:
+            return True
+        return all(d.lost or d.state in _DOWN_STATES for d in self.drives)
+
+    def _finish_stop(self) -> None:
+        not_down = [f"{d.axis}={d.state.value}" for d in self.drives if not d.lost and d.state not in _DOWN_STATES]
+        if not_down and self._ordered_stop:
+            log.warning("host %s: ordered shutdown deadline passed with drives not down: %s",
+                        self.config.host, ", ".join(not_down))
+        try:
+            self.bus.request_al_state(None, ALState.INIT)
+        except Exception as e:  # closing anyway
+            log.warning("host %s: AL INIT request failed: %s", self.config.host, e)
+        self.state = "stopped"
+
+    def _close_bus(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.bus.close()
+        except Exception as e:
+            log.warning("host %s: bus close failed: %s", self.config.host, e)
+        if self.state != "error":
+            self.state = "stopped"
+        self._stopped.set()
+
+    # ---- doors for the gateway (thread-safe) --------------------------------------------------
+
+    def submit(self, cmd: DriveCommand | AgentCommand) -> bool:
+        """Queue a validated command for the next cycle start. False when the inbox is full or
+        the agent is not running (the caller answers busy/rejected). Thread-safe, non-blocking."""
+        if self.state != "running" or self._stop_requested.is_set():
+            return False
+        with self._inbox_lock:
+            if len(self._inbox) >= INBOX_MAX:
+                return False
+            self._inbox.append(cmd)
+        return True
+
+    def trigger_group(self, group: str, reason: str) -> None:
+        """A member of ``group`` faulted or was lost on another host: local members react at the
+        next cycle (the configured reflex). Thread-safe."""
+        self._triggers.append((group, reason))
+
+    def stats(self) -> CycleStats:
+        return self._stats
+
+    # ---- the loop -------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        old_switch = sys.getswitchinterval()
+        gc_was_enabled = gc.isenabled()
+        if self.switch_interval_s:
+            # The cycle thread waits for the GIL at most this long when another thread holds it.
+            sys.setswitchinterval(self.switch_interval_s)
+        if self.manage_gc:
+            # No cyclic-GC pauses in the loop: freeze what exists, disable collection while running.
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+        try:
+            period = self.period_ns
+            t0 = self.clock_ns()
+            k = 0
+            while True:
+                deadline = t0 + k * period
+                now = self.clock_ns()
+                if now < deadline:
+                    self._wait_until(deadline)
+                    now = self.clock_ns()
+                if now - deadline > period:
+                    self.overruns += 1
+                    k = (now - t0) // period  # skip the missed slots: no catch-up burst
+                self._cycle(now)
+                k += 1
+                if self._stop_requested.is_set() and self.state == "running":
+                    self._enter_stopping(now)
+                if self.state == "stopping" and self._stop_done():
+                    self._finish_stop()
+                    break
+        except BaseException as e:  # the loop must not die silently
+            self.error = e
+            self.state = "error"
+            log.exception("host %s: cycle thread failed", self.config.host)
+            try:
+                self.bus.request_al_state(None, ALState.INIT)
+            except Exception:
+                pass
+        finally:
+            if self.manage_gc:
+                if gc_was_enabled:
+                    gc.enable()
+                gc.unfreeze()
+            if self.switch_interval_s:
+                sys.setswitchinterval(old_switch)
+
+    def _wait_until(self, deadline_ns: int) -> None:
+        remaining = deadline_ns - self.clock_ns() - SPIN_NS
+        if remaining > 0:
+            self._sleep(remaining / 1e9)
+        while self.clock_ns() < deadline_ns:
+            pass
+
+    def tick(self) -> CycleSnapshot:
+        """Run one cycle now (tests and tools; never while the thread runs). Returns its snapshot."""
+        now = self.clock_ns()
+        if self._stop_requested.is_set() and self.state == "running":
+            self._enter_stopping(now)
+        self._cycle(now)
+        assert self.latest is not None
+        return self.latest
+
+    def _enter_stopping(self, now_ns: int) -> None:
+        self.state = "stopping"
+        self._drain_inbox_rejecting("agent stopping", now_ns)
+        if self._nmt is not None:
+            self._finish_nmt("failed", "agent stopping", now_ns)
+        if self._ordered_stop:
+            for d in self.drives:
+                if d.pending is not None:
+                    self._resolve(d, "failed", "agent stopping", now_ns)
+                d.ctrl.set_halt(False)
+                d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
+        log.info("host %s: ordered shutdown of %d drive(s)", self.config.host, len(self.drives))
+
+    # ---- one cycle --------------------------------------------------------------------------------
+
+    def _cycle(self, now_ns: int) -> None:
+        """One cycle. Cycle thread only."""
+        self.cycles += 1
+        cycle = self.cycles
+        if self._last_start_ns:
+            p = now_ns - self._last_start_ns
+            self._periods[cycle % STATS_WINDOW] = p
+            if p > self._period_max_ns:
+                self._period_max_ns = p
+            if self.period_log is not None and self.period_log_len < len(self.period_log):
+                self.period_log[self.period_log_len] = p
+                self.period_log_len += 1
+        self._last_start_ns = now_ns
+        now_s = now_ns / 1e9
+        events = self._events = []
+        bus = self.bus
+
+        wkc = bus.exchange()
+        self._last_wkc = wkc
+        all_op_wanted = self._nmt is None and all(s == ALState.OP for s in self._desired_al.values())
+        wkc_bad = wkc != bus.expected_wkc
+        if wkc_bad and all_op_wanted:
+            self.wkc_errors += 1
+        since = cycle - self._last_al_poll
+        if (since >= AL_POLL_CYCLES or self._nmt is not None
+                or (wkc_bad and (self._al_poll_ok or since >= AL_POLL_MIN_CYCLES))
+                or (any(d.lost for d in self.drives) and since >= AL_POLL_MIN_CYCLES)):
+            self._poll_al(now_ns)
+
+        for d in self.drives:
+            d.inputs = bus.inputs(d.slave)
+
+        # Reflex origins are detected on the fresh statusword, before any controller step, so the
+        # other members get their new goal in this very cycle.
+        origins: list[tuple[str, str]] = []
+        for d in self.drives:
+            if d.lost:
+                continue
+            st = decode_statusword(d.inputs.statusword)
+            if st in _FAULT_STATES and d.state not in _FAULT_STATES:
+                for g in self.groups.of_axis(d.axis):
+                    origins.append((g, f"{self.config.host}/{d.axis} fault 0x{d.inputs.error_code:04X}"))
+                d.fault_since_ns = now_ns
+                d.last_fault_ns = now_ns
+            elif st in _FAULT_STATES:
+                d.last_fault_ns = now_ns
+        for g, reason in self._lost_origins:
+            origins.append((g, reason))
+        self._lost_origins = []
+
+        if self.state == "running":
+            self._apply_inbox(now_ns)
+        while self._triggers:
+            g, reason = self._triggers.popleft()
+            self._reflex(g, None, f"remote: {reason}", now_ns)
+        for g, reason in origins:
+            origin_axis = reason.split("/", 1)[1].split(" ", 1)[0]
+            self._reflex(g, origin_axis, reason, now_ns)
+            if self.group_sink is not None:
+                self.group_sink(g, reason)
+
+        for d in self.drives:
+            if d.lost:
+                # Outputs of a lost slave: disable voltage and hold; applied if it comes back.
+                o = d.out
+                o.controlword = 0
+                o.target_position = d.target_position = d.inputs.position_actual
+                o.target_velocity = d.target_velocity = 0
+                o.target_torque = d.target_torque = 0
+                d.controlword = 0
+                bus.set_outputs(d.slave, o)
+                continue
+            self._auto_reset(d, now_ns)
+            out = d.ctrl.step(d.inputs.statusword, d.inputs.modes_of_operation_display, now_s)
+            prev = d.state
+            d.state = d.ctrl.state if d.ctrl.state is not None else decode_statusword(d.inputs.statusword)
+            o = d.out
+            o.controlword = d.controlword = out.controlword
+            o.modes_of_operation = out.mode_of_operation
+            if out.hold_target:
+                # CSP/CSV/CST before Operation enabled: no stale target (a jump or a following
+                # error on enable). Velocity and torque are held at zero.
+                d.target_position = d.inputs.position_actual
+                d.target_velocity = 0
+                d.target_torque = 0
+            o.target_position = d.target_position
+            o.target_velocity = d.target_velocity
+            o.target_torque = d.target_torque
+            bus.set_outputs(d.slave, o)
+            if out.events:
+                self._controller_events(d, out.events, prev, now_ns)
+
+        for d in self.drives:
+            p = d.pending
+            if p is not None and now_ns >= p.deadline_ns:
+                if p.kind == "goal" and d.ctrl.goal in _UPWARD_GOALS:
+                    # Nobody waits for this goal any more: do not pursue it.
+                    d.ctrl.set_goal(Goal.DISABLED, now_s)
+                self._resolve(d, "timeout", f"{p.cmd.op} not done within {p.cmd.timeout_s:g} s", now_ns)
+        if self._nmt is not None:
+            self._step_nmt(now_ns)
+        self._recover_lost(now_ns)
+
+        if cycle % STATS_EVERY == 0:
+            self._update_stats()
+        snap = CycleSnapshot(cycle=cycle, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
+                             events=tuple(events), stats=self._stats, agent_state=self.state)
+        self.latest = snap
+        sink = self.snapshot_sink
+        if sink is not None:
+            sink(snap)
+
+    # ---- AL state, lost and found ------------------------------------------------------------------
+
+    def _poll_al(self, now_ns: int) -> None:
+        self._last_al_poll = self.cycles
+        try:
+            statuses = list(self.bus.read_al_status())
+        except Exception as e:
+            log.warning("host %s: AL status read failed: %s", self.config.host, e)
+            statuses = [SlaveALStatus(ALState.NONE, False, 0)] * len(self.slaves)
+        ok = True
+        nmt_slaves = self._nmt.slaves if self._nmt is not None else ()
+        for pos, st in enumerate(statuses):
+            old = self._al_status[pos] if pos < len(self._al_status) else None
+            if pos < len(self._al_status):
+                self._al_status[pos] = st
+            if old is not None and (old.state != st.state or old.error != st.error):
+                for d in self.drives:
+                    if d.slave == pos:
+                        self._event(d.axis, "al_state", f"slave {pos} AL {old.state.wire_name} -> {st.state.wire_name}"
+                                    + (f" error 0x{st.status_code:04X} {al_status_text(st.status_code)}" if st.error else ""),
+                                    error_code=st.status_code if st.error else 0)
+            want = self._desired_al.get(pos, ALState.OP)
+            if st.state != want or st.error:
+                ok = False
+        for d in self.drives:
+            d.al = self._al_status[d.slave]
+            want = self._desired_al.get(d.slave, ALState.OP)
+            gone = d.al.state != want or (d.al.error and want == ALState.OP)
+            if gone and not d.lost and d.slave not in nmt_slaves:
+                self._mark_lost(d, now_ns)
+        self._al_poll_ok = ok
+
+    def _mark_lost(self, d: _Drive, now_ns: int) -> None:
+        st = d.al
+        why = (f"slave {d.slave} AL {st.state.wire_name}"
+               + (f" error 0x{st.status_code:04X} {al_status_text(st.status_code)}" if st.error else "")
+               + f", working counter {self._last_wkc}/{self.bus.expected_wkc}")
+        d.lost = True
+        log.warning("drive %s/%s lost: %s", self.config.host, d.axis, why)
+        self._event(d.axis, "lost", why, from_state=d.state.value, error_code=st.status_code if st.error else 0)
+        if d.pending is not None:
+            self._resolve(d, "failed", f"slave lost: {why}", now_ns)
+        # Never re-enabled without a new command once it returns.
+        d.ctrl.set_halt(False)
+        d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
+        for g in self.groups.of_axis(d.axis):
+            self._lost_origins.append((g, f"{self.config.host}/{d.axis} lost ({why})"))
+
+    def _recover_lost(self, now_ns: int) -> None:
+        if self.state != "running" or self.cycles % RECOVER_EVERY_CYCLES:
+            return
+        done: set[int] = set()
+        for d in self.drives:
+            if not d.lost or d.slave in done or self._desired_al.get(d.slave) != ALState.OP:
+                continue
+            done.add(d.slave)
+            try:
+                back = self.bus.recover(d.slave)
+            except Exception as e:
+                log.debug("slave %d recover: %s", d.slave, e)
+                back = False
+            if back:
+                for other in self.drives:
+                    if other.slave == d.slave and other.lost:
+                        other.lost = False
+                        other.al = self._al_status[d.slave] = SlaveALStatus(ALState.OP, False, 0)
+                        other.state = decode_statusword(other.inputs.statusword)
+                        other.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
+                        log.info("drive %s/%s found: slave %d back in OP, goal disabled",
+                                 self.config.host, other.axis, d.slave)
+                        self._event(other.axis, "found", f"slave {d.slave} back in OP; goal stays disabled")
+
+    # ---- commands ----------------------------------------------------------------------------------
+
+    def _drain_inbox_rejecting(self, reason: str, now_ns: int) -> None:
+        with self._inbox_lock:
+            cmds = list(self._inbox)
+            self._inbox.clear()
+        for cmd in cmds:
+            if isinstance(cmd, AgentCommand):
+                self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=reason))
+            else:
+                for axis in cmd.axes:
+                    d = self._by_axis.get(axis)
+                    self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=reason,
+                                               state=d.state.value if d else "unknown"))
+
+    def _apply_inbox(self, now_ns: int) -> None:
+        if not self._inbox:
+            return
+        with self._inbox_lock:
+            cmds = list(self._inbox)
+            self._inbox.clear()
+        for cmd in cmds:
+            try:
+                if isinstance(cmd, AgentCommand):
+                    self._apply_agent(cmd, now_ns)
+                else:
+                    self._apply_drive(cmd, now_ns)
+            except Exception as e:  # a bad command must not stop the loop
+                log.exception("host %s: command %s failed", self.config.host, getattr(cmd, "request_id", "?"))
+                if isinstance(cmd, AgentCommand):
+                    self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"internal error: {e}"))
+
+    def _apply_drive(self, cmd: DriveCommand, now_ns: int) -> None:
+        now_s = now_ns / 1e9
+        start_ns = cmd.received_ns or now_ns
+        deadline = start_ns + int(cmd.timeout_s * 1e9)
+        seen: set[str] = set()
+        for axis in cmd.axes:
+            if axis in seen:
+                continue
+            seen.add(axis)
+            d = self._by_axis.get(axis)
+            if d is None:
+                self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=f"no axis {axis!r} on {self.config.host}"))
+                continue
+            if d.lost:
+                self._reply(d, cmd, "rejected", f"slave {d.slave} lost (AL {d.al.state.wire_name})", now_ns, start_ns)
+                continue
+            want = self._desired_al.get(d.slave, ALState.OP)
+            if want != ALState.OP or (self._nmt is not None and d.slave in self._nmt.slaves):
+                self._reply(d, cmd, "rejected", f"slave {d.slave} not operational (AL {d.al.state.wire_name}, "
+                            f"nmt in progress or stopped)", now_ns, start_ns)
+                continue
+            op = cmd.op
+            kind = None
+            if op in GOAL_OF_OP:
+                d.ctrl.set_goal(GOAL_OF_OP[op], now_s)
+                kind = "goal"
+            elif op == "fault_reset":
+                if d.state in _FAULT_STATES or decode_statusword(d.inputs.statusword) in _FAULT_STATES:
+                    d.ctrl.request_fault_reset(now_s)
+                    d.auto_attempts = 0
+                    kind = "fault_reset"
+                else:
+                    # Idempotent: the aim (no fault) holds already. See docs/agent-cycle.md.
+                    self._supersede(d, cmd, now_ns)
+                    self._reply(d, cmd, "done", "not in fault: nothing to reset", now_ns, start_ns)
+                    continue
+            elif op == "set_mode":
+                mode = cmd.args.get("mode")
+                if not isinstance(mode, int) or isinstance(mode, bool) or mode not in _VALID_MODES:
+                    self._reply(d, cmd, "rejected", f"mode {mode!r} is not a CiA 402 mode (0x6060)", now_ns, start_ns)
+                    continue
+                d.ctrl.request_mode(mode, now_s)
+                kind = "mode"
+            elif op == "halt":
+                on = cmd.args.get("on", True)
+                if not isinstance(on, bool):
+                    self._reply(d, cmd, "rejected", f"halt 'on' must be a boolean, got {on!r}", now_ns, start_ns)
+                    continue
+                d.ctrl.set_halt(on)  # controlword bit 8, written this cycle
+                self._reply(d, cmd, "done", f"halt {'on' if on else 'off'}", now_ns, start_ns)
+                continue
+            elif op == "setpoint":
+                bad = [k for k in ("position", "velocity", "torque") if k in cmd.args
+                       and (not isinstance(cmd.args[k], int) or isinstance(cmd.args[k], bool))]
+                if bad:
+                    self._reply(d, cmd, "rejected", f"setpoint {bad[0]} must be an integer", now_ns, start_ns)
+                    continue
+                d.target_position = cmd.args.get("position", d.target_position)
+                d.target_velocity = cmd.args.get("velocity", d.target_velocity)
+                d.target_torque = cmd.args.get("torque", d.target_torque)
+                self._reply(d, cmd, "done", "setpoint taken (held at actual until operation enabled)", now_ns, start_ns)
+                continue
+            else:
+                self._reply(d, cmd, "rejected", f"op {op!r} is not a drive command of the cycle", now_ns, start_ns)
+                continue
+            self._supersede(d, cmd, now_ns)
+            d.pending = _Pending(cmd=cmd, kind=kind, start_cycle=self.cycles, start_ns=start_ns, deadline_ns=deadline)
+
+    def _supersede(self, d: _Drive, cmd: DriveCommand, now_ns: int) -> None:
+        if d.pending is not None:
+            self._resolve(d, "failed", f"superseded by {cmd.request_id}", now_ns)
+
+    def _reply(self, d: _Drive, cmd: DriveCommand, outcome: str, reason: str, now_ns: int, start_ns: int,
+               start_cycle: int | None = None) -> None:
+        o = Outcome(axis=d.axis, outcome=outcome, state=d.state.value, error_code=d.inputs.error_code,
+                    reason=reason, elapsed_s=max(0.0, (now_ns - start_ns) / 1e9),
+                    cycles=self.cycles - (start_cycle if start_cycle is not None else self.cycles))
+        self._event(d.axis, "outcome", f"{cmd.op} {outcome}" + (f": {reason}" if reason else ""),
+                    to_state=d.state.value, error_code=d.inputs.error_code, request_id=cmd.request_id)
+        self._outcome(cmd, o)
+
+    def _resolve(self, d: _Drive, outcome: str, reason: str, now_ns: int) -> None:
+        p = d.pending
+        if p is None:
+            return
+        d.pending = None
+        self._reply(d, p.cmd, outcome, reason, now_ns, p.start_ns, p.start_cycle)
+
+    @staticmethod
+    def _outcome(cmd: DriveCommand | AgentCommand, outcome: Outcome) -> None:
+        try:
+            cmd.on_outcome(outcome)
+        except Exception:
+            log.exception("on_outcome callback of %s failed", cmd.request_id)
+
+    def _controller_events(self, d: _Drive, evs: Sequence[ControllerEvent], prev: State, now_ns: int) -> None:
+        p = d.pending
+        for ev in evs:
+            k = ev.kind
+            if k == EventKind.TRANSITION:
+                self._event(d.axis, "transition", ev.reason, from_state=ev.from_state.value,
+                            to_state=ev.to_state.value)
+            elif k == EventKind.FAULT:
+                self._event(d.axis, "fault", ev.reason or f"error code 0x{d.inputs.error_code:04X}",
+                            from_state=ev.from_state.value, to_state=ev.to_state.value,
+                            error_code=d.inputs.error_code)
+            if p is None or d.pending is not p:
+                continue
+            if p.kind == "goal":
+                if k == EventKind.GOAL_REACHED:
+                    self._resolve(d, "done", "", now_ns)
+                elif k == EventKind.GOAL_FAILED:
+                    self._resolve(d, "failed", ev.reason or "goal failed", now_ns)
+                elif k == EventKind.GOAL_TIMEOUT:
+                    self._resolve(d, "timeout", ev.reason or "transition deadline passed", now_ns)
+            elif p.kind == "mode":
+                if k == EventKind.MODE_CONFIRMED:
+                    self._resolve(d, "done", "", now_ns)
+                elif k == EventKind.MODE_REJECTED:
+                    self._resolve(d, "rejected", ev.reason or "mode not supported (0x6502)", now_ns)
+                elif k == EventKind.MODE_TIMEOUT:
+                    self._resolve(d, "timeout", ev.reason or "0x6061 did not echo the mode", now_ns)
+            elif p.kind == "fault_reset":
+                if k == EventKind.FAULT_RESET_DONE:
+                    self._resolve(d, "done", "", now_ns)
+                elif k == EventKind.FAULT_RESET_FAILED:
+                    self._resolve(d, "failed", ev.reason or "fault reset retries exhausted", now_ns)
+
+    def _auto_reset(self, d: _Drive, now_ns: int) -> None:
+        a = d.cfg.policy.auto_reset
+        if not a.enabled:
+            return
+        if d.state != State.FAULT:
+            if d.auto_attempts and now_ns - d.last_fault_ns > a.window_s * 1e9:
+                d.auto_attempts = 0
+                d.auto_exhausted = False
+            return
+        if d.pending is not None:
+            return
+        if d.auto_attempts >= a.max_attempts:
+            if not d.auto_exhausted:
+                d.auto_exhausted = True
+                self._event(d.axis, "warning", f"auto fault reset: {a.max_attempts} attempts exhausted, "
+                            "waiting for a fault_reset command", error_code=d.inputs.error_code)
+            return
+        wait_s = min(a.backoff_s * (2 ** d.auto_attempts), a.backoff_max_s)
+        if now_ns - d.fault_since_ns >= wait_s * 1e9:
+            d.auto_attempts += 1
+            d.fault_since_ns = now_ns
+            d.ctrl.request_fault_reset(now_ns / 1e9)
+            self._event(d.axis, "warning", f"auto fault reset attempt {d.auto_attempts}/{a.max_attempts}",
+                        error_code=d.inputs.error_code)
+
+    # ---- group reflexes ------------------------------------------------------------------------------
+
+    def _reflex(self, group: str, origin_axis: str | None, reason: str, now_ns: int) -> None:
+        goal = Goal.QUICK_STOP if self.config.reflex == "quick_stop" else Goal.DISABLED
+        for axis in self.groups.reacting(group, origin_axis):
+            d = self._by_axis[axis]
+            if d.lost:
+                continue
+            if d.pending is not None:
+                self._resolve(d, "failed", f"group {group} reflex: {reason}", now_ns)
+            d.ctrl.set_goal(goal, now_ns / 1e9)
+            self._event(axis, "reflex", f"group {group}: {goal.value} ({reason})", from_state=d.state.value)
+
+    # ---- NMT (cia402.md §5) -----------------------------------------------------------------------
+
+    def _apply_agent(self, cmd: AgentCommand, now_ns: int) -> None:
+        if cmd.op != "nmt":
+            self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"agent op {cmd.op!r} unknown"))
+            return
+        command = cmd.args.get("command")
+        if command not in NMT_TARGET:
+            self._outcome(cmd, Outcome(axis="", outcome="rejected",
+                                       reason=f"nmt command {command!r} is not one of {', '.join(NMT_TARGET)}"))
+            return
+        axis = cmd.args.get("axis")
+        if axis is not None and axis != "":
+            d = self._by_axis.get(axis)
+            if d is None:
+                self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"no axis {axis!r} on {self.config.host}"))
+                return
+            slaves: tuple[int, ...] = (d.slave,)
+        else:
+            slaves = tuple(range(len(self.slaves)))
+        if self._nmt is not None:
+            self._finish_nmt("failed", f"superseded by {cmd.request_id}", now_ns)
+        start_ns = cmd.received_ns or now_ns
+        down_s = max([d.cfg.policy.transition_timeout_s for d in self.drives if d.slave in slaves] or [1.0])
+        self._nmt = _Nmt(cmd=cmd, command=command, slaves=slaves, phase="bring_down", start_cycle=self.cycles,
+                         start_ns=start_ns, deadline_ns=start_ns + int(cmd.timeout_s * 1e9),
+                         down_deadline_ns=now_ns + int(down_s * 1e9))
+        if command != "start":
+            # Leaving OP: drives on these slaves are first taken down by the ordered sequence.
+            for d in self.drives:
+                if d.slave in slaves:
+                    if d.pending is not None:
+                        self._resolve(d, "failed", f"nmt {command} ({cmd.request_id})", now_ns)
+                    d.ctrl.set_halt(False)
+                    d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
+        else:
+            self._nmt.phase = "recover"
+            for s in slaves:
+                self._desired_al[s] = ALState.OP
+
+    def _step_nmt(self, now_ns: int) -> None:
+        n = self._nmt
+        assert n is not None
+        if now_ns >= n.deadline_ns:
+            self._finish_nmt("timeout", f"nmt {n.command} not done within {n.cmd.timeout_s:g} s ({n.phase})", now_ns)
+            return
+        bus = self.bus
+        if n.phase == "bring_down":
+            up = [d for d in self.drives if d.slave in n.slaves and not d.lost
+                  and d.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.SWITCHED_ON,
+                                  State.READY_TO_SWITCH_ON)]
+            if up and now_ns < n.down_deadline_ns:
+                return
+            if up:
+                n.note = f"; drives not down in time: {', '.join(d.axis for d in up)}"
+            for s in n.slaves:
+                self._desired_al[s] = NMT_TARGET[n.command] if n.command in ("stop", "preop") else ALState.INIT
+            if n.command in ("stop", "preop"):
+                target = NMT_TARGET[n.command]
+                for s in n.slaves:
+                    if self._al_status[s].state != target:
+                        bus.request_al_state(s, target)
+                n.phase = "to_target"
+            else:
+                for s in n.slaves:
+                    bus.request_al_state(s, ALState.INIT)
+                n.phase = "to_init"
+            return
+        states = [self._al_status[s] for s in n.slaves]
+        if n.phase == "to_init":
+            if all(st.state == ALState.INIT for st in states):
+                if n.command == "reset_comm":
+                    for s in n.slaves:
+                        self._desired_al[s] = ALState.PREOP
+                        bus.request_al_state(s, ALState.PREOP)
+                    n.phase = "to_target"
+                else:  # reset_node: full reconfiguration back to OP
+                    for s in n.slaves:
+                        self._desired_al[s] = ALState.OP
+                    n.phase = "recover"
+            return
+        if n.phase == "to_target":
+            target = self._desired_al[n.slaves[0]]
+            if all(st.state == target and not st.error for st in states):
+                self._finish_nmt("done", f"AL {target.wire_name}{n.note}", now_ns)
+            return
+        if n.phase == "recover":
+            pending = [s for s, st in zip(n.slaves, states) if st.state != ALState.OP or st.error]
+            for s in pending:
+                try:
+                    if bus.recover(s):
+                        self._al_status[s] = SlaveALStatus(ALState.OP, False, 0)
+                except Exception as e:
+                    log.debug("slave %d recover: %s", s, e)
+            if all(self._al_status[s].state == ALState.OP and not self._al_status[s].error for s in n.slaves):
+                for d in self.drives:
+                    if d.slave in n.slaves:
+                        d.lost = False
+                        d.al = self._al_status[d.slave]
+                self._finish_nmt("done", f"AL op; goals stay disabled{n.note}", now_ns)
+
+    def _finish_nmt(self, outcome: str, reason: str, now_ns: int) -> None:
+        n = self._nmt
+        if n is None:
+            return
+        self._nmt = None
+        if outcome != "done":
+            # Leave the AL states where they are, and watch them from now on.
+            for s in n.slaves:
+                self._desired_al[s] = self._al_status[s].state if outcome != "failed" else self._desired_al[s]
+        log.info("host %s: nmt %s %s: %s", self.config.host, n.command, outcome, reason)
+        self._events.append(CycleEvent(axis="", kind="al_state", detail=f"nmt {n.command} {outcome}: {reason}",
+                                       request_id=n.cmd.request_id))
+        self._outcome(n.cmd, Outcome(axis="", outcome=outcome, reason=reason,
+                                     elapsed_s=max(0.0, (now_ns - n.start_ns) / 1e9),
+                                     cycles=self.cycles - n.start_cycle))
+
+    # ---- output --------------------------------------------------------------------------------------
+
+    def _event(self, axis: str, kind: str, detail: str = "", *, from_state: str = "unknown",
+               to_state: str = "unknown", error_code: int = 0, request_id: str = "") -> None:
+        self._events.append(CycleEvent(axis=axis, kind=kind, detail=detail, from_state=from_state,
+                                       to_state=to_state, error_code=error_code, request_id=request_id))
+
+    def _drive_snapshots(self) -> tuple[DriveSnapshot, ...]:
+        out = []
+        for d in self.drives:
+            i = d.inputs
+            c = d.ctrl
+            out.append(DriveSnapshot(
+                axis=d.axis, slave=d.slave, state=d.state.value, statusword=i.statusword,
+                controlword=d.controlword, goal=c.goal.value, halt=c.halt, mode=c.mode,
+                mode_display=i.modes_of_operation_display, position=i.position_actual,
+                velocity=i.velocity_actual, torque=i.torque_actual, error_code=i.error_code,
+                error_text="", al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost))
+        return tuple(out)
+
+    def _update_stats(self) -> None:
+        ps = sorted(self._periods)
+        n = len(ps)
+        self._stats = CycleStats(
+            cycles=self.cycles, cycle_us=self.config.cycle_us,
+            period_p50_us=ps[n // 2] / 1000, period_p99_us=ps[min(n - 1, (n * 99) // 100)] / 1000,
+            period_max_us=self._period_max_ns / 1000, overruns=self.overruns, wkc_errors=self.wkc_errors,
+            expected_wkc=self.bus.expected_wkc)
