@@ -1,0 +1,728 @@
+"""The supervisor's Python API: discover agents and drives, select, command, lease, watch.
+
+``Fleet`` is the imperative shell around the pure parts (``selectors``, ``results``): one Zenoh
+session (multicast scouting off), agent discovery through liveliness tokens
+(``drives/@v1/<host>/alive``, history replayed), a fleet snapshot kept current by subscribing to
+every drive and agent status (plus one get at start), commands as fan-out queries
+(target ALL, consolidation NONE) collected until every addressed drive answered, its agent is
+gone, or the deadline passed, and leases held by a background renewal thread while the
+supervisor's own liveliness token (``drives/@v1/@sup/<name>``) is alive.
+
+Threading: Zenoh callbacks only decode, update state under one lock and enqueue; user callbacks
+(arrival, departure, status, lease lost) run on the Fleet's own dispatcher thread, so they may
+call back into the Fleet (never on a Zenoh thread, where that could deadlock).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import queue
+import re
+import socket
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import zenoh
+
+from schemas import keys
+from schemas.messages import (
+    AgentStatus,
+    CommandReply,
+    CommandRequest,
+    DriveStatus,
+    MODES,
+    NMT_COMMANDS,
+    SchemaError,
+    decode,
+    encode,
+)
+
+from .results import CommandResult, DriveResult, aggregate
+from .selectors import (
+    DriveRef,
+    QueryPlan,
+    Selector,
+    SelectorError,
+    parse_selector,
+    plan_queries,
+    resolve,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
+#: Extra time a query waits beyond the agents' own deadline (transport and scheduling).
+REPLY_MARGIN_S = 1.0
+DEFAULT_TIMEOUT_S = 5.0
+DEFAULT_LEASE_TTL_S = 3.0
+
+
+class FleetError(RuntimeError):
+    """The fleet could not be reached or a command could not be sent."""
+
+
+class NoAgentError(FleetError):
+    """No router/agent answered: nothing to supervise."""
+
+
+@dataclass
+class AgentInfo:
+    """What the supervisor knows about one agent (host)."""
+
+    host: str
+    alive: bool
+    status: AgentStatus | None = None
+    seen_monotonic: float = 0.0
+    gone_monotonic: float | None = None
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Drives chosen by selectors at one moment, and the queries that address exactly them."""
+
+    selectors: tuple[str, ...]
+    drives: tuple[DriveRef, ...]
+    plan: QueryPlan
+
+    def __len__(self) -> int:
+        return len(self.drives)
+
+
+@dataclass
+class _Collector:
+    """Replies of one command, filled from Zenoh reply callbacks."""
+
+    addressed: frozenset[DriveRef]
+    replies: dict[DriveRef, CommandReply] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+    finished: int = 0
+
+
+def default_name() -> str:
+    """A legal supervisor name from the host name and process id."""
+    base = re.sub(r"[^A-Za-z0-9_.\-]", "_", socket.gethostname())[:40] or "host"
+    return f"sup-{base.lstrip('.-') or 'host'}-{os.getpid()}"
+
+
+def zenoh_config(mode: str, connect: Sequence[str], listen: Sequence[str] = (),
+                 connect_timeout_ms: int = 2000) -> zenoh.Config:
+    """A session config for the supervisor: multicast scouting off, explicit endpoints."""
+    if mode not in ("client", "peer"):
+        raise ValueError(f"mode {mode!r}: use 'client' or 'peer'")
+    conf: dict[str, Any] = {
+        "mode": mode,
+        "connect": {"endpoints": list(connect), "timeout_ms": connect_timeout_ms},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    if mode == "peer":
+        conf["listen"] = {"endpoints": list(listen)}
+    return zenoh.Config.from_json5(json.dumps(conf))
+
+
+Listener = Callable[..., None]
+
+
+class Fleet:
+    """A supervisor's view of and handle on every agent and drive reachable through Zenoh.
+
+    Use as a context manager::
+
+        with Fleet(connect=["tcp/127.0.0.1:7447"]) as fleet:
+            fleet.wait_for_agents(3)
+            report = fleet.enable("h1/*", "h2/*")
+
+    Events (``on(event, fn)``): ``arrival(host)``, ``departure(host)``, ``status(DriveStatus)``,
+    ``agent(AgentStatus)``, ``lease_lost(DriveResult)``; called on the Fleet's dispatcher thread.
+    """
+
+    def __init__(
+        self,
+        connect: Sequence[str] = DEFAULT_CONNECT,
+        name: str | None = None,
+        mode: str = "client",
+        *,
+        listen: Sequence[str] = (),
+        groups: Mapping[str, Iterable[str]] | None = None,
+        connect_timeout_s: float = 2.0,
+        discovery_timeout_s: float = 1.0,
+        lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
+    ) -> None:
+        self.name = keys.validate_name(name or default_name(), "supervisor name")
+        self.mode = mode
+        self.connect = tuple(connect)
+        self.listen = tuple(listen)
+        self.local_groups = {g: list(m) for g, m in (groups or {}).items()}
+        self.connect_timeout_s = connect_timeout_s
+        self.discovery_timeout_s = discovery_timeout_s
+        self.lease_ttl_s = lease_ttl_s
+        self._lock = threading.Condition()
+        self._agents: dict[str, AgentInfo] = {}
+        self._drives: dict[DriveRef, DriveStatus] = {}
+        self._missed: dict[DriveRef, int] = {}
+        self._status_count = 0
+        self._supervisors: set[str] = set()
+        self._listeners: dict[str, list[Listener]] = {}
+        self._events: queue.SimpleQueue[tuple[str, tuple[Any, ...]] | None] = queue.SimpleQueue()
+        self._session: zenoh.Session | None = None
+        self._decls: list[Any] = []
+        self._token: Any = None
+        self._dispatcher: threading.Thread | None = None
+        self._renewer: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._leases: dict[DriveRef, float] = {}  # drive -> ttl_s, leases this supervisor holds
+        self._lease_selectors: list[tuple[str, ...]] = []
+        self._rid = itertools.count(1)
+        self._collectors: list[_Collector] = []
+
+    # ---- lifecycle -----------------------------------------------------------------------
+
+    def __enter__(self) -> "Fleet":
+        self.open()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def open(self) -> "Fleet":
+        """Open the session, declare liveliness and subscriptions, and take a first snapshot.
+
+        Raise :class:`NoAgentError` when no endpoint answers within ``connect_timeout_s``.
+        """
+        try:
+            self._session = zenoh.open(zenoh_config(self.mode, self.connect, self.listen,
+                                                    int(self.connect_timeout_s * 1000)))
+        except zenoh.ZError as exc:
+            raise NoAgentError(f"cannot reach {', '.join(self.connect)}: {exc}") from None
+        s = self._session
+        self._dispatcher = threading.Thread(target=self._dispatch, name=f"fleet-{self.name}-events", daemon=True)
+        self._dispatcher.start()
+        self._token = s.liveliness().declare_token(keys.supervisor_alive(self.name))
+        self._decls.append(s.liveliness().declare_subscriber(keys.ALL_ALIVE, self._on_alive, history=True))
+        self._decls.append(s.liveliness().declare_subscriber(keys.ALL_SUPERVISORS, self._on_supervisor, history=True))
+        self._decls.append(s.declare_subscriber(keys.ALL_DRIVE_STATUS, self._on_status_sample))
+        self._decls.append(s.declare_subscriber(keys.ALL_AGENT_STATUS, self._on_agent_sample))
+        self.refresh(self.discovery_timeout_s)
+        log.info("supervisor %s: %d agent(s), %d drive(s)", self.name, len(self.hosts()), len(self.roster()))
+        return self
+
+    def close(self) -> None:
+        """Release held leases (a clean exit runs no lease reaction), then close everything."""
+        if self._session is None:
+            return
+        try:
+            if self._leases:
+                self.release()
+        except Exception:  # closing must finish; the token's loss then triggers the reaction
+            log.exception("supervisor %s: releasing leases on close failed", self.name)
+        self._stop.set()
+        if self._renewer is not None:
+            self._renewer.join(timeout=5)
+        for d in self._decls:
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+        self._decls.clear()
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        self._session.close()
+        self._session = None
+        self._events.put(None)
+        if self._dispatcher is not None:
+            self._dispatcher.join(timeout=5)
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise FleetError("fleet is not open")
+        return self._session
+
+    def refresh(self, timeout_s: float = 1.0) -> None:
+        """Query liveliness tokens, drive status and agent status once (a synchronous snapshot)."""
+        s = self.session
+        for reply in s.liveliness().get(keys.ALL_ALIVE, timeout=timeout_s):
+            if reply.ok is not None:
+                self._host_alive(str(reply.ok.key_expr), True)
+        for selector, handler in ((keys.ALL_DRIVE_STATUS, self._on_status_sample),
+                                  (keys.ALL_AGENT_STATUS, self._on_agent_sample)):
+            for reply in s.get(selector, target=zenoh.QueryTarget.ALL,
+                               consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s):
+                if reply.ok is not None:
+                    handler(reply.ok)
+
+    # ---- events --------------------------------------------------------------------------
+
+    def on(self, event: str, fn: Listener) -> None:
+        """Register ``fn`` for ``arrival``, ``departure``, ``status``, ``agent`` or ``lease_lost``."""
+        if event not in ("arrival", "departure", "status", "agent", "lease_lost"):
+            raise ValueError(f"unknown event {event!r}")
+        with self._lock:
+            self._listeners.setdefault(event, []).append(fn)
+
+    def _emit(self, event: str, *args: Any) -> None:
+        if self._listeners.get(event):
+            self._events.put((event, args))
+
+    def _dispatch(self) -> None:
+        while True:
+            item = self._events.get()
+            if item is None:
+                return
+            event, args = item
+            for fn in list(self._listeners.get(event, ())):
+                try:
+                    fn(*args)
+                except Exception:
+                    log.exception("supervisor %s: %s listener failed", self.name, event)
+
+    # ---- zenoh callbacks (decode, update under the lock, enqueue; nothing blocking) ------
+
+    def _host_alive(self, key: str, alive: bool) -> None:
+        try:
+            parsed = keys.parse(key)
+        except keys.InvalidKey:
+            log.warning("supervisor %s: ignoring liveliness key %s", self.name, key)
+            return
+        if parsed.kind is not keys.KeyKind.ALIVE or parsed.host is None:
+            return
+        host = parsed.host
+        now = time.monotonic()
+        with self._lock:
+            info = self._agents.get(host)
+            was = info.alive if info else False
+            if info is None:
+                info = self._agents[host] = AgentInfo(host, alive, seen_monotonic=now)
+            info.alive = alive
+            if alive and not was:
+                info.seen_monotonic, info.gone_monotonic = now, None
+                # An agent that comes back starts its sequence numbers anew.
+                for ref in [r for r in self._drives if r.host == host]:
+                    self._missed.pop(ref, None)
+            elif not alive and was:
+                info.gone_monotonic = now
+            self._lock.notify_all()
+        if alive and not was:
+            log.info("agent %s arrived", host)
+            self._emit("arrival", host)
+        elif was and not alive:
+            log.warning("agent %s is gone", host)
+            self._emit("departure", host)
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        self._host_alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+    def _on_supervisor(self, sample: zenoh.Sample) -> None:
+        try:
+            parsed = keys.parse(str(sample.key_expr))
+        except keys.InvalidKey:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._supervisors.add(parsed.name or "")
+            else:
+                self._supervisors.discard(parsed.name or "")
+
+    def _on_status_sample(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        try:
+            st = decode(sample.payload.to_bytes(), DriveStatus)
+        except SchemaError as exc:
+            log.warning("supervisor %s: bad status on %s: %s", self.name, sample.key_expr, exc)
+            return
+        ref = DriveRef(st.host, st.axis)
+        with self._lock:
+            old = self._drives.get(ref)
+            restarted = ref not in self._missed
+            if old is not None and not restarted and st.seq <= old.seq:
+                return  # a get reply older than, or equal to, what the subscription brought
+            if old is not None and not restarted and st.seq > old.seq + 1:
+                self._missed[ref] = self._missed.get(ref, 0) + (st.seq - old.seq - 1)
+            else:
+                self._missed.setdefault(ref, 0)
+            self._drives[ref] = st
+            self._status_count += 1
+            self._lock.notify_all()
+        self._emit("status", st)
+
+    def _on_agent_sample(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        try:
+            st = decode(sample.payload.to_bytes(), AgentStatus)
+        except SchemaError as exc:
+            log.warning("supervisor %s: bad agent status on %s: %s", self.name, sample.key_expr, exc)
+            return
+        with self._lock:
+            info = self._agents.get(st.host)
+            if info is None:
+                # Status before the liveliness token: known, not yet counted alive.
+                info = self._agents[st.host] = AgentInfo(st.host, False, seen_monotonic=time.monotonic())
+            if info.status is not None and 0 < st.seq <= info.status.seq and info.alive:
+                return
+            info.status = st
+            self._lock.notify_all()
+        self._emit("agent", st)
+
+    # ---- snapshot ------------------------------------------------------------------------
+
+    def hosts(self) -> list[str]:
+        """Hosts whose agent is alive now."""
+        with self._lock:
+            return sorted(h for h, a in self._agents.items() if a.alive)
+
+    def agents(self) -> dict[str, AgentInfo]:
+        with self._lock:
+            return {h: AgentInfo(a.host, a.alive, a.status, a.seen_monotonic, a.gone_monotonic)
+                    for h, a in self._agents.items()}
+
+    def drives(self) -> dict[DriveRef, DriveStatus]:
+        """Last status of every drive seen (including those of agents now gone)."""
+        with self._lock:
+            return dict(self._drives)
+
+    def status(self, ref: DriveRef | str) -> DriveStatus | None:
+        ref = ref if isinstance(ref, DriveRef) else DriveRef.parse(ref)
+        with self._lock:
+            return self._drives.get(ref)
+
+    def missed(self) -> dict[DriveRef, int]:
+        """Status publications lost per drive (gaps in sequence numbers)."""
+        with self._lock:
+            return dict(self._missed)
+
+    @property
+    def status_count(self) -> int:
+        with self._lock:
+            return self._status_count
+
+    def supervisors(self) -> list[str]:
+        with self._lock:
+            return sorted(self._supervisors)
+
+    def host_axes(self) -> dict[str, list[str]]:
+        """Each live agent's own complete axis list (AgentStatus.axes), where known."""
+        with self._lock:
+            return {h: list(a.status.axes) for h, a in self._agents.items()
+                    if a.alive and a.status is not None and a.status.axes}
+
+    def roster(self) -> list[DriveRef]:
+        """Drives of live agents: from their status publications and their agent status."""
+        with self._lock:
+            alive = {h for h, a in self._agents.items() if a.alive}
+            refs = {r for r in self._drives if r.host in alive}
+            for h in alive:
+                st = self._agents[h].status
+                if st is not None:
+                    refs.update(DriveRef(h, ax) for ax in st.axes)
+            return sorted(refs)
+
+    def groups(self) -> dict[str, list[str]]:
+        """Named groups: the agents' (AgentStatus.groups) merged, then the local table on top."""
+        out: dict[str, list[str]] = {}
+        with self._lock:
+            for a in self._agents.values():
+                if a.alive and a.status is not None:
+                    for g, members in a.status.groups.items():
+                        out.setdefault(g, [])
+                        out[g].extend(m for m in members if m not in out[g])
+        out.update(self.local_groups)
+        return out
+
+    def wait_until(self, predicate: Callable[["Fleet"], bool], timeout_s: float) -> bool:
+        """Wait until ``predicate(fleet)`` holds (re-checked on every update) or the deadline."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                # Predicates call back into the Fleet, which takes the (reentrant) lock again.
+                if predicate(self):
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._lock.wait(min(left, 0.1))
+
+    def wait_for_agents(self, hosts: int | Iterable[str], timeout_s: float = 5.0, drives: int = 0) -> bool:
+        """Wait until ``hosts`` (a count or names) are alive and at least ``drives`` are known."""
+        if isinstance(hosts, int):
+            n = hosts
+            return self.wait_until(lambda f: len(f.hosts()) >= n and len(f.roster()) >= drives, timeout_s)
+        want = set(hosts)
+        return self.wait_until(lambda f: want <= set(f.hosts()) and len(f.roster()) >= drives, timeout_s)
+
+    # ---- selection -----------------------------------------------------------------------
+
+    def select(self, *selectors: str, allow_empty: bool = False) -> Selection:
+        """Resolve selectors against the live roster; raise :class:`SelectorError` (nothing sent)."""
+        if len(selectors) == 1 and not isinstance(selectors[0], str):
+            selectors = tuple(selectors[0])  # a list passed as one argument
+        parsed = [parse_selector(s) for s in selectors]
+        roster = self.roster()
+        drives = resolve(parsed, roster, self.groups(), allow_empty=allow_empty)
+        return Selection(tuple(s.text for s in parsed), tuple(drives),
+                         plan_queries(parsed, drives, self.host_axes()))
+
+    def selection_of(self, refs: Iterable[DriveRef]) -> Selection:
+        """A selection of exactly these drives (one query per host where the host is whole)."""
+        refs = sorted(set(refs))
+        sels = [Selector(str(r), pattern=str(r)) for r in refs]
+        # Concrete names are each expressible; group them per host to save queries.
+        by_host: dict[str, list[str]] = {}
+        for r in refs:
+            by_host.setdefault(r.host, []).append(r.axis)
+        axes = self.host_axes()
+        pairs: list[tuple[str, str]] = []
+        for h, ax in sorted(by_host.items()):
+            if axes.get(h) and set(ax) >= set(axes[h]):
+                pairs.append((h, "*"))
+            else:
+                pairs.extend((h, a) for a in sorted(ax))
+        return Selection(tuple(s.text for s in sels), tuple(refs), QueryPlan(tuple(pairs)))
+
+    def _as_selection(self, target: "Selection | str | Sequence[str]") -> Selection:
+        if isinstance(target, Selection):
+            return target
+        if isinstance(target, str):
+            return self.select(target)
+        return self.select(*target)
+
+    # ---- commands ------------------------------------------------------------------------
+
+    def _request_id(self, op: str) -> str:
+        return f"{self.name}-{op}-{next(self._rid)}-{uuid.uuid4().hex[:8]}"
+
+    def _query(self, keyexprs: Sequence[str], request: CommandRequest,
+               addressed: Iterable[DriveRef], wait_s: float, agent_level: bool = False) -> CommandResult:
+        """Send one query per key expression at once; collect one reply per addressed drive."""
+        s = self.session
+        payload = encode(request)
+        col = _Collector(frozenset(addressed))
+        t0 = time.monotonic()
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                try:
+                    msg = decode(reply.ok.payload.to_bytes(), CommandReply)
+                except SchemaError as exc:
+                    with self._lock:
+                        col.errors.append(f"bad reply on {reply.ok.key_expr}: {exc}")
+                    return
+                if msg.request_id != request.request_id:
+                    return
+                ref = DriveRef(msg.host, "" if agent_level else msg.axis)
+                with self._lock:
+                    col.replies.setdefault(ref, msg)
+                    self._lock.notify_all()
+            else:
+                text = reply.err.payload.to_string() if reply.err is not None else "?"
+                if text != "Timeout":  # zenoh's own end-of-query marker, not an agent's answer
+                    with self._lock:
+                        col.errors.append(text)
+                        self._lock.notify_all()
+
+        def on_done() -> None:
+            with self._lock:
+                col.finished += 1
+                self._lock.notify_all()
+
+        for ke in keyexprs:
+            s.get(ke, zenoh.handlers.Callback(on_reply, on_done), target=zenoh.QueryTarget.ALL,
+                  consolidation=zenoh.ConsolidationMode.NONE, timeout=wait_s, payload=payload)
+        deadline = t0 + wait_s + 0.2
+        with self._lock:
+            while True:
+                alive = {h for h, a in self._agents.items() if a.alive}
+                waiting = [r for r in col.addressed if r not in col.replies and r.host in alive]
+                if not waiting or col.finished >= len(keyexprs):
+                    break
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._lock.wait(min(left, 0.05))
+            gone = {r.host for r in col.addressed} - {h for h, a in self._agents.items() if a.alive}
+            replies = dict(col.replies)
+            errors = list(col.errors)
+        elapsed = time.monotonic() - t0
+        result = aggregate(request.op, request.request_id, sorted(col.addressed), replies,
+                           errors=errors, gone_hosts=gone, timeout_s=wait_s, elapsed_s=elapsed)
+        level = logging.INFO if result.ok else logging.WARNING
+        log.log(level, "supervisor %s: %s to %d drive(s): %s in %.3f s", self.name, request.op,
+                len(col.addressed), result.counts(), elapsed)
+        return result
+
+    def command(self, op: str, target: "Selection | str | Sequence[str]" = "**",
+                args: Mapping[str, Any] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Send drive command ``op`` (``schemas.messages.DRIVE_OPS``) to the selection: one
+        fan-out query per planned key expression, one result per selected drive."""
+        sel = self._as_selection(target)
+        req = CommandRequest(self._request_id(op), op, dict(args or {}), float(timeout_s), self.name)
+        if not sel.drives:
+            return CommandResult(op, req.request_id, ())
+        return self._query(sel.plan.keyexprs(op), req, sel.drives, timeout_s + REPLY_MARGIN_S)
+
+    def enable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S, stages: Sequence[Sequence[str]] | None = None):
+        """Two-phase enable (see :func:`supervisor.orchestration.two_phase_enable`)."""
+        from .orchestration import two_phase_enable
+        return two_phase_enable(self, selectors or ("**",), timeout_s=timeout_s, stages=stages)
+
+    def shutdown(self, stages: Sequence[Sequence[str] | str], *, op: str = "disable", timeout_s: float = DEFAULT_TIMEOUT_S):
+        """Ordered shutdown, last stage first (see :func:`supervisor.orchestration.ordered_shutdown`)."""
+        from .orchestration import ordered_shutdown
+        return ordered_shutdown(self, stages, op=op, timeout_s=timeout_s)
+
+    def switch_on(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        return self.command("switch_on", selectors or "**", timeout_s=timeout_s)
+
+    def disable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        return self.command("disable", selectors or "**", timeout_s=timeout_s)
+
+    def quick_stop(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Quick stop (controlword bit 2 low, transition 11) on every selected drive, default all."""
+        return self.command("quick_stop", selectors or "**", timeout_s=timeout_s)
+
+    def halt(self, *selectors: str, on: bool = True, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Halt (controlword bit 8) on or off."""
+        return self.command("halt", selectors or "**", {"on": bool(on)}, timeout_s=timeout_s)
+
+    def fault_reset(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Fault reset (controlword bit 7 rising edge, transition 15), made by the agent."""
+        return self.command("fault_reset", selectors or "**", timeout_s=timeout_s)
+
+    def set_mode(self, mode: int, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Modes of operation 0x6060, done on the 0x6061 echo."""
+        if isinstance(mode, bool) or not isinstance(mode, int) or mode not in MODES:
+            raise ValueError(f"mode {mode!r} is not one of {', '.join(map(str, MODES))}")
+        return self.command("set_mode", selectors or "**", {"mode": mode}, timeout_s=timeout_s)
+
+    def nmt(self, command: str, hosts: Sequence[str] = ("*",), axis: str | int | None = None,
+            timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Network management on agents (``.../agent/cmd/nmt``): start (-> OP), stop
+        (-> SAFE-OP), preop, reset_comm, reset_node (cia402.md section 5), for the slave of one
+        axis (a name, or a slave position looked up in the drive status) or the whole segment.
+        One result per agent (``axis`` '')."""
+        if command not in NMT_COMMANDS:
+            raise ValueError(f"nmt command {command!r} is not one of {', '.join(NMT_COMMANDS)}")
+        live = self.hosts()
+        addressed: set[str] = set()
+        keyexprs: list[str] = []
+        for h in hosts:
+            sel = parse_selector(f"{h}/x") if "/" not in h else None
+            if sel is None:
+                raise SelectorError(f"host selector {h!r} may not contain '/'")
+            matched = [x for x in live if sel.matches(DriveRef(x, "x"))]
+            if not sel.has_wildcards:
+                matched = [h]
+            if not matched:
+                raise SelectorError(f"host selector {h!r} matches no live agent")
+            addressed.update(matched)
+            pair = sel.zenoh_pair()
+            if pair is None:
+                keyexprs.extend(keys.agent_cmd(m, "nmt") for m in matched)
+            else:
+                keyexprs.append(keys.agent_cmd(pair[0], "nmt"))
+        args: dict[str, Any] = {"command": command}
+        if axis is not None:
+            args["axis"] = self._axis_of_slave(axis, addressed)
+        req = CommandRequest(self._request_id("nmt"), "nmt", args, float(timeout_s), self.name)
+        return self._query(sorted(set(keyexprs)), req, [DriveRef(h, "") for h in addressed],
+                           timeout_s + REPLY_MARGIN_S, agent_level=True)
+
+    def _axis_of_slave(self, axis: str | int, hosts: Iterable[str]) -> str:
+        """An axis name, or the axis at slave position ``axis`` on the (single) addressed host."""
+        if isinstance(axis, str) and not axis.isdigit():
+            return keys.validate_name(axis, "axis")
+        pos = int(axis)
+        hosts = sorted(hosts)
+        if len(hosts) != 1:
+            raise SelectorError("a slave position needs exactly one host (--host); or give an axis name")
+        found = [r.axis for r, st in self.drives().items() if r.host == hosts[0] and st.slave == pos]
+        if not found:
+            info = self.agents().get(hosts[0])
+            axes = info.status.axes if info and info.status else []
+            if 0 <= pos < len(axes):
+                found = [axes[pos]]
+        if not found:
+            raise SelectorError(f"no drive at slave position {pos} on {hosts[0]}")
+        return found[0]
+
+    # ---- leases --------------------------------------------------------------------------
+
+    def lease(self, *selectors: str, ttl_s: float | None = None, takeover: bool = False,
+              timeout_s: float = 2.0) -> CommandResult:
+        """Take (or with ``takeover`` seize) exclusive control of the selected drives.
+
+        Leases are renewed every ttl/3 by a background thread while this Fleet is open; a drive
+        whose renewal answers ``busy`` was taken over and is reported through ``lease_lost``.
+        When this process dies, its liveliness token vanishes and the agents run the lease
+        reaction at once (or at the latest when the ttl runs out).
+        """
+        ttl = float(ttl_s or self.lease_ttl_s)
+        sel = self._as_selection(selectors or "**")
+        res = self.command("lease", sel, {"holder": self.name, "ttl_s": ttl, "takeover": bool(takeover)},
+                           timeout_s=timeout_s)
+        with self._lock:
+            for r in res.results:
+                if r.ok:
+                    self._leases[DriveRef(r.host, r.axis)] = ttl
+            if sel.selectors not in self._lease_selectors:
+                self._lease_selectors.append(sel.selectors)
+        if self._leases and self._renewer is None:
+            self._renewer = threading.Thread(target=self._renew_loop, name=f"fleet-{self.name}-lease", daemon=True)
+            self._renewer.start()
+        return res
+
+    def leases(self) -> list[DriveRef]:
+        """Drives whose lease this supervisor holds (as far as it knows)."""
+        with self._lock:
+            return sorted(self._leases)
+
+    def release(self, *selectors: str, timeout_s: float = 2.0) -> CommandResult:
+        """Give leases back (no reaction runs); default every lease held."""
+        if selectors:
+            sel = self._as_selection(selectors)
+        else:
+            sel = self.selection_of(self.leases())
+        res = self.command("release", sel, {"holder": self.name}, timeout_s=timeout_s)
+        with self._lock:
+            for ref in sel.drives:
+                self._leases.pop(ref, None)
+        return res
+
+    def _renew_loop(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                held = sorted(self._leases)
+                ttl = min(self._leases.values(), default=self.lease_ttl_s)
+            if self._stop.wait(ttl / 3.0):
+                return
+            if not held:
+                continue
+            try:
+                res = self.command("lease", self.selection_of(held),
+                                   {"holder": self.name, "ttl_s": ttl, "takeover": False},
+                                   timeout_s=min(1.0, ttl / 3.0))
+            except Exception:
+                if self._stop.is_set():
+                    return
+                log.exception("supervisor %s: lease renewal failed", self.name)
+                continue
+            for r in res.results:
+                if r.outcome in ("busy", "rejected"):
+                    with self._lock:
+                        self._leases.pop(DriveRef(r.host, r.axis), None)
+                    log.warning("supervisor %s: lease on %s lost (%s, holder %r)", self.name, r.name,
+                                r.outcome, r.lease_holder)
+                    self._emit("lease_lost", r)
+                elif not r.ok:
+                    log.warning("supervisor %s: lease renewal on %s: %s %s", self.name, r.name, r.outcome, r.error)
+
+
+__all__ = ["Fleet", "Selection", "AgentInfo", "FleetError", "NoAgentError", "SelectorError",
+           "DriveRef", "DriveResult", "CommandResult", "zenoh_config", "default_name"]
