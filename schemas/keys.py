@@ -169,16 +169,20 @@ def _split_selector(selector: str) -> tuple[str, str]:
     if not isinstance(selector, str):
         raise InvalidKey(f"selector {selector!r} must be a string 'host/axis'")
     parts = selector.split("/")
+    if len(parts) == 1 and parts[0]:
+        return parts[0], "*"  # 'h1' is every axis of h1, '**' everything
     if len(parts) != 2:
         raise InvalidKey(
-            f"selector {selector!r} must be 'host/axis' with exactly one '/', "
-            "e.g. 'h1/x', 'h1/*', '*/x', 'h*/axis?'"
+            f"selector {selector!r} must be 'host/axis' (or 'host' for all its axes) with at most "
+            "one '/', e.g. 'h1/x', 'h1/*', 'h1', '*/x', 'h*/axis?'"
         )
     return parts[0], parts[1]
 
 
 def selector_to_keyexpr(selector: str) -> tuple[str, str]:
     """Turn a user selector ``host/axis`` into zenoh-ready ``(host_chunk, axis_chunk)``.
+
+    A selector without ``/`` is a host: ``h1`` means ``h1/*`` and ``**`` every drive.
 
     Both sides take fnmatch wildcards: ``*`` (any substring), ``?`` (one character),
     ``[abc]``/``[!abc]`` (one character of/not of a set); ``**`` means ``*``. zenoh has no

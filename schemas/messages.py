@@ -328,6 +328,8 @@ def _base_type(cls: type, name: str) -> type:
 
 def _check_arg_value(where: str, value: Any, depth: int) -> Any:
     """A JSON-like msgpack value: nil, bool, 64-bit int, finite float, str, list, str-keyed map."""
+    if isinstance(value, msgpack.ExtType):  # a namedtuple: must not pass as a list
+        raise SchemaError(f"{where}: msgpack extension type {value.code} is not allowed")
     if value is None or isinstance(value, (bool, str)):
         return value
     if isinstance(value, int):
@@ -353,6 +355,8 @@ def _check_arg_value(where: str, value: Any, depth: int) -> Any:
 
 def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) -> Any:
     """Check ``value`` against type ``t`` and rule metadata; return it normalised."""
+    if isinstance(value, msgpack.ExtType):  # a namedtuple: must not pass as a list
+        raise SchemaError(f"{where}: msgpack extension type {value.code} is not allowed")
     if t is bool:
         if not isinstance(value, bool):
             raise SchemaError(f"{where}: expected bool, got {type(value).__name__}")

@@ -176,7 +176,8 @@ def test_key_table_covers_every_kind():
     [("h1/x", ("h1", "x")), ("h1/*", ("h1", "*")), ("*/x", ("*", "x")), ("*/*", ("*", "*")),
      ("**/x", ("*", "x")), ("h*/axis?", ("h$*", "axis$*")), ("h?/?", ("h$*", "*")),
      ("h[12]/ax[!0]", ("h$*", "ax$*")), ("h*?/a", ("h$*", "a")), ("h$*/a", ("h$*", "a")),
-     ("h1/a*b?c", ("h1", "a$*b$*c")), ("[ab]*/x", ("*", "x"))],
+     ("h1/a*b?c", ("h1", "a$*b$*c")), ("[ab]*/x", ("*", "x")), ("h1", ("h1", "*")), ("**", ("*", "*")),
+     ("h?", ("h$*", "*"))],
 )
 def test_selector_to_keyexpr(selector, expected):
     h, a = keys.selector_to_keyexpr(selector)
@@ -189,7 +190,7 @@ def test_selector_to_keyexpr(selector, expected):
 
 @pytest.mark.parametrize(
     "selector,why",
-    [("h1", "exactly one '/'"), ("h1/x/y", "exactly one '/'"), ("", "exactly one '/'"), ("/x", "host is empty"),
+    [("h1/x/y", "at most one '/'"), ("", "at most one '/'"), ("@x", "verbatim"), ("/x", "host is empty"),
      ("h1/", "axis is empty"), ("@sup/x", "verbatim"), ("h1/@x", "verbatim"), ("h#/x", "illegal character"),
      ("h$/x", "illegal character"), ("h 1/x", "illegal character"), ("h[/x", "illegal character"),
      ("h[a/]x", "illegal character"), ("h[*]/x", "character class"), (".h/x", "starts with"),
@@ -207,7 +208,8 @@ def test_selector_rejected(selector, why):
     [("h1/x", "h1", "x", True), ("h1/x", "h1", "y", False), ("h1/*", "h1", "anything", True),
      ("*/x", "h9", "x", True), ("h*/axis?", "h2", "axis1", True), ("h*/axis?", "h2", "axis12", False),
      ("h*/axis?", "h2", "axis", False), ("h[12]/x", "h3", "x", False), ("h[!12]/x", "h3", "x", True),
-     ("H1/x", "h1", "x", False), ("**/*", "h1", "x", True), ("h1/x", "h1", 5, False)],
+     ("H1/x", "h1", "x", False), ("**/*", "h1", "x", True), ("h1/x", "h1", 5, False),
+     ("h1", "h1", "x", True), ("h1", "h10", "x", False), ("**", "h7", "y", True)],
 )
 def test_selector_matches(selector, host, axis, hit):
     assert keys.selector_matches(selector, host, axis) is hit
