@@ -1,0 +1,137 @@
+"""A loopback test bed for the supervisor's tests and benchmark: a Zenoh router and bus agents
+on simulated buses, each in its own process (spawned, so every one opens its own session).
+
+    python -m supervisor.testbed router tcp/127.0.0.1:PORT    # a router until SIGTERM
+
+Not for production: it picks free loopback ports and turns multicast scouting off.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import IO, Sequence
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (the OS picks it)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+@dataclass
+class Proc:
+    """A child process with its output collected (for failure messages)."""
+
+    name: str
+    popen: subprocess.Popen
+    lines: list[str] = field(default_factory=list)
+    _ready: threading.Event = field(default_factory=threading.Event)
+    ready_marker: str = ""
+
+    def start_reader(self) -> None:
+        def pump(stream: IO[str]) -> None:
+            for line in stream:
+                self.lines.append(line.rstrip("\n"))
+                if self.ready_marker and self.ready_marker in line.lower():
+                    self._ready.set()
+            self._ready.set()  # EOF: stop anyone waiting
+        threading.Thread(target=pump, args=(self.popen.stdout,), daemon=True).start()
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        return self._ready.wait(timeout_s) and self.popen.poll() is None
+
+    def output(self, last: int = 40) -> str:
+        return "\n".join(self.lines[-last:])
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def kill(self) -> None:
+        """SIGKILL: a crash, no clean-up in the child."""
+        if self.popen.poll() is None:
+            self.popen.kill()
+        self.popen.wait(timeout=10)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """SIGTERM, then SIGKILL after ``timeout_s``."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait(timeout=10)
+
+
+def spawn(name: str, argv: Sequence[str], ready_marker: str = "") -> Proc:
+    popen = subprocess.Popen(list(argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             env=_env(), start_new_session=True)
+    p = Proc(name, popen, ready_marker=ready_marker.lower())
+    p.start_reader()
+    return p
+
+
+def start_router(port: int | None = None) -> tuple[Proc, str]:
+    """A Zenoh router on 127.0.0.1 in a child process; returns it and its endpoint."""
+    ep = f"tcp/127.0.0.1:{port or free_port()}"
+    p = spawn("router", [sys.executable, "-m", "supervisor.testbed", "router", ep], ready_marker="router ready")
+    if not p.wait_ready(20):
+        p.stop()
+        raise RuntimeError(f"router did not start:\n{p.output()}")
+    return p, ep
+
+
+def start_agent(host: str, n_drives: int, router: str, *, extra: Sequence[str] = (),
+                ready_timeout_s: float = 30.0) -> Proc:
+    """``python -m bus_agent.cli --sim N --host H --listen tcp/127.0.0.1:P --connect ROUTER``."""
+    argv = [sys.executable, "-m", "bus_agent.cli", "--sim", str(n_drives), "--host", host,
+            "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, *extra]
+    p = spawn(f"agent {host}", argv, ready_marker="ready")
+    if not p.wait_ready(ready_timeout_s):
+        out = p.output()
+        p.stop()
+        raise RuntimeError(f"agent {host} did not become ready:\n{out}")
+    return p
+
+
+def _router_main(endpoint: str) -> int:
+    import zenoh
+
+    conf = zenoh.Config.from_json5(json.dumps({
+        "mode": "router",
+        "listen": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+    }))
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    with zenoh.open(conf):
+        print(f"router ready {endpoint}", flush=True)
+        while not stop.wait(0.5):
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "router":
+        sys.exit(_router_main(sys.argv[2]))
+    print(__doc__, file=sys.stderr)
+    sys.exit(2)
