@@ -118,8 +118,8 @@ def _op_rules() -> list[dict]:
 def message_schema(cls: type) -> dict:
     """The JSON Schema of message class ``cls`` (one of :data:`schemas.messages.MESSAGE_TYPES`)."""
     props: dict[str, Any] = {
-        "v": {"description": "schema version", "const": SCHEMA_VERSION},
-        "type": {"description": "message type", "const": cls.TYPE},
+        "v": {"description": "schema version", "type": "integer", "const": SCHEMA_VERSION},
+        "type": {"description": "message type", "type": "string", "const": cls.TYPE},
     }
     required = ["v", "type"]
     for f in dataclasses.fields(cls):
