@@ -1,0 +1,149 @@
+"""``ecat-sim``: a virtual EtherCAT segment of CiA 402 drives on one end of a veth pair.
+
+    ecat-sim --ifname vethX --drives 16 [--profile generic|indy7] [--name seg0]
+             [--control /run/seg0.sock | --control 5555] [--zenoh-connect tcp/127.0.0.1:7447]...
+
+Unmodified SOEM/pysoem on the other end of the veth pair finds, configures and runs the
+drives. Prints one readiness line on stdout (``ecat-sim ready ...``) once frames are served.
+See docs/virtual-ethercat.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import queue
+import signal
+import sys
+import threading
+
+from bus_agent.sim.drive_model import PROFILES
+from bus_agent.sim.ecat.control import ACTIONS, TcpControl, UnixControl, apply_action
+from bus_agent.sim.ecat.frameloop import FrameLoop
+from bus_agent.sim.ecat.segment import Segment
+
+log = logging.getLogger("bus_agent.sim.cli")
+
+
+class QueuedControl:
+    """Requests from other threads (the Zenoh worker), executed by the frame loop's poll."""
+
+    def __init__(self) -> None:
+        self._q: queue.Queue[tuple[dict, threading.Event, list]] = queue.Queue()
+
+    def submit(self, req: dict, timeout: float = 2.0) -> dict:
+        done, out = threading.Event(), []
+        self._q.put((req, done, out))
+        if not done.wait(timeout):
+            return {"ok": False, "error": "simulator busy: request not handled in time"}
+        return out[0]
+
+    def poll(self, handle) -> None:
+        while True:
+            try:
+                req, done, out = self._q.get_nowait()
+            except queue.Empty:
+                return
+            out.append(handle(req))
+            done.set()
+
+    def close(self) -> None:
+        pass
+
+
+def _zenoh_control(args, name: str, n: int, channel: QueuedControl):
+    import zenoh
+
+    from bus_agent.sim.control import SimControl
+
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if args.zenoh_connect:
+        conf.insert_json5("connect/endpoints", json.dumps(args.zenoh_connect))
+    if args.zenoh_listen:
+        conf.insert_json5("listen/endpoints", json.dumps(args.zenoh_listen))
+    session = zenoh.open(conf)
+
+    def make(action: str):
+        def handler(position: int, payload: dict) -> str:
+            reply = channel.submit({"action": action, "slave": position, **payload})
+            if not reply.get("ok"):
+                raise ValueError(reply.get("error", "refused"))
+            return json.dumps({k: v for k, v in reply.items() if k != "ok"}) or "done"
+        return handler
+
+    handlers = {a: make(a) for a in ACTIONS}
+    return session, SimControl(session, name, handlers, n)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ecat-sim", description=__doc__.split("\n\n")[0])
+    p.add_argument("--ifname", required=True, help="network interface to serve (one end of a veth pair)")
+    p.add_argument("--drives", type=int, default=1, help="number of slaves on the segment (1..1000)")
+    p.add_argument("--profile", choices=sorted(PROFILES), default="generic")
+    p.add_argument("--name", default="seg0", help="segment name (the Zenoh control key chunk)")
+    p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP")
+    p.add_argument("--step-us", type=int, default=1000, help="drive model step period while in SAFE-OP/OP")
+    p.add_argument("--stale-us", type=int, default=1500,
+                   help="frames older than this are dropped, never answered late (0: answer all)")
+    p.add_argument("--log-level", default="WARNING")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        segment = Segment(args.drives, args.profile)
+        loop = FrameLoop(segment, args.ifname, step_s=args.step_us / 1e6, stale_s=args.stale_us / 1e6)
+    except (ValueError, OSError) as exc:
+        print(f"ecat-sim: {exc}", file=sys.stderr)
+        return 2
+    loop.handle_control = lambda req: apply_action(loop, args.name, req)
+    control_desc = "none"
+    if args.control:
+        try:
+            if args.control.isdigit():
+                tcp = TcpControl(int(args.control))
+                loop.controls.append(tcp)
+                control_desc = f"tcp:{tcp.port}"
+            else:
+                loop.controls.append(UnixControl(args.control))
+                control_desc = f"unix:{args.control}"
+        except OSError as exc:
+            print(f"ecat-sim: control socket {args.control}: {exc}", file=sys.stderr)
+            return 2
+    zenoh_parts = None
+    if args.zenoh_connect or args.zenoh_listen:
+        channel = QueuedControl()
+        loop.controls.append(channel)
+        zenoh_parts = _zenoh_control(args, args.name, args.drives, channel)
+
+    def on_signal(signum, frame):
+        loop.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    def ready() -> None:
+        print(f"ecat-sim ready ifname={args.ifname} drives={args.drives} profile={args.profile} "
+              f"name={args.name} control={control_desc}", flush=True)
+
+    try:
+        loop.run(on_ready=ready)
+    finally:
+        if zenoh_parts:
+            session, control = zenoh_parts
+            control.close()
+            session.close()
+        loop.close()
+        log.info("counters: %s", loop.counters)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,470 @@
+"""CoE over the EtherCAT mailbox: SDO server, emergencies, PDO communication objects.
+
+Device side of ETG.1000.6 §5.6 (mailbox) and CiA 301 SDO semantics as CoE carries them:
+expedited, normal and segmented upload/download, aborts, emergencies (service 1), the
+SyncManager communication objects 0x1C00/0x1C12/0x1C13 and the PDO mapping objects
+0x1600..0x1603 / 0x1A00..0x1A03 (remappable in PRE-OP only, abort 0x08000022 otherwise).
+Everything else is delegated to the drive model's object dictionary.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections import deque
+from enum import IntEnum
+from typing import Callable, Mapping
+
+from bus_agent.bus.base import ALState
+from bus_agent.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
+from bus_agent.sim.drive_model import Emcy, ObjectEntry, SdoAbort
+from bus_agent.sim.ecat.sii import MBX_IN_SIZE, MBX_OUT_SIZE, SmType
+
+log = logging.getLogger(__name__)
+
+MBX_HEADER = struct.Struct("<HHBB")  # length, address, channel/priority, type | counter << 4
+SDO_HEADER = struct.Struct("<HBHB")  # CoE header, command, index, subindex
+MBX_MAX_DATA = MBX_IN_SIZE - MBX_HEADER.size  # 122 bytes after the mailbox header
+NORMAL_UPLOAD_MAX = MBX_MAX_DATA - 10  # CoE 2 + SDO 4 + size 4
+SEGMENT_MAX = MBX_MAX_DATA - 3  # CoE 2 + command 1
+MAX_PENDING = 16  # responses/emergencies queued behind SM1
+
+
+class MbxType(IntEnum):
+    """Mailbox type, header byte 5 low nibble (ETG.1000.4 Table 29)."""
+
+    ERR = 0
+    AOE = 1
+    EOE = 2
+    COE = 3
+    FOE = 4
+    SOE = 5
+    VOE = 15
+
+
+class MbxError(IntEnum):
+    """Mailbox error reply details (ETG.1000.4 Table 30)."""
+
+    SYNTAX = 1
+    UNSUPPORTED_PROTOCOL = 2
+    INVALID_CHANNEL = 3
+    SERVICE_NOT_SUPPORTED = 4
+    INVALID_HEADER = 5
+    SIZE_TOO_SHORT = 6
+    NO_MORE_MEMORY = 7
+    INVALID_SIZE = 8
+
+
+class CoeService(IntEnum):
+    """CoE header bits 12-15 (ETG.1000.6 Table 29)."""
+
+    EMERGENCY = 1
+    SDO_REQUEST = 2
+    SDO_RESPONSE = 3
+    TXPDO = 4
+    RXPDO = 5
+    SDO_INFO = 8
+
+
+class SdoAbortCode(IntEnum):
+    """SDO abort codes (CiA 301 Table 22 / ETG.1000.6 Table 41)."""
+
+    TOGGLE = 0x05030000
+    TIMEOUT = 0x05040000
+    INVALID_COMMAND = 0x05040001
+    UNSUPPORTED_ACCESS = 0x06010000
+    WRITE_ONLY = 0x06010001
+    READ_ONLY = 0x06010002
+    NO_OBJECT = 0x06020000
+    NOT_MAPPABLE = 0x06040041
+    PDO_TOO_LONG = 0x06040042
+    LENGTH_MISMATCH = 0x06070010
+    LENGTH_TOO_HIGH = 0x06070012
+    NO_SUBINDEX = 0x06090011
+    VALUE_RANGE = 0x06090030
+    GENERAL = 0x08000000
+    WRONG_STATE = 0x08000022
+
+
+SM_COMM_TYPES = (SmType.MBX_OUT, SmType.MBX_IN, SmType.OUTPUTS, SmType.INPUTS)  # 0x1C00:1..4
+PDO_SLOTS = 4  # 0x1600..0x1603, 0x1A00..0x1A03
+MAX_ENTRIES = 8  # subindexes per mapping object
+MAX_PDO_BYTES = 256
+SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
+SCRATCH_MAX = 512
+
+_STRUCT_CODE = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i"}
+
+
+class PdoConfig:
+    """0x1C00, 0x1C12/0x1C13 (PDO assignment) and 0x16xx/0x1Axx (PDO mapping) of one drive.
+
+    ``objects`` is the drive's object dictionary, used to validate mapped entries.
+    """
+
+    def __init__(self, objects: Mapping[tuple[int, int], ObjectEntry]):
+        self._objects = objects
+        self.reset()
+
+    def reset(self) -> None:
+        """Power-on defaults: 0x1600/0x1A00 as in bus_agent.pdo, assigned to SM2/SM3."""
+        self.assign: dict[int, list[int]] = {0x1C12: [RXPDO_INDEX, 0, 0, 0], 0x1C13: [TXPDO_INDEX, 0, 0, 0]}
+        self.assign_count = {0x1C12: 1, 0x1C13: 1}
+        self.maps: dict[int, list[int]] = {}
+        self.map_count: dict[int, int] = {}
+        for base, default in ((RXPDO_INDEX, RXPDO_DEFAULT), (TXPDO_INDEX, TXPDO_DEFAULT)):
+            for k in range(PDO_SLOTS):
+                self.maps[base + k] = [0] * MAX_ENTRIES
+                self.map_count[base + k] = 0
+            for i, (index, sub, bits, _code, _name) in enumerate(default):
+                self.maps[base][i] = mapping_entry(index, sub, bits)
+            self.map_count[base] = len(default)
+
+    def handles(self, index: int) -> bool:
+        return index in (0x1C00, 0x1C12, 0x1C13) or index in self.maps
+
+    # -- layout ---------------------------------------------------------------------------
+    def layout(self, sm_assign: int) -> list[tuple[int, int, int]]:
+        """(index, subindex, bits) of every entry assigned to SM2 (0x1C12) or SM3 (0x1C13)."""
+        out = []
+        for pdo in self.assign[sm_assign][: self.assign_count[sm_assign]]:
+            for entry in self.maps[pdo][: self.map_count[pdo]]:
+                out.append((entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF))
+        return out
+
+    def size_bytes(self, sm_assign: int) -> int:
+        return (sum(bits for _i, _s, bits in self.layout(sm_assign)) + 7) // 8
+
+    # -- SDO access -----------------------------------------------------------------------
+    def read(self, index: int, sub: int) -> bytes:
+        if index == 0x1C00:
+            if sub == 0:
+                return bytes([len(SM_COMM_TYPES)])
+            if 1 <= sub <= len(SM_COMM_TYPES):
+                return bytes([SM_COMM_TYPES[sub - 1]])
+            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        if index in self.assign:
+            if sub == 0:
+                return bytes([self.assign_count[index]])
+            if 1 <= sub <= PDO_SLOTS:
+                return struct.pack("<H", self.assign[index][sub - 1])
+            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        if index in self.maps:
+            if sub == 0:
+                return bytes([self.map_count[index]])
+            if 1 <= sub <= MAX_ENTRIES:
+                return struct.pack("<I", self.maps[index][sub - 1])
+            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        raise SdoAbort(SdoAbortCode.NO_OBJECT)
+
+    def write(self, index: int, sub: int, data: bytes, al_state: ALState) -> None:
+        """Download to a communication object; only in PRE-OP (ETG.1000.6 §5.6.7.4)."""
+        if index == 0x1C00:
+            self.read(index, sub)  # abort for a missing subindex first
+            raise SdoAbort(SdoAbortCode.READ_ONLY)
+        if index not in self.assign and index not in self.maps:
+            raise SdoAbort(SdoAbortCode.NO_OBJECT)
+        limit = PDO_SLOTS if index in self.assign else MAX_ENTRIES
+        if sub > limit:
+            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        size = 1 if sub == 0 else (2 if index in self.assign else 4)
+        if len(data) != size:
+            raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
+        if al_state != ALState.PREOP:
+            raise SdoAbort(SdoAbortCode.WRONG_STATE, "PDO configuration only in PRE-OP")
+        value = int.from_bytes(data, "little")
+        if index in self.assign:
+            self._write_assign(index, sub, value)
+        else:
+            self._write_map(index, sub, value)
+
+    def _write_assign(self, index: int, sub: int, value: int) -> None:
+        base = RXPDO_INDEX if index == 0x1C12 else TXPDO_INDEX
+        table = self.assign[index]
+        if sub == 0:
+            if value > PDO_SLOTS:
+                raise SdoAbort(SdoAbortCode.VALUE_RANGE)
+            if any(not (base <= table[k] < base + PDO_SLOTS) for k in range(value)):
+                raise SdoAbort(SdoAbortCode.VALUE_RANGE, "assignment references no PDO")
+            if sum(self._pdo_bits(table[k]) for k in range(value)) > MAX_PDO_BYTES * 8:
+                raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
+            self.assign_count[index] = value
+            return
+        if self.assign_count[index] != 0:
+            raise SdoAbort(SdoAbortCode.WRONG_STATE, "set subindex 0 to 0 before changing entries")
+        if value != 0 and not (base <= value < base + PDO_SLOTS):
+            raise SdoAbort(SdoAbortCode.VALUE_RANGE)
+        table[sub - 1] = value
+
+    def _pdo_bits(self, pdo: int) -> int:
+        return sum(e & 0xFF for e in self.maps[pdo][: self.map_count[pdo]])
+
+    def _write_map(self, index: int, sub: int, value: int) -> None:
+        entries = self.maps[index]
+        if sub == 0:
+            if value > MAX_ENTRIES:
+                raise SdoAbort(SdoAbortCode.VALUE_RANGE)
+            if any(entries[k] == 0 for k in range(value)):
+                raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "empty mapping entry")
+            if sum(e & 0xFF for e in entries[:value]) > MAX_PDO_BYTES * 8:
+                raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
+            self.map_count[index] = value
+            return
+        if self.map_count[index] != 0:
+            raise SdoAbort(SdoAbortCode.WRONG_STATE, "set subindex 0 to 0 before changing entries")
+        if value != 0:
+            self.check_mappable(value, rx=index < TXPDO_INDEX)
+        entries[sub - 1] = value
+
+    def check_mappable(self, entry: int, rx: bool) -> None:
+        """Abort unless ``entry`` names a mappable object of the right direction and size."""
+        obj_index, obj_sub, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+        obj = self._objects.get((obj_index, obj_sub))
+        if obj is None:
+            raise SdoAbort(SdoAbortCode.NO_OBJECT, f"0x{obj_index:04X}:{obj_sub} does not exist")
+        if not obj.pdo_mappable or obj.datatype not in _STRUCT_CODE or bits != obj.size * 8:
+            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE)
+        if rx and obj.access == "ro":
+            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "read-only object in an RxPDO")
+        if not rx and obj.access == "wo":
+            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "write-only object in a TxPDO")
+
+    def struct_for(self, sm_assign: int) -> tuple[struct.Struct, list[tuple[int, int]]]:
+        """Struct packing the assigned entries, and their (index, subindex) in order."""
+        layout = self.layout(sm_assign)
+        codes = "".join(_STRUCT_CODE[self._objects[(i, s)].datatype] for i, s, _b in layout)
+        return struct.Struct("<" + codes), [(i, s) for i, s, _b in layout]
+
+
+class SdoServer:
+    """SDO request handling of one drive: one transfer at a time, as CoE allows.
+
+    ``al_state`` returns the current AL state (PDO configuration writes depend on it).
+    """
+
+    def __init__(self, model, al_state: Callable[[], ALState]):
+        self.model = model
+        self.pdo = PdoConfig(model.objects)
+        self._al_state = al_state
+        self._scratch = b""
+        self._sub0 = self._implicit_sub0(model.objects)
+        self._upload: tuple[int, int, bytes, int, int] | None = None  # index, sub, data, offset, toggle
+        self._download: tuple[int, int, int, bytearray, int] | None = None  # index, sub, size, buf, toggle
+
+    @staticmethod
+    def _implicit_sub0(objects: Mapping[tuple[int, int], ObjectEntry]) -> dict[int, int]:
+        """Records listed without subindex 0 (e.g. 0x1018:1..4) get sub0 = highest subindex."""
+        highest: dict[int, int] = {}
+        for index, sub in objects:
+            if sub > 0:
+                highest[index] = max(highest.get(index, 0), sub)
+        return {i: n for i, n in highest.items() if (i, 0) not in objects}
+
+    def reset(self) -> None:
+        self._upload = None
+        self._download = None
+
+    # -- object access --------------------------------------------------------------------
+    def read_object(self, index: int, sub: int) -> bytes:
+        if self.pdo.handles(index):
+            return self.pdo.read(index, sub)
+        if index == SCRATCH_INDEX:
+            if sub != 0:
+                raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+            return self._scratch
+        if sub == 0 and index in self._sub0:
+            return bytes([self._sub0[index]])
+        return bytes(self.model.read_bytes(index, sub))
+
+    def write_object(self, index: int, sub: int, data: bytes) -> None:
+        if self.pdo.handles(index):
+            self.pdo.write(index, sub, data, self._al_state())
+            return
+        if index == SCRATCH_INDEX:
+            if sub != 0:
+                raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+            if len(data) > SCRATCH_MAX:
+                raise SdoAbort(SdoAbortCode.LENGTH_TOO_HIGH)
+            self._scratch = bytes(data)
+            return
+        if sub == 0 and index in self._sub0:
+            raise SdoAbort(SdoAbortCode.READ_ONLY)
+        self.model.write_bytes(index, sub, bytes(data))
+
+    # -- protocol -------------------------------------------------------------------------
+    def handle(self, req: memoryview) -> bytes | None:
+        """One SDO request (starting at the CoE header). Returns the reply after the CoE
+        header position, or None when no reply is due (abort from the master)."""
+        if len(req) < 4:
+            return _abort(0, 0, SdoAbortCode.INVALID_COMMAND)
+        cmd = req[2]
+        index = req[3] | (req[4] << 8) if len(req) >= 5 else 0
+        sub = req[5] if len(req) >= 6 else 0
+        ccs = cmd >> 5
+        try:
+            if ccs == 1:
+                return self._download_initiate(req, cmd, index, sub)
+            if ccs == 0:
+                return self._download_segment(req, cmd)
+            if ccs == 2:
+                return self._upload_initiate(cmd, index, sub)
+            if ccs == 3:
+                return self._upload_segment(cmd)
+            if ccs == 4:
+                self.reset()
+                return None
+            raise SdoAbort(SdoAbortCode.INVALID_COMMAND)
+        except SdoAbort as exc:
+            code = int(exc.code)
+            if ccs in (0, 3):  # segments carry no index: report the transfer's object
+                index, sub = self._segment_object()
+            self.reset()
+            log.debug("SDO abort 0x%04X:%d code 0x%08X %s", index, sub, code, exc)
+            return _abort(index, sub, code)
+
+    def _segment_object(self) -> tuple[int, int]:
+        if self._upload is not None:
+            return self._upload[0], self._upload[1]
+        if self._download is not None:
+            return self._download[0], self._download[1]
+        return 0, 0
+
+    def _upload_initiate(self, cmd: int, index: int, sub: int) -> bytes:
+        self.reset()
+        if cmd & 0x10:
+            raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access not supported")
+        data = self.read_object(index, sub)
+        n = len(data)
+        if 0 < n <= 4:
+            return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x43 | ((4 - n) << 2), index, sub) \
+                + data + b"\0" * (4 - n)
+        first = data[:NORMAL_UPLOAD_MAX]
+        if n > NORMAL_UPLOAD_MAX:
+            self._upload = (index, sub, data, len(first), 0)
+        return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x41, index, sub) + struct.pack("<I", n) + first
+
+    def _upload_segment(self, cmd: int) -> bytes:
+        if self._upload is None:
+            raise SdoAbort(SdoAbortCode.INVALID_COMMAND, "no upload in progress")
+        index, sub, data, offset, toggle = self._upload
+        if (cmd & 0x10) != toggle:
+            raise SdoAbort(SdoAbortCode.TOGGLE)
+        chunk = data[offset: offset + SEGMENT_MAX]
+        offset += len(chunk)
+        last = offset >= len(data)
+        scmd = toggle | (1 if last else 0)
+        if len(chunk) < 7:
+            scmd |= (7 - len(chunk)) << 1
+            chunk = chunk + b"\0" * (7 - len(chunk))
+        self._upload = None if last else (index, sub, data, offset, toggle ^ 0x10)
+        return struct.pack("<HB", CoeService.SDO_RESPONSE << 12, scmd) + chunk
+
+    def _download_initiate(self, req: memoryview, cmd: int, index: int, sub: int) -> bytes:
+        self.reset()
+        if cmd & 0x10:
+            raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access not supported")
+        if len(req) < 10:
+            raise SdoAbort(SdoAbortCode.INVALID_COMMAND)
+        if cmd & 0x02:  # expedited
+            n = 4 - ((cmd >> 2) & 0x03) if cmd & 0x01 else 4
+            self.write_object(index, sub, bytes(req[6:6 + n]))
+        else:
+            size = struct.unpack_from("<I", req, 6)[0]
+            if size > SCRATCH_MAX:
+                raise SdoAbort(SdoAbortCode.LENGTH_TOO_HIGH)
+            chunk = bytes(req[10:])
+            if len(chunk) >= size:
+                self.write_object(index, sub, chunk[:size])
+            else:
+                self._download = (index, sub, size, bytearray(chunk), 0)
+        return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x60, index, sub) + b"\0\0\0\0"
+
+    def _download_segment(self, req: memoryview, cmd: int) -> bytes:
+        if self._download is None:
+            raise SdoAbort(SdoAbortCode.INVALID_COMMAND, "no download in progress")
+        index, sub, size, buf, toggle = self._download
+        if (cmd & 0x10) != toggle:
+            raise SdoAbort(SdoAbortCode.TOGGLE)
+        data = req[3:]
+        if len(data) == 7:
+            data = data[: 7 - ((cmd >> 1) & 0x07)]
+        buf += data
+        if len(buf) > size:
+            raise SdoAbort(SdoAbortCode.LENGTH_TOO_HIGH)
+        if cmd & 0x01:
+            if len(buf) != size:
+                raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
+            self._download = None
+            self.write_object(index, sub, bytes(buf))
+        else:
+            self._download = (index, sub, size, buf, toggle ^ 0x10)
+        return struct.pack("<HB", CoeService.SDO_RESPONSE << 12, 0x20 | toggle) + b"\0" * 7
+
+
+def _abort(index: int, sub: int, code: int) -> bytes:
+    # SOEM recognises an abort by service 2 (request) and command 0x80.
+    return SDO_HEADER.pack(CoeService.SDO_REQUEST << 12, 0x80, index, sub) + struct.pack("<I", code)
+
+
+class Mailbox:
+    """Mailbox protocol layer of one ESC: requests from SM0, replies queued for SM1.
+
+    Counter dedupe (header byte 5 bits 4-6): a request repeating the previous non-zero
+    counter is a resend and is ignored. The last reply handed to SM1 is kept for the
+    repeat request (SM1 activate bit 1 toggle).
+    """
+
+    def __init__(self, sdo: SdoServer):
+        self.sdo = sdo
+        self.queue: deque[bytes] = deque()
+        self.last_counter = 0
+        self._out_counter = 0
+        self.last_sent: bytes | None = None
+
+    def reset(self) -> None:
+        self.queue.clear()
+        self.last_counter = 0
+        self.last_sent = None
+        self.sdo.reset()
+
+    def _frame(self, mtype: MbxType, payload: bytes) -> bytes:
+        self._out_counter = self._out_counter % 7 + 1
+        return MBX_HEADER.pack(len(payload), 0, 0, mtype | (self._out_counter << 4)) + payload
+
+    def _push(self, frame: bytes, emergency: bool = False) -> None:
+        if len(self.queue) >= MAX_PENDING:
+            if emergency:
+                log.warning("mailbox queue full: emergency dropped")
+                return
+            self.queue.popleft()
+        self.queue.append(frame)
+
+    def request(self, buf: memoryview) -> None:
+        """A complete mailbox written by the master into SM0."""
+        length, _address, _channel, mtype = MBX_HEADER.unpack_from(buf, 0)
+        counter = (mtype >> 4) & 0x07
+        mtype &= 0x0F
+        if counter and counter == self.last_counter:
+            log.debug("mailbox counter %d repeated: resend ignored", counter)
+            return
+        self.last_counter = counter
+        if length < 2 or length > MBX_OUT_SIZE - MBX_HEADER.size:
+            self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.INVALID_SIZE)))
+            return
+        if mtype != MbxType.COE:
+            self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.UNSUPPORTED_PROTOCOL)))
+            return
+        body = buf[MBX_HEADER.size: MBX_HEADER.size + length]
+        service = (body[1] >> 4) & 0x0F
+        if service != CoeService.SDO_REQUEST:
+            self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.SERVICE_NOT_SUPPORTED)))
+            return
+        reply = self.sdo.handle(body)
+        if reply is not None:
+            self._push(self._frame(MbxType.COE, reply))
+
+    def emergency(self, emcy: Emcy) -> None:
+        """Queue a CoE emergency (service 1): error code, error register, 5 bytes."""
+        data = bytes(emcy.data)[:5].ljust(5, b"\0")
+        payload = struct.pack("<HHB", CoeService.EMERGENCY << 12, emcy.error_code, emcy.error_register) + data
+        self._push(self._frame(MbxType.COE, payload), emergency=True)

@@ -1,0 +1,481 @@
+"""One simulated EtherCAT slave controller (ESC) hosting a CiA 402 drive model.
+
+Register map, SII EEPROM interface, SyncManagers, FMMUs, the AL state machine and the
+mailbox glue (ETG.1000.4 / ETG.1000.6, ESC datasheet section II register descriptions).
+The ESC is driven by :class:`bus_agent.sim.ecat.segment.Segment`, which addresses it with
+datagrams; process data (LRD/LWR/LRW) goes through the segment's precomputed FMMU plans.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from typing import Callable
+
+from bus_agent.bus.base import AL_ERROR_FLAG, ALState
+from bus_agent.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
+from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
+from bus_agent.sim.ecat.coe import Mailbox, SdoServer
+from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START,
+                                    PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii)
+
+log = logging.getLogger(__name__)
+
+MEM_SIZE = 0x2000  # 4 KiB registers + 4 KiB process RAM
+REG_END = 0x1000
+
+
+class Reg:
+    """ESC register addresses used here (ETG.1000.4 Table 31 ff.)."""
+
+    TYPE = 0x0000
+    FMMU_COUNT = 0x0004
+    SM_COUNT = 0x0005
+    RAM_SIZE = 0x0006
+    PORT_DESC = 0x0007
+    FEATURES = 0x0008
+    STATION_ADDR = 0x0010
+    ALIAS = 0x0012
+    DL_CONTROL = 0x0100
+    DL_STATUS = 0x0110
+    AL_CONTROL = 0x0120
+    AL_STATUS = 0x0130
+    AL_STATUS_CODE = 0x0134
+    PDI_CONTROL = 0x0140
+    WD_DIVIDER = 0x0400
+    WD_TIME_PDI = 0x0410
+    WD_TIME_PD = 0x0420
+    WD_STATUS_PD = 0x0440
+    WD_COUNTER_PD = 0x0442
+    EEP_CONFIG = 0x0500
+    EEP_PDI_STATE = 0x0501
+    EEP_CONTROL = 0x0502
+    EEP_ADDRESS = 0x0504
+    EEP_DATA = 0x0508
+    FMMU0 = 0x0600
+    SM0 = 0x0800
+
+
+class AlStatusCode:
+    """AL status codes this ESC raises (register 0x0134, ETG.1000.6 Table 11)."""
+
+    NONE = 0x0000
+    INVALID_STATE_CHANGE = 0x0011
+    UNKNOWN_STATE = 0x0012
+    BOOTSTRAP_NOT_SUPPORTED = 0x0013
+    INVALID_MAILBOX_CONFIG = 0x0016
+    SM_WATCHDOG = 0x001B
+    INVALID_OUTPUT_CONFIG = 0x001D
+    INVALID_INPUT_CONFIG = 0x001E
+
+
+EEP_STATUS_R64 = 0x0040  # 8-byte reads supported
+EEP_CMD_READ, EEP_CMD_WRITE, EEP_CMD_RELOAD = 0x01, 0x02, 0x04
+SM_STATUS_MBX_FULL = 0x08
+SM_WD_ENABLE = 0x40  # SM control bit 6: watchdog trigger
+
+# Registers the master cannot overwrite: (start, end) byte ranges restored after a write.
+RO_RANGES: tuple[tuple[int, int], ...] = (
+    (0x0000, 0x0010), (0x0012, 0x0014), (0x0110, 0x0112), (0x0130, 0x0136), (0x0140, 0x0142),
+    (0x0440, 0x0444), (0x0501, 0x0502),
+    *((Reg.SM0 + 8 * k + 5, Reg.SM0 + 8 * k + 6) for k in range(16)),
+    *((Reg.SM0 + 8 * k + 7, Reg.SM0 + 8 * k + 8) for k in range(16)),
+)
+# transitions allowed upward (ETG.1000.6 Table 10); every downward one is allowed
+_UP = {(ALState.INIT, ALState.PREOP), (ALState.PREOP, ALState.SAFEOP), (ALState.SAFEOP, ALState.OP)}
+_STATES = {int(s) for s in ALState if s != ALState.NONE}
+U16 = struct.Struct("<H")
+FMMU = struct.Struct("<IHBBHBBB3x")
+SM = struct.Struct("<HHBBBB")
+
+
+class Esc:
+    """One slave: memory image, SII, AL state machine, mailbox and drive model.
+
+    ``position`` is 0-based on the segment; ``last`` tells the DL status that port 1 is
+    closed. ``on_change(kind)`` tells the segment to drop cached plans ("fmmu", "address",
+    "al") — called from the datagram path, so it must be cheap.
+    """
+
+    def __init__(self, position: int, profile: DriveProfile = PROFILES["generic"], *, last: bool = True,
+                 on_change: Callable[[str], None] = lambda kind: None):
+        self.position = position
+        self.profile = profile
+        self.model = DriveModel(profile, serial=position + 1)
+        self.sdo = SdoServer(self.model, lambda: self.al_state)
+        self.mailbox = Mailbox(self.sdo)
+        self.last = last
+        self.on_change = on_change
+        self.mem = bytearray(MEM_SIZE)
+        self.mv = memoryview(self.mem)
+        self.ro = bytearray(REG_END)
+        self.present = True
+        self.wkc_fault = False
+        self.sii = bytearray(build_sii(
+            vendor_id=profile.vendor_id, product_code=profile.product_code, revision=profile.revision,
+            serial=position + 1, name=profile.device_name,
+            rx_entries=[(i, s, b, self.model.objects[(i, s)].datatype) for i, s, b, _c, _n in RXPDO_DEFAULT],
+            tx_entries=[(i, s, b, self.model.objects[(i, s)].datatype) for i, s, b, _c, _n in TXPDO_DEFAULT]))
+        self.power_on()
+
+    # -- reset ----------------------------------------------------------------------------
+    def power_on(self) -> None:
+        """Registers to power-on values (INIT, station address 0, SMs/FMMUs off)."""
+        self.mem[:] = bytes(MEM_SIZE)
+        self.ro[:] = bytes(REG_END)
+        self._set8(Reg.TYPE, 0x11)
+        self._set8(Reg.FMMU_COUNT, 3)
+        self._set8(Reg.SM_COUNT, 4)
+        self._set8(Reg.RAM_SIZE, 4)
+        self._set8(Reg.PORT_DESC, 0x0F)  # ports 0 and 1: MII
+        self._set16(Reg.FEATURES, 0x0000)  # no DC: SOEM skips DC configuration
+        self._set16(Reg.ALIAS, U16.unpack_from(self.sii, 0x04 * 2)[0])
+        # DL status: PDI operational, link port 0, port 0 open and communicating, ports 2/3 closed;
+        # port 1 open with communication unless this is the last slave (loop closed).
+        dl = 0x0003 | 0x0010 | 0x0200 | 0x5000 | (0x0400 if self.last else 0x0020 | 0x0800)
+        self._set16(Reg.DL_STATUS, dl)
+        self._set16(Reg.PDI_CONTROL, PDI_CONTROL)
+        self._set8(Reg.WD_STATUS_PD, 1)
+        U16.pack_into(self.mem, Reg.WD_DIVIDER, 2498)  # (2498 + 2) * 40 ns = 100 us
+        U16.pack_into(self.mem, Reg.WD_TIME_PDI, 1000)
+        U16.pack_into(self.mem, Reg.WD_TIME_PD, 1000)  # 1000 * 100 us = 100 ms
+        self._set16(Reg.EEP_CONTROL, EEP_STATUS_R64)
+        self.al_state = ALState.INIT
+        self.al_error = False
+        self.al_code = 0
+        self._render_al()
+        self.mailbox.reset()
+        self.sdo.pdo.reset()
+        self.sm_enabled = [False] * 4
+        self._sm1_repeat = 0
+        self.mbx_out_full = False
+        self.mbx_in_full = False
+        self.fmmus: list[tuple[int, int, int, int]] = []  # (logical start, length, physical, type)
+        self.out_time = 0.0
+        self.outputs_fresh = False
+        self.rx_codec = None
+        self.tx_codec = None
+        self.out_size = 0
+        self.in_size = 0
+        self.last_out = bytearray()
+        self.out_view: memoryview | None = None
+        self.wd_timeout_s = 0.1
+        self.on_change("all")
+
+    def _set8(self, addr: int, value: int) -> None:
+        self.mem[addr] = self.ro[addr] = value
+
+    def _set16(self, addr: int, value: int) -> None:
+        U16.pack_into(self.mem, addr, value)
+        U16.pack_into(self.ro, addr, value)
+
+    def _render_al(self) -> None:
+        self._set16(Reg.AL_STATUS, int(self.al_state) | (AL_ERROR_FLAG if self.al_error else 0))
+        self._set16(Reg.AL_STATUS_CODE, self.al_code)
+
+    @property
+    def station_address(self) -> int:
+        return U16.unpack_from(self.mem, Reg.STATION_ADDR)[0]
+
+    # -- datagram access ------------------------------------------------------------------
+    def read(self, ado: int, dst: memoryview) -> bool:
+        """Copy [ado, ado+len) into ``dst``. False (no WKC, data untouched) for an empty
+        read mailbox."""
+        n = len(dst)
+        end = ado + n
+        if end > MEM_SIZE:
+            if ado >= MEM_SIZE:
+                return True
+            dst[: MEM_SIZE - ado] = self.mv[ado:MEM_SIZE]
+            return True
+        if end > MBX_IN_START and ado < MBX_IN_START + MBX_IN_SIZE and self.sm_enabled[1]:
+            if not self.mbx_in_full:
+                return False
+            dst[:] = self.mv[ado:end]
+            if end >= MBX_IN_START + MBX_IN_SIZE:  # last byte read: SM1 empties
+                self.mbx_in_full = False
+                self._render_sm_status()
+                self.offer_mailbox()
+            return True
+        dst[:] = self.mv[ado:end]
+        return True
+
+    def write(self, ado: int, src: memoryview) -> bool:
+        """Apply a write of ``src`` at ``ado``. False (no WKC) for a refused mailbox write."""
+        end = min(ado + len(src), MEM_SIZE)
+        if ado >= MEM_SIZE:
+            return True
+        if ado >= REG_END:
+            if end > MBX_OUT_START and ado < MBX_OUT_START + MBX_OUT_SIZE and self.sm_enabled[0]:
+                if self.mbx_out_full or self.al_state == ALState.INIT:
+                    return False
+                self.mv[ado:end] = src[: end - ado]
+                if end >= MBX_OUT_START + MBX_OUT_SIZE:
+                    self._mailbox_written()
+                return True
+            self.mv[ado:end] = src[: end - ado]
+            return True
+        reg_end = min(end, REG_END)
+        old_act = bytes(self.mem[Reg.SM0 + 6: Reg.SM0 + 32: 8]) if ado < 0x0820 and reg_end > 0x0800 else b""
+        self.mv[ado:reg_end] = src[: reg_end - ado]
+        for s, e in RO_RANGES:
+            if s < reg_end and ado < e:
+                a, b = max(s, ado), min(e, reg_end)
+                self.mem[a:b] = self.ro[a:b]
+        if ado < 0x0012 and reg_end > 0x0010:
+            self.on_change("address")
+        if ado <= Reg.AL_CONTROL < reg_end:
+            self._al_control(self.mem[Reg.AL_CONTROL])
+        if ado <= Reg.EEP_CONTROL + 1 < reg_end:
+            self._eeprom_command()
+        if ado < 0x0700 and reg_end > 0x0600:
+            self._read_fmmus()
+        if ado < 0x0880 and reg_end > 0x0800:
+            self._sm_written(old_act)
+        if ado < 0x0422 and reg_end > 0x0400:
+            self._update_watchdog()
+        if end > REG_END:
+            self.mv[REG_END:end] = src[REG_END - ado: end - ado]
+        return True
+
+    # -- EEPROM interface -----------------------------------------------------------------
+    def _eeprom_command(self) -> None:
+        ctrl = U16.unpack_from(self.mem, Reg.EEP_CONTROL)[0]
+        cmd = (ctrl >> 8) & 0x07
+        word = struct.unpack_from("<I", self.mem, Reg.EEP_ADDRESS)[0]
+        if cmd == EEP_CMD_READ:
+            a = word * 2
+            chunk = bytes(self.sii[a:a + 8]).ljust(8, b"\xff")
+            self.mem[Reg.EEP_DATA:Reg.EEP_DATA + 8] = chunk
+        elif cmd == EEP_CMD_WRITE and ctrl & 0x0001:
+            a = word * 2
+            if a + 2 <= len(self.sii):
+                self.sii[a:a + 2] = self.mem[Reg.EEP_DATA:Reg.EEP_DATA + 2]
+        self._set16(Reg.EEP_CONTROL, EEP_STATUS_R64)  # done at once: never busy, no error
+
+    # -- SyncManagers and FMMUs -----------------------------------------------------------
+    def sm(self, k: int) -> tuple[int, int, int, int, int, int]:
+        """(start, length, control, status, activate, pdi control) of SM k."""
+        return SM.unpack_from(self.mem, Reg.SM0 + 8 * k)
+
+    def _sm_written(self, old_act: bytes) -> None:
+        for k in range(4):
+            enabled = bool(self.mem[Reg.SM0 + 8 * k + 6] & 0x01)
+            if enabled != self.sm_enabled[k]:
+                self.sm_enabled[k] = enabled
+                if k == 0:
+                    self.mbx_out_full = False
+                elif k == 1:
+                    self.mbx_in_full = False
+                    if enabled:
+                        self.offer_mailbox()
+        repeat = self.mem[Reg.SM0 + 8 + 6] & 0x02
+        if repeat != self._sm1_repeat:
+            self._sm1_repeat = repeat
+            self._repeat_request()
+        self._render_sm_status()
+        self._update_watchdog()
+        self.on_change("fmmu")
+
+    def _render_sm_status(self) -> None:
+        self._set8(Reg.SM0 + 5, SM_STATUS_MBX_FULL if self.mbx_out_full else 0)
+        self._set8(Reg.SM0 + 8 + 5, SM_STATUS_MBX_FULL if self.mbx_in_full else 0)
+        self._set8(Reg.SM0 + 8 + 7, self._sm1_repeat)  # repeat ack follows the request
+
+    def _read_fmmus(self) -> None:
+        fmmus = []
+        for k in range(3):
+            log_start, log_len, _sb, _eb, phys, _pb, ftype, active = FMMU.unpack_from(self.mem, Reg.FMMU0 + 16 * k)
+            if active & 0x01 and log_len and ftype in (1, 2):
+                fmmus.append((log_start, log_len, phys, ftype))
+        self.fmmus = fmmus
+        self.on_change("fmmu")
+
+    def _update_watchdog(self) -> None:
+        divider = U16.unpack_from(self.mem, Reg.WD_DIVIDER)[0]
+        time_pd = U16.unpack_from(self.mem, Reg.WD_TIME_PD)[0]
+        control = self.mem[Reg.SM0 + 16 + 4]
+        if time_pd == 0 or not control & SM_WD_ENABLE:
+            self.wd_timeout_s = 0.0
+        else:
+            self.wd_timeout_s = (divider + 2) * 40e-9 * time_pd
+
+    # -- mailbox --------------------------------------------------------------------------
+    def _mailbox_written(self) -> None:
+        self.mbx_out_full = True
+        self._render_sm_status()
+        try:
+            self.mailbox.request(self.mv[MBX_OUT_START:MBX_OUT_START + MBX_OUT_SIZE])
+        except Exception:  # a broken request must never stop the segment
+            log.exception("slave %d: mailbox request failed", self.position)
+        self.mbx_out_full = False  # the application consumed it at once
+        self._render_sm_status()
+        self.offer_mailbox()
+
+    def offer_mailbox(self) -> None:
+        """Move the next queued reply into SM1 if it is enabled and empty."""
+        if self.mbx_in_full or not self.sm_enabled[1] or not self.mailbox.queue:
+            return
+        frame = self.mailbox.queue.popleft()
+        self._put_sm1(frame)
+
+    def _put_sm1(self, frame: bytes) -> None:
+        self.mailbox.last_sent = frame
+        self.mem[MBX_IN_START:MBX_IN_START + MBX_IN_SIZE] = frame.ljust(MBX_IN_SIZE, b"\0")
+        self.mbx_in_full = True
+        self._render_sm_status()
+
+    def _repeat_request(self) -> None:
+        # The master lost the last reply (read with WKC 0): offer it again if SM1 is empty.
+        if not self.mbx_in_full and self.mailbox.last_sent is not None and self.sm_enabled[1]:
+            self._put_sm1(self.mailbox.last_sent)
+
+    def push_emergencies(self) -> None:
+        """Move the model's EMCY records into the mailbox (dropped below PRE-OP)."""
+        emcys = self.model.take_emcy()
+        if not emcys or self.al_state == ALState.INIT:
+            return
+        for emcy in emcys:
+            self.mailbox.emergency(emcy)
+        self.offer_mailbox()
+
+    # -- AL state machine -----------------------------------------------------------------
+    def _al_control(self, value: int) -> None:
+        """AL control write (ETG.1000.6 §6.4.1): request = bits 0-3, acknowledge = bit 4."""
+        requested, ack = value & 0x0F, bool(value & AL_ERROR_FLAG)
+        if self.al_error and not ack and requested != ALState.INIT:
+            return  # an error indication stays until acknowledged
+        if ack or requested == ALState.INIT:
+            self.al_error = False
+            self.al_code = 0
+        if requested not in _STATES:
+            self._fail(self.al_state, AlStatusCode.UNKNOWN_STATE)
+            return
+        target = ALState(requested)
+        if target == self.al_state:
+            self._render_al()
+            return
+        if target == ALState.BOOT:
+            self._fail(self.al_state, AlStatusCode.BOOTSTRAP_NOT_SUPPORTED)
+            return
+        if target > self.al_state and (self.al_state, target) not in _UP:
+            self._fail(self.al_state, AlStatusCode.INVALID_STATE_CHANGE)
+            return
+        if target == ALState.PREOP and self.al_state == ALState.INIT:
+            if not self._mailbox_sms_valid():
+                self._fail(ALState.INIT, AlStatusCode.INVALID_MAILBOX_CONFIG)
+                return
+            self.mailbox.reset()
+        if target == ALState.SAFEOP and self.al_state == ALState.PREOP:
+            code = self._pd_sms_check()
+            if code:
+                self._fail(ALState.PREOP, code)
+                return
+            self._build_codecs()
+            self.update_inputs()
+        self._enter(target)
+
+    def _enter(self, target: ALState) -> None:
+        previous = self.al_state
+        self.al_state = target
+        if previous == ALState.OP and target != ALState.OP:
+            self.model.communication_lost()
+        if target == ALState.OP:
+            self.out_time = time.monotonic()
+            self._set8(Reg.WD_STATUS_PD, 1)
+        if target == ALState.INIT:
+            self.mailbox.reset()
+            self.mbx_in_full = self.mbx_out_full = False
+            self._render_sm_status()
+        self._render_al()
+        log.debug("slave %d: AL %s -> %s", self.position, previous.name, target.name)
+        self.on_change("al")
+
+    def _fail(self, state: ALState, code: int) -> None:
+        log.info("slave %d: AL error 0x%04X, state %s", self.position, code, state.name)
+        self.al_error = True
+        self.al_code = code
+        if state != self.al_state:
+            self._enter(state)
+        self._render_al()
+
+    def watchdog_expired(self) -> None:
+        """SM watchdog in OP: outputs missing too long -> SAFE-OP + 0x001B."""
+        self.mem[Reg.WD_COUNTER_PD] = self.ro[Reg.WD_COUNTER_PD] = (self.ro[Reg.WD_COUNTER_PD] + 1) & 0xFF
+        self._set8(Reg.WD_STATUS_PD, 0)
+        self._fail(ALState.SAFEOP, AlStatusCode.SM_WATCHDOG)
+
+    def _mailbox_sms_valid(self) -> bool:
+        for k in (0, 1):
+            start, length, control, _st, act, _pdi = self.sm(k)
+            d = SM_DEFAULTS[k]
+            if not (act & 0x01) or start != d.start or length != d.length or control & 0x0F != d.control & 0x0F:
+                return False
+        return True
+
+    def _pd_sms_check(self) -> int:
+        self.out_size = self.sdo.pdo.size_bytes(0x1C12)
+        self.in_size = self.sdo.pdo.size_bytes(0x1C13)
+        for k, size, code in ((2, self.out_size, AlStatusCode.INVALID_OUTPUT_CONFIG),
+                              (3, self.in_size, AlStatusCode.INVALID_INPUT_CONFIG)):
+            start, length, control, _st, act, _pdi = self.sm(k)
+            d = SM_DEFAULTS[k]
+            if size == 0:
+                if act & 0x01 and length:
+                    return code
+                continue
+            if not (act & 0x01) or start != d.start or length != size or control & 0x0F != d.control & 0x0F:
+                return code
+        return 0
+
+    # -- process data ---------------------------------------------------------------------
+    def _build_codecs(self) -> None:
+        """Encoders for the current PDO layout (fixed from SAFE-OP on: remapping is refused)."""
+        pdo = self.sdo.pdo
+        rx_layout = pdo.layout(0x1C12)
+        tx_layout = pdo.layout(0x1C13)
+        default_rx = [(i, s, b) for i, s, b, _c, _n in RXPDO_DEFAULT]
+        default_tx = [(i, s, b) for i, s, b, _c, _n in TXPDO_DEFAULT]
+        self.rx_codec = None if rx_layout == default_rx else pdo.struct_for(0x1C12)
+        self.tx_codec = None if tx_layout == default_tx else pdo.struct_for(0x1C13)
+        self.out_view = self.mv[PD_OUT_START:PD_OUT_START + self.out_size]
+        self.last_out = bytearray(self.out_size)
+
+    def apply_outputs(self) -> None:
+        """SM2 content -> drive model (OP only; the caller checks the state)."""
+        view = self.out_view
+        if view is None or not self.out_size or view == self.last_out:
+            return
+        self.last_out[:] = view
+        if self.rx_codec is None:
+            self.model.apply_outputs(DriveOutputs(*RX_STRUCT.unpack_from(self.mem, PD_OUT_START)))
+            return
+        st, keys = self.rx_codec
+        values = dict(zip(keys, st.unpack_from(self.mem, PD_OUT_START)))
+        current = []
+        for index, sub, _bits, _code, _name in RXPDO_DEFAULT:
+            current.append(values.pop((index, sub)) if (index, sub) in values else int(self.model.read(index, sub)))
+        for (index, sub), value in values.items():
+            try:
+                self.model.write(index, sub, value)
+            except SdoAbort as exc:
+                log.debug("slave %d: RxPDO 0x%04X:%d refused: %s", self.position, index, sub, exc)
+        self.model.apply_outputs(DriveOutputs(*current))
+
+    def update_inputs(self) -> None:
+        """Drive model -> SM3 buffer."""
+        if self.in_size == 0:
+            return
+        i = self.model.inputs()
+        if self.tx_codec is None:
+            TX_STRUCT.pack_into(self.mem, PD_IN_START, i.statusword, i.position_actual, i.velocity_actual,
+                                i.torque_actual, i.modes_of_operation_display, i.error_code)
+            return
+        st, keys = self.tx_codec
+        values = []
+        known = {(idx, sub): name for idx, sub, _b, _c, name in TXPDO_DEFAULT}
+        for index, sub in keys:
+            name = known.get((index, sub))
+            values.append(getattr(i, name) if name else int(self.model.read(index, sub)))
+        st.pack_into(self.mem, PD_IN_START, *values)

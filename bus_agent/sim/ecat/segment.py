@@ -1,0 +1,264 @@
+"""A chain of simulated ESCs answering EtherCAT datagrams (ETG.1000.4 §5.4).
+
+:meth:`Segment.process` handles one frame in place (data and working counters), so the frame
+loop can send the very buffer back. Logical datagrams use plans precomputed from the FMMUs
+(memoryview pairs to copy), rebuilt only when FMMUs, SMs, station addresses, AL states or
+fault injections change.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from enum import IntEnum
+
+from bus_agent.bus.base import ALState
+from bus_agent.sim.drive_model import PROFILES, DriveProfile
+from bus_agent.sim.ecat.esc import MEM_SIZE, Esc
+
+log = logging.getLogger(__name__)
+
+DATAGRAM = struct.Struct("<BBHHHH")  # cmd, index, ADP, ADO, length/flags, irq
+U16 = struct.Struct("<H")
+ETH_HEADER = 14
+ECAT_HEADER = 2
+DG_HEADER = DATAGRAM.size
+MORE_FOLLOWS = 0x8000
+
+
+class Cmd(IntEnum):
+    """Datagram commands (ETG.1000.4 Table 12)."""
+
+    NOP = 0
+    APRD = 1
+    APWR = 2
+    APRW = 3
+    FPRD = 4
+    FPWR = 5
+    FPRW = 6
+    BRD = 7
+    BWR = 8
+    BRW = 9
+    LRD = 10
+    LWR = 11
+    LRW = 12
+    ARMW = 13
+    FRMW = 14
+
+
+_READS = {Cmd.APRD, Cmd.FPRD, Cmd.BRD}
+_WRITES = {Cmd.APWR, Cmd.FPWR, Cmd.BWR}
+_RWS = {Cmd.APRW, Cmd.FPRW, Cmd.BRW}
+_AUTO_INC = {Cmd.APRD, Cmd.APWR, Cmd.APRW, Cmd.ARMW, Cmd.BRD, Cmd.BWR, Cmd.BRW}
+
+
+class Segment:
+    """``n`` ESCs with drive models, position 0 nearest to the master."""
+
+    def __init__(self, n: int, profile: DriveProfile | str = "generic"):
+        if isinstance(profile, str):
+            if profile not in PROFILES:
+                raise ValueError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
+            profile = PROFILES[profile]
+        if not 1 <= n <= 1000:
+            raise ValueError(f"drives must be 1..1000, got {n}")
+        self._plans: dict[tuple[int, int, int, int], tuple] = {}
+        self._by_addr: dict[int, list[Esc]] | None = None
+        self.escs: list[Esc] = []
+        self.escs = [Esc(k, profile, last=(k == n - 1), on_change=self._changed) for k in range(n)]
+        self.frames = 0
+
+    def _changed(self, kind: str) -> None:
+        self._plans.clear()
+        if kind in ("address", "all"):
+            self._by_addr = None
+
+    def _addr_map(self) -> dict[int, list[Esc]]:
+        if self._by_addr is None:
+            table: dict[int, list[Esc]] = {}
+            for esc in self.escs:
+                table.setdefault(esc.station_address, []).append(esc)
+            self._by_addr = table
+        return self._by_addr
+
+    # -- fault injection hooks ------------------------------------------------------------
+    def unplug(self, position: int) -> None:
+        """The slave stops answering: its datagrams pass without WKC or data."""
+        esc = self.escs[position]
+        if esc.present:
+            esc.present = False
+            if esc.al_state == ALState.OP:
+                esc.model.communication_lost()
+            self._changed("all")
+
+    def plug(self, position: int) -> None:
+        """Back on the wire after a power cycle: INIT, registers reset, must be reconfigured."""
+        esc = self.escs[position]
+        if not esc.present:
+            esc.model.power_cycle()
+            esc.power_on()
+            esc.present = True
+            self._changed("all")
+
+    def set_wkc_fault(self, position: int, on: bool) -> None:
+        """Process data of this slave still flows, but it does not count in the WKC."""
+        self.escs[position].wkc_fault = bool(on)
+        self._changed("fmmu")
+
+    # -- frame processing -----------------------------------------------------------------
+    def process(self, buf: memoryview, n: int, now: float) -> bool:
+        """Answer one frame in place. Returns False for a frame that must not be answered."""
+        if n < ETH_HEADER + ECAT_HEADER + DG_HEADER + 2:
+            return False
+        header = U16.unpack_from(buf, ETH_HEADER)[0]
+        if header >> 12 != 1:
+            return False
+        pos = ETH_HEADER + ECAT_HEADER
+        present = None
+        while True:
+            if pos + DG_HEADER + 2 > n:
+                return False
+            cmd, _idx, adp, ado, dlen, _irq = DATAGRAM.unpack_from(buf, pos)
+            length = dlen & 0x07FF
+            data_off = pos + DG_HEADER
+            wkc_off = data_off + length
+            if wkc_off + 2 > n:
+                return False
+            if 10 <= cmd <= 12:
+                key = (cmd, adp | (ado << 16), length, data_off)
+                plan = self._plans.get(key)
+                if plan is None:
+                    plan = self._plan(cmd, adp | (ado << 16), length, buf, data_off)
+                    self._plans[key] = plan
+                writes, reads, wkc, written = plan
+                for dst, src in writes:
+                    dst[:] = src
+                for dst, src in reads:
+                    dst[:] = src
+                for esc in written:
+                    esc.out_time = now
+            else:
+                wkc = self._register_datagram(cmd, adp, ado, buf, data_off, length)
+                if cmd in _AUTO_INC:
+                    if present is None:
+                        present = sum(1 for e in self.escs if e.present)
+                    U16.pack_into(buf, pos + 2, (adp + present) & 0xFFFF)
+            if wkc:
+                U16.pack_into(buf, wkc_off, (U16.unpack_from(buf, wkc_off)[0] + wkc) & 0xFFFF)
+            if not dlen & MORE_FOLLOWS:
+                break
+            pos = wkc_off + 2
+        buf[6] |= 0x02  # a real ESC marks the source MAC on the way back
+        self.frames += 1
+        return True
+
+    def _plan(self, cmd: int, laddr: int, length: int, buf: memoryview, data_off: int) -> tuple:
+        writes, reads, written = [], [], []
+        wkc = 0
+        lend = laddr + length
+        for esc in self.escs:
+            if not esc.present or esc.al_state < ALState.SAFEOP or esc.al_state == ALState.BOOT:
+                continue
+            did_read = did_write = False
+            for log_start, log_len, phys, ftype in esc.fmmus:
+                a, b = max(log_start, laddr), min(log_start + log_len, lend)
+                if a >= b:
+                    continue
+                p = phys + (a - log_start)
+                if p + (b - a) > MEM_SIZE:
+                    continue
+                frame_part = buf[data_off + a - laddr: data_off + b - laddr]
+                mem_part = esc.mv[p: p + (b - a)]
+                if ftype == 2 and cmd in (Cmd.LWR, Cmd.LRW):
+                    writes.append((mem_part, frame_part))
+                    did_write = True
+                elif ftype == 1 and cmd in (Cmd.LRD, Cmd.LRW):
+                    reads.append((frame_part, mem_part))
+                    did_read = True
+            if did_write:
+                written.append(esc)
+            if not esc.wkc_fault:
+                wkc += int(did_read) + ((2 if cmd == Cmd.LRW else 1) if did_write else 0)
+        return tuple(writes), tuple(reads), wkc, tuple(written)
+
+    def _register_datagram(self, cmd: int, adp: int, ado: int, buf: memoryview, off: int, length: int) -> int:
+        data = buf[off: off + length]
+        if cmd in (Cmd.APRD, Cmd.APWR, Cmd.APRW, Cmd.FPRD, Cmd.FPWR, Cmd.FPRW):
+            if cmd <= Cmd.APRW:
+                k = (-adp) & 0xFFFF
+                targets = [self.escs[k]] if k < len(self.escs) else []
+            else:
+                targets = self._addr_map().get(adp, [])
+            wkc = 0
+            for esc in targets:
+                if not esc.present:
+                    continue
+                if cmd in _READS:
+                    wkc += esc.read(ado, data)
+                elif cmd in _WRITES:
+                    wkc += esc.write(ado, data)
+                else:
+                    new = bytes(data)
+                    wkc += esc.read(ado, data) + 2 * esc.write(ado, memoryview(new))
+            return wkc
+        if cmd in (Cmd.BRD, Cmd.BWR, Cmd.BRW):
+            wkc = 0
+            acc = int.from_bytes(data, "little")
+            tmp = bytearray(length)
+            new = bytes(data)
+            for esc in self.escs:
+                if not esc.present:
+                    continue
+                if cmd != Cmd.BWR:
+                    tmp[:] = bytes(length)
+                    if esc.read(ado, memoryview(tmp)):
+                        acc |= int.from_bytes(tmp, "little")
+                        wkc += 1
+                if cmd != Cmd.BRD:
+                    wkc += (2 if cmd == Cmd.BRW else 1) * esc.write(ado, memoryview(new))
+            if cmd != Cmd.BWR:
+                data[:] = acc.to_bytes(length, "little")
+            return wkc
+        if cmd in (Cmd.ARMW, Cmd.FRMW):
+            wkc = 0
+            for k, esc in enumerate(self.escs):
+                if not esc.present:
+                    continue
+                reader = ((-adp) & 0xFFFF) == k if cmd == Cmd.ARMW else esc.station_address == adp
+                if reader:
+                    wkc += esc.read(ado, data)
+                else:
+                    wkc += esc.write(ado, data)
+            return wkc
+        return 0
+
+    # -- application side -----------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """Advance every drive by ``dt``: outputs (OP only), model, EMCY, inputs (SAFE-OP+)."""
+        for esc in self.escs:
+            state = esc.al_state
+            if state == ALState.OP and esc.present:
+                esc.apply_outputs()
+            esc.model.step(dt)
+            esc.push_emergencies()
+            if state >= ALState.SAFEOP and state != ALState.BOOT:
+                esc.update_inputs()
+
+    def check_watchdogs(self, now: float) -> None:
+        for esc in self.escs:
+            if esc.al_state == ALState.OP and esc.wd_timeout_s and now - esc.out_time > esc.wd_timeout_s:
+                log.warning("slave %d: SM watchdog expired (%.0f ms without outputs)",
+                            esc.position, (now - esc.out_time) * 1e3)
+                esc.watchdog_expired()
+
+    def status(self) -> list[dict]:
+        """Per-slave snapshot for the control interface."""
+        return [{"slave": e.position, "present": e.present, "al_state": e.al_state.wire_name,
+                 "al_error": e.al_error, "al_status_code": e.al_code, "station_address": e.station_address,
+                 "drive_state": e.model.state.value, "statusword": e.model.statusword,
+                 "error_code": e.model.error_code, "wkc_fault": e.wkc_fault} for e in self.escs]
+
+
+def monotonic() -> float:
+    return time.monotonic()

@@ -1,0 +1,149 @@
+"""SII EEPROM image of a simulated CiA 402 drive (ETG.1000.6 §5.4, ETG.2010).
+
+Pure functions: build the word image that the ESC serves through its EEPROM interface
+(registers 0x0502..0x050F). Layout: identity words 0x00..0x3F, then categories from word 0x40
+(STRINGS 10, GENERAL 30, FMMU 40, SM 41, TXPDO 50, RXPDO 51), ended by 0xFFFF.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Sequence
+
+# Mailbox and process-data layout offered by every simulated drive (ESC process RAM).
+MBX_OUT_START = 0x1000  # SM0: master -> slave mailbox
+MBX_OUT_SIZE = 128
+MBX_IN_START = 0x1080  # SM1: slave -> master mailbox
+MBX_IN_SIZE = 128
+PD_OUT_START = 0x1100  # SM2: RxPDO buffer
+PD_IN_START = 0x1400  # SM3: TxPDO buffer
+
+# SM control bytes (register 0x0804 + 8n): mode bits 0-1, direction bits 2-3, irq bits 4-6.
+SM_CTRL_MBX_OUT = 0x26  # mailbox, ECAT writes, ECAT irq
+SM_CTRL_MBX_IN = 0x22  # mailbox, ECAT reads, ECAT irq
+SM_CTRL_PD_OUT = 0x64  # buffered, ECAT writes, ECAT irq, watchdog trigger
+SM_CTRL_PD_IN = 0x20  # buffered, ECAT reads, ECAT irq
+
+PDI_CONTROL = 0x0005  # word 0x00 (register 0x0140)
+MBX_PROTO_COE = 0x0004
+# GENERAL byte 5, CoE details: 0x01 SDO, 0x04 PDO assign, 0x08 PDO configuration (no SDO info,
+# no complete access: SOEM then reads the mapping one subindex at a time).
+COE_DETAILS = 0x0D
+
+
+class SiiCategory(IntEnum):
+    """SII category types (ETG.1000.6 Table 19)."""
+
+    STRINGS = 10
+    GENERAL = 30
+    FMMU = 40
+    SM = 41
+    TXPDO = 50
+    RXPDO = 51
+    END = 0xFFFF
+
+
+class SmType(IntEnum):
+    """SII SM category type byte / 0x1C00 communication type."""
+
+    UNUSED = 0
+    MBX_OUT = 1
+    MBX_IN = 2
+    OUTPUTS = 3
+    INPUTS = 4
+
+
+@dataclass(frozen=True)
+class SmDefault:
+    start: int
+    length: int
+    control: int
+    enable: int
+    type: SmType
+
+
+SM_DEFAULTS: tuple[SmDefault, ...] = (
+    SmDefault(MBX_OUT_START, MBX_OUT_SIZE, SM_CTRL_MBX_OUT, 1, SmType.MBX_OUT),
+    SmDefault(MBX_IN_START, MBX_IN_SIZE, SM_CTRL_MBX_IN, 1, SmType.MBX_IN),
+    SmDefault(PD_OUT_START, 0, SM_CTRL_PD_OUT, 1, SmType.OUTPUTS),
+    SmDefault(PD_IN_START, 0, SM_CTRL_PD_IN, 1, SmType.INPUTS),
+)
+
+# CoE data type codes used in the SII PDO entries (ETG.1000.6 Table 64).
+DATATYPE_CODES = {"i8": 0x02, "i16": 0x03, "i32": 0x04, "u8": 0x05, "u16": 0x06, "u32": 0x07}
+
+
+def _crc8(data: bytes) -> int:
+    """SII checksum over words 0..6 (polynomial x^8+x^2+x+1, initial 0xFF)."""
+    crc = 0xFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x07) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc
+
+
+def _category(cat: SiiCategory, payload: bytes) -> bytes:
+    if len(payload) % 2:
+        payload += b"\0"
+    return struct.pack("<HH", cat, len(payload) // 2) + payload
+
+
+def _pdo_category(pdo_index: int, sm: int, entries: Sequence[tuple[int, int, int, str]]) -> bytes:
+    """One PDO: index, entry count, SM, sync, name, flags; then 8 bytes per entry."""
+    out = struct.pack("<HBBBBH", pdo_index, len(entries), sm, 0, 0, 0)
+    for index, sub, bits, dtype in entries:
+        out += struct.pack("<HBBBBH", index, sub, 0, DATATYPE_CODES.get(dtype, 0), bits, 0)
+    return out
+
+
+def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, name: str,
+              rx_entries: Sequence[tuple[int, int, int, str]] = (),
+              tx_entries: Sequence[tuple[int, int, int, str]] = (),
+              alias: int = 0) -> bytes:
+    """The EEPROM byte image (little-endian words) of one drive.
+
+    ``rx_entries``/``tx_entries``: (index, subindex, bits, datatype) of the default 0x1600/0x1A00
+    mapping, published in the RXPDO/TXPDO categories (SOEM uses them only without CoE mapping).
+    """
+    words = [0] * 0x40
+    words[0x00] = PDI_CONTROL
+    words[0x04] = alias & 0xFFFF
+    head = struct.pack("<7H", *words[:7])
+    words[0x07] = _crc8(head)
+    words[0x08], words[0x09] = vendor_id & 0xFFFF, vendor_id >> 16
+    words[0x0A], words[0x0B] = product_code & 0xFFFF, product_code >> 16
+    words[0x0C], words[0x0D] = revision & 0xFFFF, revision >> 16
+    words[0x0E], words[0x0F] = serial & 0xFFFF, (serial >> 16) & 0xFFFF
+    words[0x18], words[0x19] = MBX_OUT_START, MBX_OUT_SIZE
+    words[0x1A], words[0x1B] = MBX_IN_START, MBX_IN_SIZE
+    words[0x1C] = MBX_PROTO_COE
+    words[0x3E] = 0x000F  # EEPROM size: (15 + 1) KiBit
+    words[0x3F] = 0x0001  # SII version
+    image = struct.pack("<64H", *words)
+
+    strings = [name.encode("ascii", "replace")[:255], b"Drives", name.encode("ascii", "replace")[:255]]
+    payload = bytes([len(strings)]) + b"".join(bytes([len(s)]) + s for s in strings)
+    image += _category(SiiCategory.STRINGS, payload)
+    general = bytearray(32)
+    general[0] = 2  # group string index
+    general[1] = 0  # image
+    general[2] = 3  # order
+    general[3] = 1  # name
+    general[5] = COE_DETAILS
+    general[9] = 1  # DS402 channels
+    general[11] = 0  # flags: LRW allowed
+    image += _category(SiiCategory.GENERAL, bytes(general))
+    image += _category(SiiCategory.FMMU, bytes([1, 2, 3, 0xFF]))
+    sm = b"".join(struct.pack("<HHBBBB", d.start, d.length, d.control, 0, d.enable, d.type)
+                  for d in SM_DEFAULTS)
+    image += _category(SiiCategory.SM, sm)
+    if tx_entries:
+        image += _category(SiiCategory.TXPDO, _pdo_category(0x1A00, 3, tx_entries))
+    if rx_entries:
+        image += _category(SiiCategory.RXPDO, _pdo_category(0x1600, 2, rx_entries))
+    image += struct.pack("<H", SiiCategory.END)
+    # pad to the declared size with 0xFF (erased EEPROM)
+    return image + b"\xff" * (2048 - len(image))
