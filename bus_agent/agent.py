@@ -1,0 +1,162 @@
+"""The bus agent: one EtherCAT segment (or simulated drives), its cycle, its gateway, one Zenoh session.
+
+Life cycle (explicit, :class:`AgentState`)::
+
+    created --start()--> running --stop()--> stopped
+       |                     (start error: everything opened so far is closed, AgentError)
+
+Start: open the bus and bring it to OP (identity checked, AL errors named) -> open the Zenoh
+session -> declare the gateway (publishers, queryables, liveliness) -> start the cycle thread
+-> with a simulated bus, serve fault injection on ``drives/@sim/<host>/*/*``.
+Stop (SIGINT/SIGTERM in the CLI): refuse new commands -> ordered shutdown of every drive
+(disable operation, shutdown, disable voltage) while the gateway still publishes it -> AL
+INIT, close the bus -> publish the last status -> undeclare everything -> close the session.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from enum import Enum
+from typing import Any
+
+import zenoh
+
+from bus_agent.bus.base import Bus, BusError
+from bus_agent.config import AgentConfig, ConfigError
+from bus_agent.cycle import Cycle
+from bus_agent.gateway import Gateway, GatewaySettings
+from bus_agent.zenoh_config import ZenohConfigError, from_settings
+
+log = logging.getLogger(__name__)
+
+
+class AgentError(RuntimeError):
+    """A start-up failure, with a message that says what and where (bus, identity, AL, zenoh)."""
+
+
+class AgentState(str, Enum):
+    CREATED = "created"
+    RUNNING = "running"
+    STOPPED = "stopped"
+
+
+def make_bus(config: AgentConfig) -> Bus:
+    """The backend the configuration asks for: a NIC (pysoem) or simulated drives."""
+    if config.ifname:
+        try:
+            from bus_agent.bus.pysoem_bus import PysoemBus
+        except ImportError as exc:
+            raise AgentError(f"pysoem backend unavailable: {exc}") from None
+        return PysoemBus(config.ifname)
+    from bus_agent.bus.sim_bus import SimBus
+
+    return SimBus(config.sim_drives, config.sim_profile, segment_name=config.host)
+
+
+class Agent:
+    """One bus agent. ``bus``: inject a backend (tests); default from the configuration."""
+
+    def __init__(self, config: AgentConfig, bus: Bus | None = None) -> None:
+        self.config = config
+        self.bus = bus
+        self.state = AgentState.CREATED
+        self.cycle: Cycle | None = None
+        self.session: zenoh.Session | None = None
+        self.gateway: Gateway | None = None
+        self.sim_control: Any = None
+        self._stop_lock = threading.Lock()
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return self.cycle.axes if self.cycle else ()
+
+    def start(self) -> None:
+        """Bring everything up; raise :class:`AgentError` (after closing what was opened)."""
+        cfg = self.config
+        try:
+            self.bus = self.bus or make_bus(cfg)
+            self.cycle = Cycle(self.bus, cfg)
+            self.cycle.open()
+        except (BusError, ConfigError, ValueError, OSError) as exc:
+            self._abort()
+            raise AgentError(f"agent {cfg.host}: bus start-up failed: {exc}") from None
+        try:
+            self.session = zenoh.open(from_settings(cfg.zenoh))
+        except (ZenohConfigError, zenoh.ZError) as exc:
+            self._abort()
+            raise AgentError(f"agent {cfg.host}: zenoh session failed (listen {', '.join(cfg.zenoh.listen) or '-'}, "
+                             f"connect {', '.join(cfg.zenoh.connect) or '-'}): {exc}") from None
+        try:
+            self.gateway = Gateway(self.session, self.cycle, self._gateway_settings())
+            self.gateway.start()
+            self.cycle.start()
+            if self.bus.backend == "sim" and hasattr(self.bus, "control_handlers"):
+                from bus_agent.sim.control import SimControl
+
+                self.sim_control = SimControl(self.session, cfg.host, self.bus.control_handlers(),
+                                              len(self.cycle.slaves))
+        except Exception as exc:
+            self._abort()
+            raise AgentError(f"agent {cfg.host}: start-up failed: {exc}") from None
+        self.state = AgentState.RUNNING
+        log.info("agent %s running: %d drive(s) on %s", cfg.host, len(self.axes), self.bus.backend)
+
+    def _gateway_settings(self) -> GatewaySettings:
+        assert self.cycle is not None
+        cfg = self.config
+        drives = cfg.drive_configs(len(self.cycle.slaves))
+        return GatewaySettings(
+            host=cfg.host, axes=self.cycle.axes, slaves={d.axis: d.slave for d in drives},
+            heartbeat_s=cfg.heartbeat_s, agent_period_s=cfg.heartbeat_s, backend=self.bus.backend if self.bus else "",
+            cycle_us=cfg.cycle_us, groups={g: tuple(ms) for g, ms in cfg.groups.items()},
+            lease_reaction={d.axis: d.policy.lease_reaction for d in drives},
+            lease_ttl_s={d.axis: d.policy.lease_ttl_s for d in drives},
+        )
+
+    @property
+    def failed(self) -> bool:
+        """The cycle thread died (its error is logged): the agent must stop."""
+        return self.cycle is not None and self.cycle.state == "error"
+
+    def stop(self, ordered: bool = True) -> None:
+        """Ordered shutdown (see the module docstring). Idempotent."""
+        with self._stop_lock:
+            if self.state is AgentState.STOPPED:
+                return
+            gw = self.gateway
+            if gw is not None:
+                gw.stop_commands()
+                gw.agent_state_override = "stopping"
+            if self.cycle is not None:
+                log.info("agent %s: ordered shutdown", self.config.host)
+                self.cycle.stop(ordered=ordered)
+            self._close_zenoh()
+            self.state = AgentState.STOPPED
+            log.info("agent %s stopped", self.config.host)
+
+    def _close_zenoh(self) -> None:
+        if self.sim_control is not None:
+            self.sim_control.close()
+            self.sim_control = None
+        if self.gateway is not None:
+            self.gateway.close()
+            self.gateway = None
+        if self.session is not None:
+            try:
+                self.session.close()
+            except Exception as exc:
+                log.warning("zenoh session close: %s", exc)
+            self.session = None
+
+    def _abort(self) -> None:
+        """Close what a failed start opened: drives were never enabled, so no ordered sequence."""
+        try:
+            if self.cycle is not None:
+                self.cycle.stop(ordered=False)
+            elif self.bus is not None:
+                self.bus.close()
+        except Exception as exc:
+            log.warning("agent %s: closing after a failed start: %s", self.config.host, exc)
+        self._close_zenoh()
+        self.state = AgentState.STOPPED

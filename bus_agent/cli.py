@@ -1,0 +1,122 @@
+"""``bus-agent``: run one bus agent.
+
+    bus-agent --sim 4                          # 4 simulated drives, no root, no router;
+                                               # listens on tcp/127.0.0.1:7447 (drivectl's default)
+    bus-agent --config /etc/zenoh-drives/agent.toml
+    bus-agent --ifname eth1 --host h1 --connect tcp/router:7447
+
+Flags override the configuration file. Once everything is up it prints one line,
+``bus-agent ready host=<host> drives=<a,b,..> backend=<sim|pysoem> listen=<eps> connect=<eps>``.
+SIGINT/SIGTERM run the ordered shutdown of every drive, then AL INIT, and exit 0.
+
+Exit codes: 0 stopped cleanly; 1 the cycle failed while running; 2 bad command line or
+configuration; 3 start-up failed (bus, slave identity, AL state, zenoh session).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import socket
+import sys
+import threading
+from typing import Sequence
+
+from bus_agent.config import SIM_PROFILES, ZENOH_MODES, AgentConfig, ConfigError, ZenohConfig, load_config
+from schemas.keys import is_name
+
+log = logging.getLogger("bus_agent.cli")
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_STARTUP = 0, 1, 2, 3
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bus-agent", description="Run a bus agent: an EtherCAT segment of CiA 402 "
+                                "drives (or simulated drives) served over Zenoh.")
+    p.add_argument("--config", metavar="TOML", help="agent configuration file (see deploy/agent.example.toml)")
+    p.add_argument("--host", help="host name in the key space (default: from the config, else this machine's name)")
+    backend = p.add_mutually_exclusive_group()
+    backend.add_argument("--ifname", help="NIC (or veth end) of the EtherCAT segment: pysoem backend, needs root")
+    backend.add_argument("--sim", type=int, metavar="N", help="simulate N drives in-process (no root)")
+    p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile")
+    p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds")
+    p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period")
+    p.add_argument("--listen", action="append", metavar="EP", help="zenoh listen endpoint (repeatable)")
+    p.add_argument("--connect", action="append", metavar="EP", help="zenoh connect endpoint, e.g. a router (repeatable)")
+    p.add_argument("--mode", choices=ZENOH_MODES, help="zenoh session mode (default peer)")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    return p
+
+
+def _default_host() -> str:
+    name = socket.gethostname().split(".")[0]
+    return name if is_name(name) else "h1"
+
+
+def build_config(args: argparse.Namespace) -> AgentConfig:
+    """The configuration from the file (if any) with the flags applied. Raises ConfigError."""
+    if args.sim is not None and args.sim < 1:
+        raise ConfigError(f"--sim: {args.sim} must be a number of drives >= 1")
+    overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile,
+                     cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
+                     listen=args.listen, connect=args.connect)
+    if args.config:
+        return load_config(args.config).with_overrides(**overrides)
+    if args.ifname is None and args.sim is None:
+        raise ConfigError("give --config, --ifname NIC or --sim N (e.g. `bus-agent --sim 4`)")
+    # Embedded default: a peer that drivectl reaches on loopback without any router.
+    listen = tuple(args.listen or (() if args.connect else (DEFAULT_LISTEN,)))
+    base = AgentConfig(host=args.host or _default_host(), sim_drives=args.sim or 0, ifname=args.ifname,
+                       zenoh=ZenohConfig(listen=listen))
+    overrides["listen"] = None
+    return base.with_overrides(**overrides)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        config = build_config(args)
+    except ConfigError as exc:
+        print(f"bus-agent: configuration error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+    stop = threading.Event()
+    signals: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        signals.append(signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    from bus_agent.agent import Agent, AgentError  # after arg parsing: `--help` stays fast
+
+    agent = Agent(config)
+    try:
+        agent.start()
+    except AgentError as exc:
+        print(f"bus-agent: {exc}", file=sys.stderr)
+        return EXIT_STARTUP
+    z = config.zenoh
+    print(f"bus-agent ready host={config.host} drives={','.join(agent.axes)} backend={agent.bus.backend} "
+          f"listen={','.join(z.listen) or '-'} connect={','.join(z.connect) or '-'}", flush=True)
+    code = EXIT_OK
+    while not stop.wait(0.2):
+        if agent.failed:
+            log.error("agent %s: the cycle failed; shutting down", config.host)
+            code = EXIT_FAILED
+            break
+    if signals:
+        log.info("agent %s: signal %s: shutting down", config.host, signal.Signals(signals[0]).name)
+    agent.stop(ordered=True)
+    print(f"bus-agent stopped host={config.host}", flush=True)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
