@@ -15,6 +15,7 @@ call back into the Fleet (never on a Zenoh thread, where that could deadlock).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import logging
@@ -500,9 +501,19 @@ class Fleet:
 
     def _query(self, keyexprs: Sequence[str], request: CommandRequest,
                addressed: Iterable[DriveRef], wait_s: float, agent_level: bool = False) -> CommandResult:
-        """Send one query per key expression at once; collect one reply per addressed drive."""
+        """Send one query per key expression at once; collect one reply per addressed drive.
+
+        Each query carries its own request id (``<id>.<n>`` when there are several): an agent
+        treats a repeated id as the same request, so two queries reaching one agent with one id
+        would be refused as a reuse for other drives.
+        """
         s = self.session
-        payload = encode(request)
+        if len(keyexprs) == 1:
+            payloads = [(keyexprs[0], request)]
+        else:
+            payloads = [(ke, dataclasses.replace(request, request_id=f"{request.request_id}.{i}"))
+                        for i, ke in enumerate(keyexprs)]
+        ids = {req.request_id for _, req in payloads}
         col = _Collector(frozenset(addressed))
         t0 = time.monotonic()
 
@@ -514,7 +525,7 @@ class Fleet:
                     with self._lock:
                         col.errors.append(f"bad reply on {reply.ok.key_expr}: {exc}")
                     return
-                if msg.request_id != request.request_id:
+                if msg.request_id not in ids:
                     return
                 ref = DriveRef(msg.host, "" if agent_level else msg.axis)
                 with self._lock:
@@ -532,9 +543,9 @@ class Fleet:
                 col.finished += 1
                 self._lock.notify_all()
 
-        for ke in keyexprs:
+        for ke, req in payloads:
             s.get(ke, zenoh.handlers.Callback(on_reply, on_done), target=zenoh.QueryTarget.ALL,
-                  consolidation=zenoh.ConsolidationMode.NONE, timeout=wait_s, payload=payload)
+                  consolidation=zenoh.ConsolidationMode.NONE, timeout=wait_s, payload=encode(req))
         deadline = t0 + wait_s + 0.2
         with self._lock:
             while True:
@@ -567,10 +578,13 @@ class Fleet:
             return CommandResult(op, req.request_id, ())
         return self._query(sel.plan.keyexprs(op), req, sel.drives, timeout_s + REPLY_MARGIN_S)
 
-    def enable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S, stages: Sequence[Sequence[str]] | None = None):
+    def enable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S,
+               stages: Sequence[Sequence[str]] | None = None,
+               before_phase: Callable[[str], None] | None = None):
         """Two-phase enable (see :func:`supervisor.orchestration.two_phase_enable`)."""
         from .orchestration import two_phase_enable
-        return two_phase_enable(self, selectors or ("**",), timeout_s=timeout_s, stages=stages)
+        return two_phase_enable(self, selectors or ("**",), timeout_s=timeout_s, stages=stages,
+                                before_phase=before_phase)
 
     def shutdown(self, stages: Sequence[Sequence[str] | str], *, op: str = "disable", timeout_s: float = DEFAULT_TIMEOUT_S):
         """Ordered shutdown, last stage first (see :func:`supervisor.orchestration.ordered_shutdown`)."""

@@ -13,7 +13,7 @@ disable voltage, to where they were) and the report says which drive failed and 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from .results import CommandResult, Report, final_results
 from .selectors import DriveRef, SelectorError
@@ -58,7 +58,8 @@ def _stage_selections(fleet: "Fleet", stages: Sequence[Sequence[str] | str]) -> 
 
 
 def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: float = 5.0,
-                     stages: Sequence[Sequence[str] | str] | None = None) -> Report:
+                     stages: Sequence[Sequence[str] | str] | None = None,
+                     before_phase: Callable[[str], None] | None = None) -> Report:
     """Enable the selected drives all together or not at all.
 
     Phase 1 sends ``switch_on`` (transitions 2+3) to every selected drive not already in
@@ -68,7 +69,8 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
     ``stages`` order when given (each stage a list of selectors), else as one fan-out query.
 
     A selected drive known to be in Fault, lost, or whose agent is gone stops the operation
-    before anything is sent: faults are never reset implicitly.
+    before anything is sent: faults are never reset implicitly. ``before_phase(name)`` is called
+    just before each phase's query goes out (``switch_on``, ``enable``): for logging and tests.
     """
     if stages:
         stage_sels = _stage_selections(fleet, stages)
@@ -97,6 +99,8 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
     steps: list[tuple[str, CommandResult]] = []
     if to_switch_on:
         sel1 = everything if len(to_switch_on) == len(everything.drives) else fleet.selection_of(to_switch_on)
+        if before_phase is not None:
+            before_phase("switch_on")
         phase1 = fleet.command("switch_on", sel1, timeout_s=timeout_s)
         steps.append(("switch_on", phase1))
         if not phase1.ok:
@@ -122,6 +126,8 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
             return Report("enable", False, tuple(steps), reason, tuple(final[k] for k in sorted(final)))
 
     failures = []
+    if before_phase is not None:
+        before_phase("enable")
     for i, sel in enumerate(stage_sels):
         res = fleet.command("enable", sel, timeout_s=timeout_s)
         steps.append((f"enable" if len(stage_sels) == 1 else f"enable:stage{i + 1}", res))

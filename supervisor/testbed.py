@@ -2,6 +2,11 @@
 on simulated buses, each in its own process (spawned, so every one opens its own session).
 
     python -m supervisor.testbed router tcp/127.0.0.1:PORT    # a router until SIGTERM
+    python -m supervisor.testbed agents ROUTER h1,h2 N [CYCLE_US]   # agents on N sim drives each
+
+``agents`` runs several :class:`bus_agent.agent.Agent` in one process, each with its own Zenoh
+session (peer, connected to ROUTER), and prints ``ready`` once all are running; SIGTERM runs
+their ordered stop.
 
 Not for production: it picks free loopback ports and turns multicast scouting off.
 """
@@ -99,17 +104,47 @@ def start_router(port: int | None = None) -> tuple[Proc, str]:
     return p, ep
 
 
-def start_agent(host: str, n_drives: int, router: str, *, extra: Sequence[str] = (),
-                ready_timeout_s: float = 30.0) -> Proc:
-    """``python -m bus_agent.cli --sim N --host H --listen tcp/127.0.0.1:P --connect ROUTER``."""
-    argv = [sys.executable, "-m", "bus_agent.cli", "--sim", str(n_drives), "--host", host,
-            "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, *extra]
-    p = spawn(f"agent {host}", argv, ready_marker="ready")
+def start_agents(hosts: Sequence[str], n_drives: int, router: str, *, cycle_us: int = 1000,
+                 ready_timeout_s: float = 60.0) -> Proc:
+    """One process running an agent per host (own Zenoh session each) on ``n_drives`` sim drives."""
+    argv = [sys.executable, "-m", "supervisor.testbed", "agents", router, ",".join(hosts), str(n_drives), str(cycle_us)]
+    p = spawn(f"agents {','.join(hosts)}", argv, ready_marker="ready")
     if not p.wait_ready(ready_timeout_s):
         out = p.output()
         p.stop()
-        raise RuntimeError(f"agent {host} did not become ready:\n{out}")
+        raise RuntimeError(f"agents {', '.join(hosts)} did not become ready:\n{out}")
     return p
+
+
+def start_agent(host: str, n_drives: int, router: str, *, cycle_us: int = 1000,
+                ready_timeout_s: float = 60.0) -> Proc:
+    """One agent in its own process."""
+    return start_agents([host], n_drives, router, cycle_us=cycle_us, ready_timeout_s=ready_timeout_s)
+
+
+def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int) -> int:
+    import logging
+
+    from bus_agent.agent import Agent
+    from bus_agent.config import AgentConfig, ZenohConfig
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    agents = []
+    try:
+        for h in hosts:
+            a = Agent(AgentConfig(host=h, sim_drives=n_drives, cycle_us=cycle_us,
+                                  zenoh=ZenohConfig(mode="peer", connect=(router,))))
+            a.start()
+            agents.append(a)
+        print(f"agents ready {','.join(hosts)}", flush=True)
+        stop.wait()
+    finally:
+        for a in agents:
+            a.stop()
+    return 0
 
 
 def _router_main(endpoint: str) -> int:
@@ -133,5 +168,8 @@ def _router_main(endpoint: str) -> int:
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "router":
         sys.exit(_router_main(sys.argv[2]))
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "agents":
+        sys.exit(_agents_main(sys.argv[2], sys.argv[3].split(","), int(sys.argv[4]),
+                              int(sys.argv[5]) if len(sys.argv) == 6 else 1000))
     print(__doc__, file=sys.stderr)
     sys.exit(2)
