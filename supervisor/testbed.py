@@ -122,6 +122,18 @@ def start_agent(host: str, n_drives: int, router: str, *, cycle_us: int = 1000,
     return start_agents([host], n_drives, router, cycle_us=cycle_us, ready_timeout_s=ready_timeout_s)
 
 
+def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: float = 60.0) -> Proc:
+    """The real command line: ``python -m bus_agent.cli --sim N --host H --listen .. --connect ROUTER``."""
+    argv = [sys.executable, "-m", "bus_agent.cli", "--sim", str(n_drives), "--host", host,
+            "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, "--log-level", "WARNING"]
+    p = spawn(f"bus-agent {host}", argv, ready_marker="bus-agent ready")
+    if not p.wait_ready(ready_timeout_s):
+        out = p.output()
+        p.stop()
+        raise RuntimeError(f"bus-agent {host} did not become ready:\n{out}")
+    return p
+
+
 def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int) -> int:
     import logging
 
