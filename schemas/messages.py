@@ -426,18 +426,35 @@ def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
                         allow_empty=f.default == "")
 
 
+_PLANS: dict[type, tuple[frozenset, tuple]] = {}
+
+
+def _plan(cls: type) -> tuple[frozenset, tuple]:
+    """Per class, once: known field names and (name, where, type, meta, allow_empty, required)."""
+    plan = _PLANS.get(cls)
+    if plan is None:
+        ftypes = _field_types(cls)
+        rows = tuple(
+            (f.name, f"{cls.TYPE}.{f.name}", ftypes[f.name], f.metadata, f.default == "",
+             f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
+            for f in dataclasses.fields(cls)
+        )
+        plan = _PLANS[cls] = (frozenset(r[0] for r in rows) | {"v", "type"}, rows)
+    return plan
+
+
 def _validated(cls: type, body: dict) -> dict:
     """Field values of ``cls`` taken from ``body``, checked and normalised."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(body) - known - {"v", "type"}
-    if unknown:
+    known, rows = _plan(cls)
+    if not known.issuperset(body):
+        unknown = set(body) - known
         raise SchemaError(f"{cls.TYPE}: unknown field(s) {', '.join(sorted(map(repr, unknown)))}")
     kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name in body:
-            kwargs[f.name] = _check_field(cls, f, body[f.name])
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise SchemaError(f"{cls.TYPE}.{f.name}: required field missing")
+    for name, where, t, meta, allow_empty, required in rows:
+        if name in body:
+            kwargs[name] = _check_value(where, t, meta, body[name], allow_empty)
+        elif required:
+            raise SchemaError(f"{where}: required field missing")
     if cls is CommandRequest:
         _validate_args(kwargs["op"], kwargs.get("args", {}), f"{cls.TYPE}.args")
     return kwargs

@@ -315,8 +315,11 @@ def test_decode_random_msgpack_structures(value):
     _decode_only_schema_error(msgpack.packb(value, use_bin_type=True))
 
 
+FIELD_NAMES = sorted({f.name for c in m.MESSAGE_TYPES for f in dataclasses.fields(c)})
+
+
 @given(st.sampled_from([c.TYPE for c in m.MESSAGE_TYPES]),
-       st.dictionaries(st.text(max_size=12), msgpack_values, max_size=8))
+       st.dictionaries(st.sampled_from(FIELD_NAMES) | st.text(max_size=12), msgpack_values, max_size=12))
 @PROPERTY
 def test_decode_random_maps_with_valid_header(tname, body):
     body.update({"v": 1, "type": tname})
