@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import queue
 import signal
 import sys
@@ -87,8 +88,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP")
     p.add_argument("--step-us", type=int, default=1000, help="drive model step period while in SAFE-OP/OP")
-    p.add_argument("--stale-us", type=int, default=1500,
+    p.add_argument("--stale-us", type=int, default=1800,
                    help="frames older than this are dropped, never answered late (0: answer all)")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="run the frame loop SCHED_FIFO at this priority (1..99; 0: normal scheduling)")
     p.add_argument("--log-level", default="WARNING")
     return p
 
@@ -133,6 +136,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ecat-sim ready ifname={args.ifname} drives={args.drives} profile={args.profile} "
               f"name={args.name} control={control_desc}", flush=True)
 
+    if args.rt_priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
+        except (OSError, ValueError) as exc:
+            log.warning("SCHED_FIFO %d refused (%s): normal scheduling", args.rt_priority, exc)
     try:
         loop.run(on_ready=ready)
     finally:

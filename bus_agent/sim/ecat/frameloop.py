@@ -49,12 +49,13 @@ class FrameLoop:
     """Serve ``segment`` on ``ifname`` until :meth:`stop` (or SIGTERM in the CLI)."""
 
     def __init__(self, segment: Segment, ifname: str, *, step_s: float = 0.001, idle_step_s: float = 0.01,
-                 stale_s: float = 0.0015):
+                 stale_s: float = 0.0018, step_budget: int = 8):
         self.segment = segment
         self.ifname = ifname
         self.step_s = step_s
         self.idle_step_s = idle_step_s
         self.stale_s = stale_s
+        self.step_budget = step_budget
         self.faults = FaultInjection()
         self.controls: list[ControlChannel] = []
         self.handle_control: Callable[[dict], dict] = lambda req: {"ok": False, "error": "no handler"}
@@ -88,7 +89,9 @@ class FrameLoop:
         process = seg.process
         monotonic, wall = time.monotonic, time.time
         stale_s = self.stale_s
-        last_step = last_ctrl = monotonic()
+        last_ctrl = monotonic()
+        busy = False  # a model-step round is under way: poll, do not sleep
+        drain = False  # a frame was just answered: look for the next one before other work
         self._running = True
         gc.collect()
         gc.freeze()  # everything built so far is immortal: the collector never scans it
@@ -98,13 +101,16 @@ class FrameLoop:
         timeout = None
         try:
             while self._running:
-                want = self.step_s if self._any_op() or self._delayed else self.idle_step_s
+                active = seg.any_active()
+                want = 0.0 if busy or drain else (self.step_s if active or self._delayed else self.idle_step_s)
+                if self._delayed:
+                    want = min(want, max(0.0, self._delayed[0][0] - monotonic()))
                 if want != timeout:
                     timeout = want
                     sock.settimeout(timeout)
                 try:
                     n = recv_into(buf)
-                except socket.timeout:
+                except (TimeoutError, BlockingIOError):
                     n = 0
                 now = monotonic()
                 if n:
@@ -130,25 +136,21 @@ class FrameLoop:
                             counters["answered"] += 1
                     else:
                         counters["bad"] += 1
+                    drain = True
+                    continue  # answer back-to-back frames (multi-frame cycles) first
+                drain = False
                 while self._delayed and self._delayed[0][0] <= now:
                     send(self._delayed.popleft()[1])
-                period = self.step_s if self._any_op() else self.idle_step_s
-                if now - last_step >= period:
-                    dt = min(now - last_step, 0.1)
-                    last_step = now
-                    seg.step(dt)
+                was_busy = busy
+                busy = seg.step_some(now, self.step_s if active else self.idle_step_s, self.step_budget)
+                if was_busy and not busy:
                     seg.check_watchdogs(monotonic())
                 if now - last_ctrl >= 0.005:
                     last_ctrl = now
+                    seg.check_watchdogs(now)
                     for channel in self.controls:
                         channel.poll(self.handle_control)
                     gc.collect(0)  # young objects only, off the hot path
         finally:
             gc.enable()
             gc.unfreeze()
-
-    def _any_op(self) -> bool:
-        for esc in self.segment.escs:
-            if esc.al_state >= 4:
-                return True
-        return False

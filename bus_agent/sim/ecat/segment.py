@@ -65,14 +65,28 @@ class Segment:
             raise ValueError(f"drives must be 1..1000, got {n}")
         self._plans: dict[tuple[int, int, int, int], tuple] = {}
         self._by_addr: dict[int, list[Esc]] | None = None
+        self._active: bool | None = None
         self.escs: list[Esc] = []
         self.escs = [Esc(k, profile, last=(k == n - 1), on_change=self._changed) for k in range(n)]
         self.frames = 0
+        self._cursor = 0
+        self._round_due = 0.0
+        self._round_start = 0.0
+        start = time.monotonic()
+        for esc in self.escs:
+            esc.last_step = start
 
     def _changed(self, kind: str) -> None:
         self._plans.clear()
+        self._active = None
         if kind in ("address", "all"):
             self._by_addr = None
+
+    def any_active(self) -> bool:
+        """True while some slave is in SAFE-OP or OP (process data flows: step at full rate)."""
+        if self._active is None:
+            self._active = any(e.al_state >= ALState.SAFEOP for e in self.escs)
+        return self._active
 
     def _addr_map(self) -> dict[int, list[Esc]]:
         if self._by_addr is None:
@@ -235,15 +249,40 @@ class Segment:
 
     # -- application side -----------------------------------------------------------------
     def step(self, dt: float) -> None:
-        """Advance every drive by ``dt``: outputs (OP only), model, EMCY, inputs (SAFE-OP+)."""
+        """Advance every drive by ``dt`` at once (tests and tools; the loop uses step_some)."""
         for esc in self.escs:
-            state = esc.al_state
-            if state == ALState.OP and esc.present:
-                esc.apply_outputs()
-            esc.model.step(dt)
-            esc.push_emergencies()
-            if state >= ALState.SAFEOP and state != ALState.BOOT:
-                esc.update_inputs()
+            self._step_one(esc, dt)
+
+    @staticmethod
+    def _step_one(esc: Esc, dt: float) -> None:
+        state = esc.al_state
+        if state == ALState.OP and esc.present:
+            esc.apply_outputs()
+        esc.model.step(dt)
+        esc.push_emergencies()
+        if state >= ALState.SAFEOP and state != ALState.BOOT:
+            esc.update_inputs()
+
+    def step_some(self, now: float, period: float, budget: int) -> bool:
+        """Step at most ``budget`` drives of the current round (outputs in OP, model by its
+        own elapsed time, EMCY, inputs). A round starts every ``period``. Returns True while
+        the round is unfinished, so the frame loop polls instead of sleeping: frames never
+        wait behind more than ``budget`` model steps."""
+        if self._cursor == 0:
+            if now < self._round_due:
+                return False
+            self._round_start = now
+        end = min(self._cursor + budget, len(self.escs))
+        for esc in self.escs[self._cursor:end]:
+            dt = now - esc.last_step
+            esc.last_step = now
+            self._step_one(esc, dt if dt < 0.1 else 0.1)
+        if end >= len(self.escs):
+            self._cursor = 0
+            self._round_due = max(self._round_start + period, now)
+            return False
+        self._cursor = end
+        return True
 
     def check_watchdogs(self, now: float) -> None:
         for esc in self.escs:
@@ -258,7 +297,3 @@ class Segment:
                  "al_error": e.al_error, "al_status_code": e.al_code, "station_address": e.station_address,
                  "drive_state": e.model.state.value, "statusword": e.model.statusword,
                  "error_code": e.model.error_code, "wkc_fault": e.wkc_fault} for e in self.escs]
-
-
-def monotonic() -> float:
-    return time.monotonic()
