@@ -2,7 +2,7 @@
 on simulated buses, each in its own process (spawned, so every one opens its own session).
 
     python -m supervisor.testbed router tcp/127.0.0.1:PORT    # a router until SIGTERM
-    python -m supervisor.testbed agents ROUTER h1,h2 N [CYCLE_US]   # agents on N sim drives each
+    python -m supervisor.testbed agents ROUTER h1,h2 N [CYCLE_US [SM_WATCHDOG_S]]   # N sim drives each
 
 ``agents`` runs several :class:`bus_agent.agent.Agent` in one process, each with its own Zenoh
 session (peer, connected to ROUTER), and prints ``ready`` once all are running; SIGTERM runs
@@ -105,9 +105,13 @@ def start_router(port: int | None = None) -> tuple[Proc, str]:
 
 
 def start_agents(hosts: Sequence[str], n_drives: int, router: str, *, cycle_us: int = 1000,
-                 ready_timeout_s: float = 60.0) -> Proc:
-    """One process running an agent per host (own Zenoh session each) on ``n_drives`` sim drives."""
-    argv = [sys.executable, "-m", "supervisor.testbed", "agents", router, ",".join(hosts), str(n_drives), str(cycle_us)]
+                 sm_watchdog_s: float = 0.1, ready_timeout_s: float = 60.0) -> Proc:
+    """One process running an agent per host (own Zenoh session each) on ``n_drives`` sim drives.
+
+    ``sm_watchdog_s``: the simulated slaves' SM watchdog (100 ms like real ones); benchmarks on a
+    starved machine raise it so late cycles do not drop slaves to SAFE-OP mid-measurement."""
+    argv = [sys.executable, "-m", "supervisor.testbed", "agents", router, ",".join(hosts), str(n_drives),
+            str(cycle_us), str(sm_watchdog_s)]
     p = spawn(f"agents {','.join(hosts)}", argv, ready_marker="ready")
     if not p.wait_ready(ready_timeout_s):
         out = p.output()
@@ -134,10 +138,11 @@ def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: f
     return p
 
 
-def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int) -> int:
+def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int, sm_watchdog_s: float) -> int:
     import logging
 
     from bus_agent.agent import Agent
+    from bus_agent.bus.sim_bus import SimBus
     from bus_agent.config import AgentConfig, ZenohConfig
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -148,7 +153,8 @@ def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int
     try:
         for h in hosts:
             a = Agent(AgentConfig(host=h, sim_drives=n_drives, cycle_us=cycle_us,
-                                  zenoh=ZenohConfig(mode="peer", connect=(router,))))
+                                  zenoh=ZenohConfig(mode="peer", connect=(router,))),
+                      bus=SimBus(n_drives, segment_name=h, sm_watchdog_s=sm_watchdog_s))
             a.start()
             agents.append(a)
         print(f"agents ready {','.join(hosts)}", flush=True)
@@ -180,8 +186,9 @@ def _router_main(endpoint: str) -> int:
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "router":
         sys.exit(_router_main(sys.argv[2]))
-    if len(sys.argv) in (5, 6) and sys.argv[1] == "agents":
+    if len(sys.argv) in (5, 6, 7) and sys.argv[1] == "agents":
         sys.exit(_agents_main(sys.argv[2], sys.argv[3].split(","), int(sys.argv[4]),
-                              int(sys.argv[5]) if len(sys.argv) == 6 else 1000))
+                              int(sys.argv[5]) if len(sys.argv) >= 6 else 1000,
+                              float(sys.argv[6]) if len(sys.argv) == 7 else 0.1))
     print(__doc__, file=sys.stderr)
     sys.exit(2)

@@ -1,0 +1,251 @@
+"""Supervisor benchmark: fleet-wide enable/disable and status fan-in, on loopback.
+
+    .venv/bin/python -m bench.bench_supervisor                 # default: 4x16 and 32x32, short
+    .venv/bin/python -m bench.bench_supervisor --sizes 4x16 --rounds 5
+    .venv/bin/python -m bench.bench_supervisor --sizes 32x32 --per-process 8 --cycle-us 10000
+
+For each size AxD (A agents of D simulated drives, ``--per-process`` agents per process, each
+agent with its own Zenoh session, all through one router process):
+
+- ``enable``: two-phase enable of every drive (``**``: one fan-out query per phase), and
+  ``disable`` of every drive; per step the supervisor's wall time, the slowest drive's own time
+  (``CommandReply.elapsed_s``: receipt to goal, i.e. the drive's transition cycles), and the
+  difference: the supervisor's and the network's share (``overhead_s``);
+- ``get_rtt_bare``: a bare zenoh get round trip in the same run (p50/p99) to a queryable in its
+  own idle process, for scale; ``get_rtt_drive_status``: the same to one agent's status
+  queryable (an agent process busy with its cycles);
+- ``fanin`` (largest size): a watcher in its own process (a ``Fleet``) receives the status
+  of every drive while all are enabled and disabled; it reports status messages received,
+  state changes seen, sequence-number gaps (missed messages: must be 0) and its CPU time.
+
+Results go to ``bench/results/bench_supervisor.json`` and are printed. Flags: ``--sizes``,
+``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 10000 so
+that 1024 simulated drives fit on a 2-core machine), ``--sm-watchdog-s`` (default 2 s, so a
+starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from schemas import keys
+from supervisor.fleet import Fleet
+from supervisor.results import CommandResult, Report
+from supervisor.testbed import Proc, spawn, start_agents, start_router
+
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_supervisor.json"
+
+WATCHER = r"""
+import json, os, sys, threading, time
+from supervisor.fleet import Fleet
+ep, n_drives = sys.argv[1], int(sys.argv[2])
+changes = {}
+lock = threading.Lock()
+def on_status(st):
+    with lock:
+        key = (st.host, st.axis)
+        last = changes.get(key)
+        if last is None or last[0] != st.state:
+            changes[key] = (st.state, (last[1] + 1) if last else 0)
+with Fleet(connect=[ep], name="bench-watcher") as f:
+    f.on("status", on_status)
+    assert f.wait_until(lambda f: len(f.roster()) >= n_drives, 60), len(f.roster())
+    for line in sys.stdin:
+        cmd = line.strip()
+        if cmd == "mark":
+            t0, c0, n0 = time.monotonic(), os.times(), f.status_count
+            with lock:
+                s0 = sum(v[1] for v in changes.values())
+            print("marked", flush=True)
+        elif cmd == "report":
+            time.sleep(0.5)  # let the last publications arrive
+            t1, c1, n1 = time.monotonic(), os.times(), f.status_count
+            with lock:
+                s1 = sum(v[1] for v in changes.values())
+            missed = f.missed()
+            print(json.dumps({
+                "drives_seen": len(f.drives()),
+                "status_received": n1 - n0,
+                "state_changes_seen": s1 - s0,
+                "missed_by_seq": sum(missed.values()),
+                "drives_with_gaps": sum(1 for v in missed.values() if v),
+                "window_s": round(t1 - t0, 3),
+                "cpu_s": round((c1.user - c0.user) + (c1.system - c0.system), 3),
+                "cpu_pct_of_one_core": round(100 * ((c1.user - c0.user) + (c1.system - c0.system)) / (t1 - t0), 1),
+            }), flush=True)
+            break
+"""
+
+
+ECHO = r"""
+import json, signal, sys, threading, zenoh
+conf = zenoh.Config.from_json5(json.dumps({"mode": "peer", "connect": {"endpoints": [sys.argv[1]]},
+                                           "listen": {"endpoints": []}, "scouting": {"multicast": {"enabled": False}}}))
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *_: stop.set())
+def on_query(q):
+    with q:
+        q.reply(q.key_expr, b"pong")
+with zenoh.open(conf) as s:
+    qb = s.declare_queryable("bench/echo", on_query)
+    print("echo ready", flush=True)
+    stop.wait()
+    qb.undeclare()
+"""
+
+
+def pct(values: list[float], q: float) -> float:
+    v = sorted(values)
+    return v[min(len(v) - 1, int(round(q * (len(v) - 1))))]
+
+
+def step_figures(res: CommandResult) -> dict[str, Any]:
+    agent_max = max((r.elapsed_s for r in res.results if r.outcome != "missing"), default=0.0)
+    return {
+        "op": res.op, "drives": len(res.results), "ok": res.ok, "counts": res.counts(),
+        "wall_s": round(res.elapsed_s, 6), "drive_max_s": round(agent_max, 6),
+        "overhead_s": round(res.elapsed_s - agent_max, 6), "queries": 1,
+    }
+
+
+def report_figures(rep: Report) -> dict[str, Any]:
+    steps = [step_figures(res) for _, res in rep.steps]
+    return {"ok": rep.ok, "reason": rep.reason, "steps": steps,
+            "wall_s": round(sum(s["wall_s"] for s in steps), 6),
+            "overhead_s": round(sum(s["overhead_s"] for s in steps), 6)}
+
+
+def get_rtt(session: zenoh.Session, key: str, n: int) -> dict[str, Any]:
+    times = []
+    errors = 0
+    for _ in range(n):
+        t0 = time.perf_counter()
+        replies = list(session.get(key, timeout=2.0))
+        if replies and replies[0].ok is not None:
+            times.append(time.perf_counter() - t0)
+        else:
+            errors += 1
+    if not times:
+        return {"n": n, "errors": errors}
+    return {"errors": errors, "n": n, "p50_ms": round(1e3 * statistics.median(times), 3), "p99_ms": round(1e3 * pct(times, 0.99), 3),
+            "max_ms": round(1e3 * max(times), 3)}
+
+
+def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool) -> dict[str, Any]:
+    total = n_agents * n_drives
+    cycle_us = args.cycle_us or (1000 if total <= 64 else 10000)
+    router, ep = start_router()
+    procs: list[Proc] = []
+    hosts = [f"b{i:02d}" for i in range(n_agents)]
+    out: dict[str, Any] = {"agents": n_agents, "drives_per_agent": n_drives, "drives": total, "cycle_us": cycle_us,
+                           "agents_per_process": args.per_process, "sm_watchdog_s": args.sm_watchdog_s,
+                           "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
+    try:
+        t0 = time.monotonic()
+        for i in range(0, n_agents, args.per_process):
+            procs.append(start_agents(hosts[i:i + args.per_process], n_drives, ep, cycle_us=cycle_us,
+                                      sm_watchdog_s=args.sm_watchdog_s, ready_timeout_s=180))
+        with Fleet(connect=[ep], name="bench-sup") as fleet:
+            assert fleet.wait_for_agents(n_agents, 60, drives=total), (len(fleet.hosts()), len(fleet.roster()))
+            out["startup_s"] = round(time.monotonic() - t0, 2)
+            echo = spawn("echo", [sys.executable, "-c", ECHO, ep], ready_marker="echo ready")
+            procs.append(echo)
+            assert echo.wait_ready(30), echo.output()
+            list(fleet.session.get("bench/echo", timeout=2.0))  # routes in place
+            out["get_rtt_bare"] = get_rtt(fleet.session, "bench/echo", args.gets)
+            out["get_rtt_drive_status"] = get_rtt(fleet.session, keys.drive_status(hosts[0], "axis0"), args.gets)
+            t = time.perf_counter()
+            replies = list(fleet.session.get(keys.ALL_DRIVE_STATUS, target=zenoh.QueryTarget.ALL,
+                                             consolidation=zenoh.ConsolidationMode.NONE, timeout=10))
+            out["status_fanout_get"] = {"replies": len(replies), "wall_ms": round(1e3 * (time.perf_counter() - t), 3)}
+            rounds = []
+            for _ in range(args.rounds):
+                en = fleet.enable("**", timeout_s=10)
+                dis = fleet.command("disable", "**", timeout_s=10)
+                rounds.append({"enable": report_figures(en), "disable": step_figures(dis)})
+                if not (en.ok and dis.ok):
+                    print(f"  round failed: {en.reason} {dis.failures[:3]}", file=sys.stderr)
+            out["rounds"] = rounds
+            ok_rounds = [r for r in rounds if r["enable"]["ok"] and r["disable"]["ok"]]
+            if ok_rounds:
+                out["enable_wall_s_median"] = statistics.median(r["enable"]["wall_s"] for r in ok_rounds)
+                out["enable_overhead_s_median"] = statistics.median(r["enable"]["overhead_s"] for r in ok_rounds)
+                out["disable_wall_s_median"] = statistics.median(r["disable"]["wall_s"] for r in ok_rounds)
+                out["disable_overhead_s_median"] = statistics.median(r["disable"]["overhead_s"] for r in ok_rounds)
+            if fanin:
+                out["fanin"] = run_fanin(fleet, ep, total)
+    finally:
+        for p in procs:
+            p.stop(timeout_s=60)
+        router.stop()
+    return out
+
+
+def run_fanin(fleet: Fleet, ep: str, total: int) -> dict[str, Any]:
+    import subprocess
+
+    from supervisor.testbed import _env
+
+    w = subprocess.Popen([sys.executable, "-c", WATCHER, ep, str(total)], stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, text=True, env=_env())
+    try:
+        assert w.stdin is not None and w.stdout is not None
+        w.stdin.write("mark\n")
+        w.stdin.flush()
+        assert w.stdout.readline().strip() == "marked"
+        t0 = time.monotonic()
+        en = fleet.enable("**", timeout_s=10)
+        dis = fleet.command("disable", "**", timeout_s=10)
+        active_s = time.monotonic() - t0
+        w.stdin.write("report\n")
+        w.stdin.flush()
+        body = json.loads(w.stdout.readline())
+        body["commands_ok"] = en.ok and dis.ok
+        body["active_s"] = round(active_s, 3)
+        return body
+    finally:
+        w.kill()
+        w.wait(10)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sizes", default="4x16,32x32", help="comma-separated AGENTSxDRIVES (default 4x16,32x32)")
+    p.add_argument("--rounds", type=int, default=3, help="enable+disable rounds per size (default 3)")
+    p.add_argument("--per-process", type=int, default=8, help="agents per process (default 8)")
+    p.add_argument("--cycle-us", type=int, default=0, help="agent cycle (default 1000, 10000 beyond 64 drives)")
+    p.add_argument("--sm-watchdog-s", type=float, default=2.0,
+                   help="simulated slaves' SM watchdog (default 2 s: a starved 2-core box must not drop slaves)")
+    p.add_argument("--gets", type=int, default=200, help="bare get round trips to time (default 200)")
+    p.add_argument("--no-fanin", action="store_true", help="skip the status fan-in watcher")
+    p.add_argument("--output", default=str(RESULTS))
+    args = p.parse_args(argv)
+    sizes = []
+    for s in args.sizes.split(","):
+        a, _, d = s.partition("x")
+        sizes.append((int(a), int(d)))
+    largest = max(sizes, key=lambda s: s[0] * s[1])
+    result: dict[str, Any] = {"bench": "supervisor", "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                              "cpus": os.cpu_count(), "python": sys.version.split()[0], "sizes": []}
+    for a, d in sizes:
+        print(f"== {a} agents x {d} drives", flush=True)
+        r = run_size(a, d, args, fanin=not args.no_fanin and (a, d) == largest)
+        result["sizes"].append(r)
+        print(json.dumps({k: v for k, v in r.items() if k != "rounds"}, indent=1), flush=True)
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(json.dumps(result, indent=1) + "\n")
+    print(f"written {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
