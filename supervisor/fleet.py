@@ -62,6 +62,8 @@ DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 REPLY_MARGIN_S = 1.0
 DEFAULT_TIMEOUT_S = 5.0
 DEFAULT_LEASE_TTL_S = 3.0
+#: Depth of the status subscriber's FIFO (samples): a few status bursts of a 1024-drive fleet.
+STATUS_FIFO = 65536
 
 
 class FleetError(RuntimeError):
@@ -174,6 +176,7 @@ class Fleet:
         self._decls: list[Any] = []
         self._token: Any = None
         self._dispatcher: threading.Thread | None = None
+        self._drainer: threading.Thread | None = None
         self._renewer: threading.Thread | None = None
         self._stop = threading.Event()
         self._leases: dict[DriveRef, float] = {}  # drive -> ttl_s, leases this supervisor holds
@@ -206,7 +209,14 @@ class Fleet:
         self._token = s.liveliness().declare_token(keys.supervisor_alive(self.name))
         self._decls.append(s.liveliness().declare_subscriber(keys.ALL_ALIVE, self._on_alive, history=True))
         self._decls.append(s.liveliness().declare_subscriber(keys.ALL_SUPERVISORS, self._on_supervisor, history=True))
-        self._decls.append(s.declare_subscriber(keys.ALL_DRIVE_STATUS, self._on_status_sample))
+        # Status goes through a deep FIFO drained by our own thread: a burst (every drive of a
+        # large fleet changing at once) is absorbed here instead of backing up into the router,
+        # which drops samples published with congestion control DROP towards a slow subscriber.
+        status_sub = s.declare_subscriber(keys.ALL_DRIVE_STATUS, zenoh.handlers.FifoChannel(STATUS_FIFO))
+        self._decls.append(status_sub)
+        self._drainer = threading.Thread(target=self._drain, args=(status_sub,), name=f"fleet-{self.name}-status",
+                                         daemon=True)
+        self._drainer.start()
         self._decls.append(s.declare_subscriber(keys.ALL_AGENT_STATUS, self._on_agent_sample))
         self.refresh(self.discovery_timeout_s)
         log.info("supervisor %s: %d agent(s), %d drive(s)", self.name, len(self.hosts()), len(self.roster()))
@@ -230,6 +240,8 @@ class Fleet:
             except Exception:
                 pass
         self._decls.clear()
+        if self._drainer is not None:
+            self._drainer.join(timeout=5)
         if self._token is not None:
             self._token.undeclare()
             self._token = None
@@ -315,6 +327,13 @@ class Fleet:
         elif was and not alive:
             log.warning("agent %s is gone", host)
             self._emit("departure", host)
+
+    def _drain(self, sub: Any) -> None:
+        for sample in sub:  # ends when the subscriber is undeclared
+            try:
+                self._on_status_sample(sample)
+            except Exception:
+                log.exception("supervisor %s: status handling failed", self.name)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         self._host_alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
@@ -727,14 +746,16 @@ class Fleet:
                     return
                 log.exception("supervisor %s: lease renewal failed", self.name)
                 continue
+            lost = [r for r in res.results if r.outcome in ("busy", "rejected")]
+            with self._lock:
+                for r in lost:
+                    self._leases.pop(DriveRef(r.host, r.axis), None)
+            for r in lost:  # listeners see leases() already without every lost drive
+                log.warning("supervisor %s: lease on %s lost (%s, holder %r)", self.name, r.name,
+                            r.outcome, r.lease_holder)
+                self._emit("lease_lost", r)
             for r in res.results:
-                if r.outcome in ("busy", "rejected"):
-                    with self._lock:
-                        self._leases.pop(DriveRef(r.host, r.axis), None)
-                    log.warning("supervisor %s: lease on %s lost (%s, holder %r)", self.name, r.name,
-                                r.outcome, r.lease_holder)
-                    self._emit("lease_lost", r)
-                elif not r.ok:
+                if not r.ok and r not in lost:
                     log.warning("supervisor %s: lease renewal on %s: %s %s", self.name, r.name, r.outcome, r.error)
 
 
