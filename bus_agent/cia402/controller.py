@@ -463,7 +463,9 @@ class DriveController:
     def _finish_reset(self, events: list[ControllerEvent], *, ok: bool, state: State, reason: str,
                       now_s: float | None = None) -> None:
         kind = EventKind.FAULT_RESET_DONE if ok else EventKind.FAULT_RESET_FAILED
-        events.append(ControllerEvent(kind, State.FAULT, state, reason))
+        assert self._reset is not None
+        from_state = State.FAULT if self._reset.saw_fault else state
+        events.append(ControllerEvent(kind, from_state, state, reason))
         self._reset = None
         if ok and now_s is not None and not self._goal_set_during_reset:
             # after a reset the drive sits in switch_on_disabled and stays there unless asked
