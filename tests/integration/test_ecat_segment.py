@@ -314,3 +314,35 @@ def test_64_drives_multi_frame(ecat_segment):
             assert _cycle(m) == 192
     finally:
         m.close()
+
+
+def test_fault_injection_over_zenoh(ecat_segment):
+    zenoh = pytest.importorskip("zenoh")
+    import socket
+
+    from bus_agent.sim.control import SimControlError, sim_inject
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    ifname, control = ecat_segment(2, "generic", "--zenoh-listen", f"tcp/127.0.0.1:{port}")
+    segment = control.request("ping")["segment"]
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    session = zenoh.open(conf)
+    try:
+        deadline = time.monotonic() + 10
+        while True:  # the route to the simulator's queryable takes a moment to appear
+            try:
+                details = sim_inject(session, segment, 1, "fault", error_code=0x2310, timeout_s=1.0)
+                break
+            except SimControlError:
+                assert time.monotonic() < deadline, "simulator never answered over Zenoh"
+        assert len(details) == 1
+        status = control.request("status")["slaves"]
+        assert status[1]["error_code"] == 0x2310 and status[0]["error_code"] == 0
+        with pytest.raises(SimControlError):
+            sim_inject(session, segment, 1, "fault", error_code="bad", timeout_s=2.0)
+    finally:
+        session.close()
