@@ -237,6 +237,7 @@ class _Remote:
     host: str
     axis: str
     bad: bool = False
+    seen: bool = False
 
 
 class Gateway:
@@ -765,6 +766,10 @@ class Gateway:
         reason = f"{st.host}/{st.axis} {'lost' if st.lost else st.state}"
         for r in self._remotes:
             if r.host == st.host and r.axis == st.axis:
+                if not r.seen:
+                    r.seen = True
+                    log.info("agent %s: group %s member %s/%s seen: %s", self.host, r.group, r.host, r.axis,
+                             "lost" if st.lost else st.state)
                 self._remote_member(r, bad, reason)
 
     def _on_remote_token(self, sample: zenoh.Sample) -> None:

@@ -185,7 +185,7 @@ def test_repeated_request_id_returns_first_outcome(gw):
     wait_for(lambda: cycle.held, what="first command submitted")
     t2 = threading.Thread(target=lambda: results.append(command(client, "x1", "enable", rid="dup")))
     t2.start()
-    time.sleep(0.1)  # let the repeat reach the gateway while the first is pending
+    wait_for(lambda: len(gateway._requests["dup"].waiting) == 2, what="repeat attached to the pending request")
     cycle.release_held()
     t.join(5)
     t2.join(5)
@@ -227,10 +227,16 @@ def test_cycle_events_published_with_seq(gw):
     got = []
     sub = client.declare_subscriber(keys.drive_event(HOST, "x1"), lambda s: got.append(m.decode(s.payload)))
     try:
-        time.sleep(0.2)  # subscriber declaration propagates
-        cycle.tick([rt.CycleEvent("x1", "transition", "t2", "switch_on_disabled", "ready_to_switch_on")] * 3)
-        wait_for(lambda: len(got) >= 3, what="events")
-        assert [e.seq for e in got[:3]] == [1, 2, 3] and got[0].kind == "transition"
+        ev = rt.CycleEvent("x1", "transition", "t2", "switch_on_disabled", "ready_to_switch_on")
+
+        def burst():  # until the subscription is in place
+            cycle.tick([ev] * 3)
+            time.sleep(0.05)
+            return len(got) >= 3
+
+        wait_for(burst, what="events")
+        seqs = [e.seq for e in got]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and got[0].kind == "transition"
     finally:
         sub.undeclare()
 
@@ -284,21 +290,29 @@ def test_remote_group_member_fault_triggers(net):
     cycle = FakeCycle()
     gateway = make_gateway(agent_s, cycle, groups={"g": ("gw1/x1", "far/y1")})
     try:
-        time.sleep(0.3)
         pub = client_s.declare_publisher(keys.drive_status("far", "y1"))
         good = m.DriveStatus(host="far", axis="y1", seq=1, time_ns=1, cycle=1, state="operation_enabled",
                              statusword=0x0237, controlword=0xF, goal="enabled", halt=False, mode=8, mode_display=8,
                              position=0, velocity=0, torque=0, error_code=0)
-        pub.put(m.encode(good))
-        pub.put(m.encode(replace(good, seq=2, state="fault", error_code=0x7300)))
-        pub.put(m.encode(replace(good, seq=3, state="fault", error_code=0x7300)))  # no second trigger
-        wait_for(lambda: cycle.triggers, what="group trigger")
-        time.sleep(0.1)
+        fault = replace(good, seq=2, state="fault", error_code=0x7300)
+
+        def publish_fault():
+            pub.put(m.encode(fault))  # repeated until the subscription is in place
+            return cycle.triggers
+
+        wait_for(publish_fault, what="group trigger")
+        for _ in range(3):
+            pub.put(m.encode(fault))  # still faulted: no second trigger
+        time.sleep(0.2)
         assert len(cycle.triggers) == 1 and cycle.triggers[0][0] == "g" and "far/y1 fault" in cycle.triggers[0][1]
         token = client_s.liveliness().declare_token(keys.alive("far"))
-        time.sleep(0.2)
-        pub.put(m.encode(replace(good, seq=4)))
-        time.sleep(0.1)
+        remote = gateway._remotes[0]
+
+        def publish_good():
+            pub.put(m.encode(good))
+            return not remote.bad
+
+        wait_for(publish_good, what="member good again")
         token.undeclare()
         wait_for(lambda: len(cycle.triggers) == 2, what="trigger on agent loss")
         assert "agent far lost" in cycle.triggers[1][1]
