@@ -107,7 +107,7 @@ class Agent:
         cfg = self.config
         drives = cfg.drive_configs(len(self.cycle.slaves))
         return GatewaySettings(
-            host=cfg.host, axes=self.cycle.axes, slaves={d.axis: d.slave for d in drives},
+            host=cfg.host, axes=self.cycle.axes,
             heartbeat_s=cfg.heartbeat_s, agent_period_s=cfg.heartbeat_s, backend=self.bus.backend if self.bus else "",
             cycle_us=cfg.cycle_us, groups={g: tuple(ms) for g, ms in cfg.groups.items()},
             lease_reaction={d.axis: d.policy.lease_reaction for d in drives},

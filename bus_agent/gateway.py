@@ -22,6 +22,7 @@ when every axis has answered. A repeated request id attaches to the first reques
 from __future__ import annotations
 
 import collections
+import dataclasses
 import functools
 import logging
 import queue
@@ -218,7 +219,6 @@ def _reply_err(query: zenoh.Query, text: str) -> None:
 class GatewaySettings:
     host: str
     axes: tuple[str, ...]                      # in slave order
-    slaves: Mapping[str, int] = field(default_factory=dict)
     heartbeat_s: float = 1.0
     agent_period_s: float = 1.0
     motion_period_s: float = 0.1
@@ -450,6 +450,11 @@ class Gateway:
         )
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
+        if not ev.axis:
+            # An agent-wide event (e.g. an NMT outcome) concerns every drive: one copy each.
+            for axis in self.axes:
+                self._publish_event(dataclasses.replace(ev, axis=axis), cycle, time_ns)
+            return
         pub = self._event_pubs.get(ev.axis)
         if pub is None:
             log.debug("event for unknown axis %r dropped: %s", ev.axis, ev)

@@ -432,3 +432,25 @@ def test_group_reflex_across_two_agent_processes(start_agent, zenoh_session, tmp
     a.kill()
     wait_for(lambda: statuses(s, host="gb", axis="axis0")["axis0"].goal == "quick_stop", timeout_s=10.0,
              what="reflex on agent loss")
+
+
+def test_agent_nmt_command_one_reply_on_the_agent_key(clean):
+    events = Recorder(clean, keys.drive_event(HOST, "axis0"))
+    try:
+        def nmt(command_, rid=None):
+            req = m.CommandRequest(request_id=rid or uuid.uuid4().hex, op="nmt",
+                                   args={"command": command_, "axis": "axis1"}, timeout_s=5.0)
+            return send(clean, keys.agent_cmd(HOST, "nmt"), m.encode(req))
+
+        oks, errs = nmt("stop", rid="nmt-stop")
+        assert errs == [] and [(k, r.axis, r.outcome) for k, r in oks] == [(keys.agent_cmd(HOST, "nmt"), "", "done")]
+        wait_for(lambda: statuses(clean, axis="axis1")["axis1"].al_state == "safeop", what="axis1 in SAFE-OP")
+        assert statuses(clean, axis="axis0")["axis0"].al_state == "op"       # only the addressed slave
+        # the agent-wide NMT event reaches every drive's event key
+        wait_for(lambda: any(e.request_id == "nmt-stop" for e in events.snapshot()), what="nmt event on axis0")
+        oks, _ = nmt("start")
+        assert [r.outcome for _, r in oks] == ["done"]
+        wait_for(lambda: statuses(clean, axis="axis1")["axis1"].al_state == "op", what="axis1 back in OP")
+        assert statuses(clean, axis="axis1")["axis1"].goal == "disabled"      # never re-enabled by itself
+    finally:
+        events.close()
