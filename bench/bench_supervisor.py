@@ -19,9 +19,11 @@ agent with its own Zenoh session, all through one router process):
   state changes seen, sequence-number gaps (missed messages: must be 0) and its CPU time.
 
 Results go to ``bench/results/bench_supervisor.json`` and are printed. Flags: ``--sizes``,
-``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 10000 so
-that 1024 simulated drives fit on a 2-core machine), ``--sm-watchdog-s`` (default 2 s, so a
-starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``.
+``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 20000 so
+that 1024 simulated drives fit on a 2-core machine), ``--sm-watchdog-s`` (default 5 s, so a
+starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``,
+``--status-block`` (experiment: the agents' status publishers with congestion control BLOCK
+instead of zenoh's default DROP; see docs/supervisor.md on fan-in losses).
 """
 
 from __future__ import annotations
@@ -142,12 +144,13 @@ def get_rtt(session: zenoh.Session, key: str, n: int) -> dict[str, Any]:
 
 def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool) -> dict[str, Any]:
     total = n_agents * n_drives
-    cycle_us = args.cycle_us or (1000 if total <= 64 else 10000)
+    cycle_us = args.cycle_us or (1000 if total <= 64 else 20000)
     router, ep = start_router()
     procs: list[Proc] = []
     hosts = [f"b{i:02d}" for i in range(n_agents)]
     out: dict[str, Any] = {"agents": n_agents, "drives_per_agent": n_drives, "drives": total, "cycle_us": cycle_us,
                            "agents_per_process": args.per_process, "sm_watchdog_s": args.sm_watchdog_s,
+                           "status_publishers": "block (experiment)" if args.status_block else "as shipped",
                            "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
     try:
         t0 = time.monotonic()
@@ -202,6 +205,7 @@ def run_fanin(fleet: Fleet, ep: str, total: int) -> dict[str, Any]:
         w.stdin.write("mark\n")
         w.stdin.flush()
         assert w.stdout.readline().strip() == "marked"
+        m0 = sum(fleet.missed().values())
         t0 = time.monotonic()
         en = fleet.enable("**", timeout_s=10)
         dis = fleet.command("disable", "**", timeout_s=10)
@@ -210,6 +214,9 @@ def run_fanin(fleet: Fleet, ep: str, total: int) -> dict[str, Any]:
         w.stdin.flush()
         body = json.loads(w.stdout.readline())
         body["commands_ok"] = en.ok and dis.ok
+        # the same count in the commanding supervisor's own Fleet: equal gaps in two independent
+        # subscribers mean the samples were lost upstream (publisher or router), not by a watcher
+        body["supervisor_missed_by_seq"] = sum(fleet.missed().values()) - m0
         body["active_s"] = round(active_s, 3)
         return body
     finally:
@@ -222,13 +229,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", default="4x16,32x32", help="comma-separated AGENTSxDRIVES (default 4x16,32x32)")
     p.add_argument("--rounds", type=int, default=3, help="enable+disable rounds per size (default 3)")
     p.add_argument("--per-process", type=int, default=8, help="agents per process (default 8)")
-    p.add_argument("--cycle-us", type=int, default=0, help="agent cycle (default 1000, 10000 beyond 64 drives)")
-    p.add_argument("--sm-watchdog-s", type=float, default=2.0,
-                   help="simulated slaves' SM watchdog (default 2 s: a starved 2-core box must not drop slaves)")
+    p.add_argument("--cycle-us", type=int, default=0, help="agent cycle (default 1000, 20000 beyond 64 drives)")
+    p.add_argument("--sm-watchdog-s", type=float, default=5.0,
+                   help="simulated slaves' SM watchdog (default 5 s: a starved 2-core box must not drop slaves)")
+    p.add_argument("--status-block", action="store_true",
+                   help="experiment: agents' status publishers with congestion control BLOCK (zenoh default DROP)")
     p.add_argument("--gets", type=int, default=200, help="bare get round trips to time (default 200)")
     p.add_argument("--no-fanin", action="store_true", help="skip the status fan-in watcher")
     p.add_argument("--output", default=str(RESULTS))
     args = p.parse_args(argv)
+    if args.status_block:
+        os.environ["TESTBED_STATUS_BLOCK"] = "1"  # inherited by the agent processes
     sizes = []
     for s in args.sizes.split(","):
         a, _, d = s.partition("x")

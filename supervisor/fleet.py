@@ -270,6 +270,29 @@ class Fleet:
                 if reply.ok is not None:
                     handler(reply.ok)
 
+    def fetch_status(self, target: "Selection | str | Sequence[str]", timeout_s: float = 2.0) -> dict[DriveRef, DriveStatus]:
+        """Ask the agents for the current status of the selected drives (one get per planned key
+        expression), merge it into the snapshot and return it. Decisions that depend on a
+        drive's state use this, not the snapshot alone: published status may lag or be dropped."""
+        sel = self._as_selection(target)
+        wanted = set(sel.drives)
+        out: dict[DriveRef, DriveStatus] = {}
+        for host, axis in sel.plan.pairs:
+            for reply in self.session.get(keys.drive_status(host, axis), target=zenoh.QueryTarget.ALL,
+                                          consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                try:
+                    st = decode(reply.ok.payload.to_bytes(), DriveStatus)
+                except SchemaError as exc:
+                    log.warning("supervisor %s: bad status on %s: %s", self.name, reply.ok.key_expr, exc)
+                    continue
+                ref = DriveRef(st.host, st.axis)
+                if ref in wanted:
+                    out[ref] = st
+                self._on_status_sample(reply.ok)
+        return out
+
     # ---- events --------------------------------------------------------------------------
 
     def on(self, event: str, fn: Listener) -> None:

@@ -79,7 +79,10 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
         everything = fleet.select(*selectors)
         stage_sels = [everything]
     roster = set(fleet.roster())
-    statuses = fleet.drives()
+    # The agents' current answer, not the snapshot alone: a published status may lag (or have
+    # been dropped), and skipping phase 1 for a drive wrongly believed enabled would enable it
+    # straight from Switch on disabled.
+    statuses = {**fleet.drives(), **fleet.fetch_status(everything)}
     blockers = []
     for ref in everything.drives:
         st = statuses.get(ref)
@@ -95,6 +98,7 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
         return Report("enable", False, (), reason, ())
 
     before = {ref: (statuses[ref].state if ref in statuses else "unknown") for ref in everything.drives}
+    # A drive whose state is unknown gets phase 1 too: switch_on never enables.
     to_switch_on = [r for r in everything.drives if before[r] not in _ALREADY_UP]
     steps: list[tuple[str, CommandResult]] = []
     if to_switch_on:
