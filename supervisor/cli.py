@@ -241,7 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.verbose == 0:
         logging.getLogger("supervisor").setLevel(logging.ERROR)  # the report says it all
     console = Console(stderr=False)
-    err = Console(stderr=True)
+    err = Console(stderr=True, soft_wrap=True)
     try:
         return run(args, console)
     except (SelectorError, UsageError, ValueError) as exc:
