@@ -21,9 +21,7 @@ agent with its own Zenoh session, all through one router process):
 Results go to ``bench/results/bench_supervisor.json`` and are printed. Flags: ``--sizes``,
 ``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 20000 so
 that 1024 simulated drives fit on a 2-core machine), ``--sm-watchdog-s`` (default 5 s, so a
-starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``,
-``--status-block`` (experiment: the agents' status publishers with congestion control BLOCK
-instead of zenoh's default DROP; see docs/supervisor.md on fan-in losses).
+starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``.
 """
 
 from __future__ import annotations
@@ -150,7 +148,6 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
     hosts = [f"b{i:02d}" for i in range(n_agents)]
     out: dict[str, Any] = {"agents": n_agents, "drives_per_agent": n_drives, "drives": total, "cycle_us": cycle_us,
                            "agents_per_process": args.per_process, "sm_watchdog_s": args.sm_watchdog_s,
-                           "status_publishers": "block (experiment)" if args.status_block else "as shipped",
                            "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
     try:
         t0 = time.monotonic()
@@ -232,14 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cycle-us", type=int, default=0, help="agent cycle (default 1000, 20000 beyond 64 drives)")
     p.add_argument("--sm-watchdog-s", type=float, default=5.0,
                    help="simulated slaves' SM watchdog (default 5 s: a starved 2-core box must not drop slaves)")
-    p.add_argument("--status-block", action="store_true",
-                   help="experiment: agents' status publishers with congestion control BLOCK (zenoh default DROP)")
     p.add_argument("--gets", type=int, default=200, help="bare get round trips to time (default 200)")
     p.add_argument("--no-fanin", action="store_true", help="skip the status fan-in watcher")
     p.add_argument("--output", default=str(RESULTS))
     args = p.parse_args(argv)
-    if args.status_block:
-        os.environ["TESTBED_STATUS_BLOCK"] = "1"  # inherited by the agent processes
     sizes = []
     for s in args.sizes.split(","):
         a, _, d = s.partition("x")

@@ -305,8 +305,11 @@ class Gateway:
     def start(self) -> None:
         s = self.session
         for axis in self.axes:
+            # BLOCK: a watcher must see every publication (seq without gaps); a slow subscriber
+            # slows only this publishing thread, which coalesces to the latest snapshot, never the cycle.
             self._status_pubs[axis] = s.declare_publisher(keys.drive_status(self.host, axis), encoding=MSGPACK,
-                                                          express=True)
+                                                          express=True,
+                                                          congestion_control=zenoh.CongestionControl.BLOCK)
             self._event_pubs[axis] = s.declare_publisher(keys.drive_event(self.host, axis), encoding=MSGPACK,
                                                          congestion_control=zenoh.CongestionControl.BLOCK)
         self._agent_pub = s.declare_publisher(keys.agent_status(self.host), encoding=MSGPACK)

@@ -138,22 +138,6 @@ def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: f
     return p
 
 
-def _status_publishers_block() -> None:
-    """Experiment switch (``TESTBED_STATUS_BLOCK=1``): declare the agents' status publishers with
-    congestion control BLOCK instead of zenoh's default DROP, to show where fan-in losses come
-    from (bench_supervisor ``--status-block``). Not a change of the agent: a patch in this process."""
-    import zenoh
-
-    original = zenoh.Session.declare_publisher
-
-    def declare_publisher(self: Any, key: Any, *args: Any, **kw: Any) -> Any:
-        if str(key).endswith("/status"):
-            kw["congestion_control"] = zenoh.CongestionControl.BLOCK
-        return original(self, key, *args, **kw)
-
-    zenoh.Session.declare_publisher = declare_publisher  # type: ignore[method-assign]
-
-
 def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int, sm_watchdog_s: float) -> int:
     import logging
 
@@ -166,8 +150,6 @@ def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     agents = []
-    if os.environ.get("TESTBED_STATUS_BLOCK") == "1":
-        _status_publishers_block()
     try:
         for h in hosts:
             a = Agent(AgentConfig(host=h, sim_drives=n_drives, cycle_us=cycle_us,
