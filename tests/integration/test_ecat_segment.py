@@ -151,7 +151,8 @@ def test_sdo_aborts(ecat_segment):
         m.close()
 
 
-def _remap(slave_pos_unused=None, *, slave):
+def _remap(slave) -> None:
+    """0x1600 = controlword + target position, 0x1A00 = statusword + position (6 + 6 bytes)."""
     rx = [0x60400010, 0x607A0020]
     tx = [0x60410010, 0x60640020]
     for assign, pdo, entries in ((0x1C12, 0x1600, rx), (0x1C13, 0x1A00, tx)):
@@ -169,7 +170,7 @@ def test_remap_in_preop_then_refused(ecat_segment):
     m = _open(ifname, 2)
     try:
         for s in m.slaves:
-            s.config_func = (lambda pos, s=s: _remap(slave=s))
+            s.config_func = (lambda pos, s=s: _remap(s))  # runs in PRE-OP inside config_map
         assert m.config_map() == 2 * (6 + 6)
         assert all((len(s.output), len(s.input)) == (6, 6) for s in m.slaves)
         _to_op(m, map_first=False)
