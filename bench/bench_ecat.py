@@ -16,6 +16,7 @@ import gc
 import json
 import os
 import select
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -138,6 +139,7 @@ def run(args) -> dict:
         except subprocess.TimeoutExpired:
             sim.kill()
         veth_down(master_if)
+        shutil.rmtree(workdir, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:
