@@ -1,0 +1,324 @@
+"""The pysoem backend: a NIC (or the master end of a veth pair facing ``ecat-sim``).
+
+Start-up (not cycle-safe, seconds): ``open`` = Master.open + config_init (retried until a
+deadline) + identity; ``start`` = PDO mapping override by SDO in PRE-OP through pysoem's
+``config_func`` hook, config_map, SAFE-OP, then OP with process data flowing, each with a
+deadline; errors name the slave and decode the AL status code (register 0x0134, ETG.1000.6
+Table 11). Cycle-safe: ``exchange`` (LRW: send_processdata + receive_processdata), ``inputs`` /
+``set_outputs`` (preallocated records, one struct pack/unpack per slave), ``read_al_status``
+(one BRD, or one FPRD per slave when they differ), ``request_al_state`` and ``recover``
+(a few datagrams per call; a slave that was reset is reconfigured by ``reconfig``).
+
+GIL: pysoem holds the GIL in its calls unless asked; process-data calls, config_init and SDO
+transfers here release it (``release_gil=True``) so the gateway thread can run meanwhile.
+State checks are polled with short timeouts instead of one long blocking call.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from typing import Any, Sequence
+
+from bus_agent.bus.base import (ALState, BusError, SlaveALStatus, SlaveIdentity, SlaveInfo,
+                                al_status_text)
+from bus_agent.pdo import (RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveInputs, DriveOutputs,
+                           mapping_entry)
+
+log = logging.getLogger(__name__)
+
+STATE_ACK = 0x10
+#: How long open() keeps retrying config_init when no slave answers.
+CONFIG_INIT_DEADLINE_S = 10.0
+#: Deadlines of the AL transitions in start().
+SAFEOP_DEADLINE_S = 5.0
+OP_DEADLINE_S = 5.0
+#: Short state_check polls (us) so the GIL is given up between them.
+STATE_POLL_US = 5000
+#: Single-datagram timeout (us) for recover steps; a missing slave costs at most this.
+RECOVER_TIMEOUT_US = 500
+_AL_STATUS_REG = 0x0130
+
+
+def _al_state(value: int) -> ALState:
+    try:
+        return ALState(value & 0x0F)
+    except ValueError:
+        return ALState.NONE
+
+
+class PysoemBus:
+    """The Bus protocol over pysoem (backend "pysoem")."""
+
+    backend = "pysoem"
+
+    def __init__(self, ifname: str, receive_timeout_us: int = 1000, release_gil: bool = True,
+                 config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S) -> None:
+        import pysoem  # imported here so the sim backend needs no pysoem
+
+        self._pysoem = pysoem
+        self.ifname = ifname
+        self.receive_timeout_us = receive_timeout_us
+        self.release_gil = release_gil
+        self.config_init_deadline_s = config_init_deadline_s
+        self._master: Any = None
+        self._slaves: list[Any] = []
+        self._inputs: list[DriveInputs] = []
+        self._expected_wkc = 0
+        self._overrides: dict[int, Any] = {}
+        self._opened = False
+        self._closed = False
+        self._recover_step: dict[int, str] = {}
+
+    # ---- start-up ------------------------------------------------------------------------------
+
+    def open(self) -> list[SlaveInfo]:
+        """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
+        pysoem = self._pysoem
+        m = pysoem.Master()
+        try:
+            m.open(self.ifname)
+        except Exception as e:
+            raise BusError(f"{self.ifname}: cannot open the interface: {e}") from None
+        self._master = m
+        deadline = time.monotonic() + self.config_init_deadline_s
+        n = 0
+        while True:
+            try:
+                n = m.config_init(release_gil=True)
+            except Exception as e:
+                self._abort_open()
+                raise BusError(f"{self.ifname}: config_init failed: {e}") from None
+            if n > 0 or time.monotonic() >= deadline:
+                break
+            time.sleep(0.2)
+        if n <= 0:
+            self._abort_open()
+            raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
+        self._slaves = list(m.slaves)
+        self._inputs = [DriveInputs() for _ in self._slaves]
+        self._opened = True
+        infos = []
+        for pos, s in enumerate(self._slaves):
+            infos.append(SlaveInfo(pos, s.name, SlaveIdentity(s.man, s.id, s.rev, 0)))
+            log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
+                     self.ifname, pos, s.name, s.man, s.id, s.rev)
+        return infos
+
+    def _abort_open(self) -> None:
+        try:
+            self._master.close()
+        except Exception:
+            pass
+        self._master = None
+
+    def _config_func(self, position: int) -> None:
+        """pysoem PO2SO hook, in PRE-OP: write the PDO mapping override by SDO (0x1C12/0x1C13,
+        0x16xx/0x1Axx: sub 0 = 0, entries, sub 0 = n; assignment the same)."""
+        ov = self._overrides.get(position)
+        if ov is None:
+            return
+        s = self._slaves[position]
+
+        def w(index: int, sub: int, fmt: str, value: int) -> None:
+            try:
+                s.sdo_write(index, sub, struct.pack(fmt, value))
+            except self._pysoem.SdoError as e:
+                raise BusError(f"slave {position} ({s.name!r}): PDO mapping override: SDO write "
+                               f"0x{index:04X}:{sub} aborted 0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
+
+        rx, tx = ov.rx_pdo, ov.tx_pdo
+        w(0x1C12, 0, "<B", 0)
+        w(0x1C13, 0, "<B", 0)
+        for pdo, entries in ((rx, RXPDO_DEFAULT), (tx, TXPDO_DEFAULT)):
+            w(pdo, 0, "<B", 0)
+            for i, (index, sub, bits, _c, _n) in enumerate(entries, start=1):
+                w(pdo, i, "<I", mapping_entry(index, sub, bits))
+            w(pdo, 0, "<B", len(entries))
+        w(0x1C12, 1, "<H", rx)
+        w(0x1C12, 0, "<B", 1)
+        w(0x1C13, 1, "<H", tx)
+        w(0x1C13, 0, "<B", 1)
+        log.info("slave %d: PDO mapping override written (RxPDO 0x%04X, TxPDO 0x%04X)", position, rx, tx)
+
+    def start(self, mapping_override: dict[int, object] | None = None) -> int:
+        """Map PDOs and bring every slave SAFE-OP then OP, each with a deadline. Returns the
+        expected working counter. Raises BusError naming the slave and the AL status code."""
+        if not self._opened:
+            raise BusError(f"{self.ifname}: start() before open()")
+        pysoem = self._pysoem
+        m = self._master
+        self._overrides = dict(mapping_override or {})
+        for pos in self._overrides:
+            if not 0 <= pos < len(self._slaves):
+                raise BusError(f"{self.ifname}: PDO mapping override for slave {pos}, which is not on the segment")
+        for pos, s in enumerate(self._slaves):
+            s.config_func = self._config_func if pos in self._overrides else None
+        try:
+            m.config_map()
+        except BusError:
+            raise
+        except pysoem.ConfigMapError as e:
+            details = "; ".join(str(x) for x in e.error_list)
+            raise BusError(f"{self.ifname}: config_map: {details}") from None
+        except Exception as e:
+            raise BusError(f"{self.ifname}: config_map failed: {e}") from None
+        for pos, s in enumerate(self._slaves):
+            if len(s.output) != RX_STRUCT.size or len(s.input) != TX_STRUCT.size:
+                raise BusError(f"slave {pos} ({s.name!r}): process data is {len(s.output)} bytes out / "
+                               f"{len(s.input)} in, expected {RX_STRUCT.size}/{TX_STRUCT.size} "
+                               "(the default CiA 402 mapping; configure drives[].pdo to remap)")
+        self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
+        self._expected_wkc = m.expected_wkc
+        # Outputs must flow while OP is requested, or the SM watchdog trips on the way.
+        for pos in range(len(self._slaves)):
+            self.set_outputs(pos, DriveOutputs())
+        self.exchange()
+        m.state = pysoem.OP_STATE
+        m.write_state()
+        self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
+        log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
+                 self._expected_wkc)
+        return self._expected_wkc
+
+    def _wait_state(self, state: ALState, deadline_s: float, exchange: bool) -> None:
+        m = self._master
+        deadline = time.monotonic() + deadline_s
+        while True:
+            if exchange:
+                self.exchange()
+            if m.state_check(int(state), STATE_POLL_US) == int(state):
+                return
+            if time.monotonic() >= deadline:
+                break
+        m.read_state()
+        bad = []
+        for pos, s in enumerate(self._slaves):
+            st = s.state
+            if _al_state(st) != state or st & STATE_ACK:
+                code = s.al_status
+                bad.append(f"slave {pos} ({s.name!r}) in {_al_state(st).wire_name}"
+                           + (f" with error: AL status code 0x{code:04X} {al_status_text(code)}" if st & STATE_ACK else ""))
+        raise BusError(f"{self.ifname}: {state.wire_name} not reached within {deadline_s:g} s: "
+                       + ("; ".join(bad) or "no slave reports an error"))
+
+    @property
+    def expected_wkc(self) -> int:
+        return self._expected_wkc
+
+    # ---- cycle ------------------------------------------------------------------------------------
+
+    def exchange(self) -> int:
+        """One LRW: send outputs, receive inputs. Returns the working counter. Cycle-safe."""
+        m = self._master
+        rg = self.release_gil
+        m.send_processdata(release_gil=rg)
+        return m.receive_processdata(self.receive_timeout_us, release_gil=rg)
+
+    def inputs(self, position: int) -> DriveInputs:
+        """The TxPDO of the slave, decoded into a preallocated record (valid until the next call)."""
+        rec = self._inputs[position]
+        (rec.statusword, rec.position_actual, rec.velocity_actual, rec.torque_actual,
+         rec.modes_of_operation_display, rec.error_code) = TX_STRUCT.unpack_from(self._slaves[position].input)
+        return rec
+
+    def set_outputs(self, position: int, outputs: DriveOutputs) -> None:
+        """RxPDO for the next exchange (copied into the IO map). Cycle-safe."""
+        self._slaves[position].output = RX_STRUCT.pack(
+            outputs.controlword, outputs.target_position, outputs.target_velocity,
+            outputs.target_torque, outputs.modes_of_operation)
+
+    def read_al_status(self) -> Sequence[SlaveALStatus]:
+        """AL status (0x0130) and status code (0x0134) of every slave; NONE for one not answering."""
+        self._master.read_state()
+        return [SlaveALStatus(_al_state(s.state), bool(s.state & STATE_ACK), s.al_status) for s in self._slaves]
+
+    def request_al_state(self, position: int | None, state: ALState) -> None:
+        """Write AL control (0x0120) for one slave or all, with the error acknowledge. No wait."""
+        value = int(state) | STATE_ACK
+        if position is None:
+            self._master.state = value  # slave 0 of SOEM's list = broadcast (BWR 0x0120)
+            self._master.write_state()
+        else:
+            s = self._slaves[position]
+            s.state = value
+            s.write_state()
+
+    def recover(self, position: int) -> bool:
+        """One step towards OP for a lost or fallen slave (a few datagrams; call again until True):
+        no answer -> re-address it if it came back (SOEM recover_slave); INIT/PRE-OP (reset) ->
+        reconfig (SMs, PDO mapping hook, FMMUs, up to SAFE-OP); SAFE-OP+error -> ack;
+        SAFE-OP -> request OP. True once it reports OP without error."""
+        s = self._slaves[position]
+        try:
+            raw = s._fprd(_AL_STATUS_REG, 2, RECOVER_TIMEOUT_US)
+            st = struct.unpack("<H", raw)[0]
+        except Exception:
+            # Not answering at its address: if it came back reset, give it its address again.
+            try:
+                if s.recover(RECOVER_TIMEOUT_US) > 0:
+                    log.info("slave %d: answers again at its station address", position)
+            except Exception as e:
+                log.debug("slave %d recover: %s", position, e)
+            return False
+        state, error = _al_state(st), bool(st & STATE_ACK)
+        if state == ALState.OP and not error:
+            s.is_lost = False
+            return True
+        if error:
+            s.state = int(state) | STATE_ACK
+            s.write_state()
+            return False
+        if state in (ALState.INIT, ALState.PREOP, ALState.NONE):
+            # Reset or power-cycled: SMs, the PDO mapping hook and FMMUs again (ends in SAFE-OP).
+            log.info("slave %d in %s: reconfiguring", position, state.wire_name)
+            s.reconfig(RECOVER_TIMEOUT_US)
+            return False
+        if state == ALState.SAFEOP:
+            s.state = int(ALState.OP)
+            s.write_state()
+        return False
+
+    def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        """CoE SDO upload. Raises BusError with the abort code. Not cycle-safe (mailbox round trips)."""
+        s = self._slaves[position]
+        try:
+            return bytes(s.sdo_read(index, subindex, size, release_gil=True))
+        except self._pysoem.SdoError as e:
+            raise BusError(f"slave {position}: SDO upload 0x{index:04X}:{subindex} aborted "
+                           f"0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
+        except Exception as e:
+            raise BusError(f"slave {position}: SDO upload 0x{index:04X}:{subindex} failed: {e}") from None
+
+    def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
+        """CoE SDO download. Raises BusError with the abort code."""
+        s = self._slaves[position]
+        try:
+            s.sdo_write(index, subindex, bytes(data), release_gil=True)
+        except self._pysoem.SdoError as e:
+            raise BusError(f"slave {position}: SDO download 0x{index:04X}:{subindex} aborted "
+                           f"0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
+        except Exception as e:
+            raise BusError(f"slave {position}: SDO download 0x{index:04X}:{subindex} failed: {e}") from None
+
+    def close(self) -> None:
+        """All slaves to INIT (briefly checked), then release the NIC. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        m = self._master
+        if m is None:
+            return
+        try:
+            if self._opened:
+                self.request_al_state(None, ALState.INIT)
+                m.state_check(int(ALState.INIT), 50_000)
+        except Exception as e:
+            log.warning("%s: INIT request on close failed: %s", self.ifname, e)
+        finally:
+            try:
+                m.close()
+            except Exception:
+                pass
+            self._master = None

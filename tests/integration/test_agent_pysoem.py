@@ -1,0 +1,184 @@
+"""The agent cycle over PysoemBus against ``ecat-sim`` on a veth pair (root).
+
+The real path: pysoem frames on a veth end, a separate ecat-sim process on the other.
+Waits are on conditions with deadlines; drive states are checked on the drive side through
+ecat-sim's control socket (``status``) or by SDO.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+
+import pytest
+
+from bus_agent.bus.base import ALState, BusError
+from bus_agent.bus.pysoem_bus import PysoemBus
+from bus_agent.config import AgentConfig, DriveConfig, Identity, PdoMapping
+from bus_agent.cycle import Cycle, IdentityMismatch
+from bus_agent.runtime import DriveCommand, Outcome
+from bus_agent.sim.drive_model import PROFILES
+
+pytestmark = [pytest.mark.root, pytest.mark.timeout(120)]
+
+GENERIC = PROFILES["generic"]
+
+
+def _wait(pred, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.005)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _drive_states(control) -> list[str]:
+    reply = control.request("status")
+    assert reply["ok"], reply
+    return [s["drive_state"] if "drive_state" in s else s.get("state") for s in reply["slaves"]]
+
+
+class Agent:
+    """A running cycle over PysoemBus with outcome collection."""
+
+    def __init__(self, ifname: str, n: int, **cfg) -> None:
+        self.config = AgentConfig(host="h1", ifname=ifname, **cfg)
+        self.bus = PysoemBus(ifname)
+        self.cycle = Cycle(self.bus, self.config)
+        self.events = []
+        self.lock = threading.Lock()
+        self.cycle.snapshot_sink = self._sink
+        self.outcomes: dict[str, list[Outcome]] = {}
+        self.seq = 0
+
+    def _sink(self, snap) -> None:
+        if snap.events:
+            with self.lock:
+                self.events.extend(snap.events)
+
+    def has_event(self, kind: str, axis: str | None = None) -> bool:
+        with self.lock:
+            return any(e.kind == kind and (axis is None or e.axis == axis) for e in self.events)
+
+    def cmd(self, op: str, *axes: str, timeout_s: float = 5.0, **args) -> str:
+        self.seq += 1
+        rid = f"r{self.seq}"
+        out: list[Outcome] = []
+        self.outcomes[rid] = out
+        assert self.cycle.submit(DriveCommand(request_id=rid, op=op, axes=axes, args=args, timeout_s=timeout_s,
+                                              received_ns=time.monotonic_ns(), on_outcome=out.append))
+        return rid
+
+    def wait_outcomes(self, rid: str, n: int, timeout_s: float = 10.0) -> list[Outcome]:
+        _wait(lambda: len(self.outcomes[rid]) >= n, timeout_s, f"{n} outcome(s) of {rid}")
+        return self.outcomes[rid]
+
+
+def test_startup_to_op_and_enable_through_the_cycle(ecat_segment):
+    ifname, control = ecat_segment(4, "generic")
+    agent = Agent(ifname, 4, drives=tuple(DriveConfig(slave=i, identity=Identity(GENERIC.vendor_id, GENERIC.product_code))
+                                          for i in range(4)))
+    agent.cycle.start()
+    try:
+        _wait(lambda: agent.cycle.latest is not None and agent.cycle.latest.cycle > 50, 5, "50 cycles")
+        snap = agent.cycle.latest
+        assert all(d.al_state == "op" and d.state == "switch_on_disabled" for d in snap.drives)
+        rid = agent.cmd("enable", "axis0", "axis1", "axis2", "axis3")
+        outs = agent.wait_outcomes(rid, 4)
+        assert sorted(o.axis for o in outs) == ["axis0", "axis1", "axis2", "axis3"]
+        assert all(o.outcome == "done" for o in outs), outs
+        states = _drive_states(control)
+        assert all(s == "operation_enabled" for s in states), states
+        assert agent.cycle.stats().wkc_errors == 0 or agent.cycle.latest.drives[0].al_state == "op"
+    finally:
+        agent.cycle.stop()
+    # ordered shutdown seen on the drive side, then INIT
+    states = _drive_states(control)
+    assert all(s == "switch_on_disabled" for s in states), states
+    reply = control.request("status")
+    assert all(s.get("al_state") in ("init", 1) for s in reply["slaves"]), reply["slaves"]
+
+
+def test_identity_mismatch_is_a_clear_startup_error(ecat_segment):
+    ifname, _control = ecat_segment(2, "generic")
+    agent = Agent(ifname, 2, drives=(DriveConfig(slave=0), DriveConfig(slave=1, identity=Identity(0x1234, 0x5678))))
+    with pytest.raises(IdentityMismatch, match=r"slave 1 .* 0x00001234"):
+        agent.cycle.open()
+    assert agent.cycle.state == "error"
+
+
+def test_pdo_mapping_override_and_sdo(ecat_segment):
+    ifname, _control = ecat_segment(2, "generic")
+    agent = Agent(ifname, 2, drives=(DriveConfig(slave=0, pdo=PdoMapping()), DriveConfig(slave=1)))
+    agent.cycle.open()
+    try:
+        assert agent.bus.expected_wkc == 6
+        (sw,) = struct.unpack("<H", agent.bus.sdo_read(0, 0x6041, 0, 2))
+        assert sw & 0x004F == 0x0040
+        with pytest.raises(BusError, match="0x6FFF"):
+            agent.bus.sdo_read(0, 0x6FFF, 0, 2)
+    finally:
+        agent.cycle.stop()
+
+
+def test_lost_and_returning_slave_is_not_re_enabled(ecat_segment):
+    ifname, control = ecat_segment(3, "generic")
+    agent = Agent(ifname, 3, groups={"arm": ("h1/axis0", "h1/axis2")})
+    agent.cycle.start()
+    try:
+        rid = agent.cmd("enable", "axis0", "axis1", "axis2")
+        assert all(o.outcome == "done" for o in agent.wait_outcomes(rid, 3))
+        assert control.request("unplug", slave=2)["ok"]
+        _wait(lambda: agent.has_event("lost", "axis2"), 5, "lost event")
+        _wait(lambda: agent.has_event("reflex", "axis0"), 1, "group reflex on axis0")
+        snap = agent.cycle.latest
+        assert next(d for d in snap.drives if d.axis == "axis2").lost
+        _wait(lambda: _drive_states(control)[0] in ("quick_stop_active", "switch_on_disabled"), 5,
+              "axis0 quick stop on the drive")
+        assert _drive_states(control)[1] == "operation_enabled"  # not in the group
+        assert control.request("plug", slave=2)["ok"]
+        _wait(lambda: agent.has_event("found", "axis2"), 10, "found event")
+        time.sleep(0.3)  # let a re-enable show if there were one
+        d2 = next(d for d in agent.cycle.latest.drives if d.axis == "axis2")
+        assert not d2.lost and d2.goal == "disabled" and d2.al_state == "op"
+        assert _drive_states(control)[2] != "operation_enabled"
+        r2 = agent.cmd("enable", "axis2")
+        assert agent.wait_outcomes(r2, 1)[0].outcome == "done"
+    finally:
+        agent.cycle.stop()
+
+
+def test_sm_watchdog_when_the_master_stops(ecat_segment):
+    ifname, control = ecat_segment(2, "generic")
+    agent = Agent(ifname, 2)
+    agent.cycle.open()
+    try:
+        rid = agent.cmd("enable", "axis0", "axis1")
+        deadline = time.monotonic() + 10
+        while len(agent.outcomes[rid]) < 2 and time.monotonic() < deadline:
+            agent.cycle.tick()
+            time.sleep(0.001)
+        assert [o.outcome for o in agent.outcomes[rid]] == ["done", "done"]
+        # the master stops exchanging: the slaves' SM watchdog ends OP and the drives stop
+        statuses = _wait(lambda: (lambda st: st if all(s.state == ALState.SAFEOP and s.error for s in st) else None)(
+            agent.bus.read_al_status()), 5, "SAFE-OP + error on every slave")
+        assert all(s.status_code == 0x001B for s in statuses)
+        assert all(s != "operation_enabled" for s in _drive_states(control))
+        # the cycle resumes: both lost, then recovered to OP with goals disabled
+        deadline = time.monotonic() + 10
+        while not (agent.has_event("found", "axis0") and agent.has_event("found", "axis1")):
+            assert time.monotonic() < deadline, (agent.events[-10:], agent.cycle.latest.drives)
+            agent.cycle.tick()
+            time.sleep(0.001)
+        assert agent.has_event("lost", "axis0") and agent.has_event("lost", "axis1")
+        for _ in range(100):
+            agent.cycle.tick()
+            time.sleep(0.001)
+        assert all(d.goal == "disabled" and not d.lost and d.al_state == "op" for d in agent.cycle.latest.drives)
+        # the drives' communication-loss reaction stands; nothing re-enables or resets them
+        assert all(s in ("switch_on_disabled", "fault") for s in _drive_states(control)), _drive_states(control)
+    finally:
+        agent.cycle.stop()
