@@ -246,6 +246,7 @@ class Cycle:
         if self._thread is not None:
             return
         self.open()
+        self._prepare_process()
         self._thread = threading.Thread(target=self._run, name=f"cycle-{self.config.host}", daemon=True)
         self._thread.start()
 
@@ -330,17 +331,32 @@ class Cycle:
 
     # ---- the loop -------------------------------------------------------------------------------
 
-    def _run(self) -> None:
-        old_switch = sys.getswitchinterval()
-        gc_was_enabled = gc.isenabled()
+    def _prepare_process(self) -> None:
+        """Process-wide settings while the loop runs (restored when it ends); see docs/agent-cycle.md."""
+        self._old_switch = sys.getswitchinterval()
+        self._gc_was_enabled = gc.isenabled()
         if self.switch_interval_s:
-            # The cycle thread waits for the GIL at most this long when another thread holds it.
+            # A thread waiting for the GIL asks for it after this long (default 5 ms): the cycle
+            # thread waits at most about this long when another thread holds the GIL.
             sys.setswitchinterval(self.switch_interval_s)
         if self.manage_gc:
-            # No cyclic-GC pauses in the loop: freeze what exists, disable collection while running.
+            # No cyclic-GC pauses in the loop: move what exists to the permanent generation and
+            # disable collection while running (reference counting still frees everything acyclic).
             gc.collect()
             gc.freeze()
             gc.disable()
+
+    def _restore_process(self) -> None:
+        if self.manage_gc:
+            gc.unfreeze()
+            if self._gc_was_enabled:
+                gc.enable()
+        if self.switch_interval_s:
+            sys.setswitchinterval(self._old_switch)
+
+    def _run(self) -> None:
+        if not hasattr(self, "_old_switch"):
+            self._prepare_process()
         try:
             period = self.period_ns
             t0 = self.clock_ns()
@@ -370,12 +386,7 @@ class Cycle:
             except Exception:
                 pass
         finally:
-            if self.manage_gc:
-                if gc_was_enabled:
-                    gc.enable()
-                gc.unfreeze()
-            if self.switch_interval_s:
-                sys.setswitchinterval(old_switch)
+            self._restore_process()
 
     def _wait_until(self, deadline_ns: int) -> None:
         remaining = deadline_ns - self.clock_ns() - SPIN_NS
