@@ -23,7 +23,7 @@ from typing import Any, Callable, Mapping
 import msgpack
 import zenoh
 
-from schemas.keys import SIM_ROOT, sim_control, validate_name
+from schemas.keys import SIM_ROOT, InvalidKey, parse_sim_control, sim_control, validate_name
 
 log = logging.getLogger(__name__)
 
@@ -43,13 +43,19 @@ def _encode(obj: Mapping[str, Any]) -> bytes:
 
 
 def parse_control_key(key: str, segment: str) -> tuple[str, str]:
-    """Split ``drives/@sim/<segment>/<slave>/<action>`` into (slave chunk, action).
-    Raises ValueError for any other shape (the segment may be ``*``)."""
+    """Split ``drives/@sim/<segment>/<slave>/<action>`` into (slave chunk, action), the slave
+    chunk being a position or ``*``; the segment may be ``*``. Raises ValueError otherwise.
+    The concrete form is checked by :func:`schemas.keys.parse_sim_control`."""
     parts = str(key).split("/")
-    root = SIM_ROOT.split("/")
-    if len(parts) != len(root) + 3 or parts[: len(root)] != root or parts[len(root)] not in (segment, "*"):
-        raise ValueError(f"key {key!r} is not {SIM_ROOT}/{segment}/<slave>/<action>")
-    return parts[len(root) + 1], parts[len(root) + 2]
+    if len(parts) == 5 and parts[2] in (segment, "*"):
+        slave = parts[3]
+        concrete = "/".join(parts[:2] + [segment, "0" if slave == "*" else slave, parts[4]])
+        try:
+            _seg, _pos, action = parse_sim_control(concrete)
+        except InvalidKey as exc:
+            raise ValueError(str(exc)) from None
+        return slave, action
+    raise ValueError(f"key {key!r} is not {SIM_ROOT}/{segment}/<slave>/<action>")
 
 
 class SimControl:
@@ -123,7 +129,7 @@ class SimControl:
             return
         if slave == "*":
             positions = list(range(self._n_slaves))
-        elif slave.isdigit() and int(slave) < self._n_slaves:
+        elif int(slave) < self._n_slaves:
             positions = [int(slave)]
         else:
             self._refuse(query, f"{where}: no such slave (0..{self._n_slaves - 1} or '*')")

@@ -140,5 +140,16 @@ def test_parse_control_key() -> None:
     assert parse_control_key("drives/@sim/s/3/fault", "s") == ("3", "fault")
     with pytest.raises(ValueError):
         parse_control_key("drives/@v1/s/3/fault", "s")
-    with pytest.raises(ValueError):
-        parse_control_key("drives/@sim/s/3", "s")
+    assert parse_control_key("drives/@sim/*/*/unplug", "s") == ("*", "unplug")
+    for bad in ("drives/@sim/s/3", "drives/@sim/s/x/fault", "drives/@sim/s/3/*", "drives/@sim/t/3/fault"):
+        with pytest.raises(ValueError):
+            parse_control_key(bad, "s")
+
+
+def test_wildcard_segment_and_action_queries(served) -> None:
+    bus, client, seg = served
+    replies = list(client.get("drives/@sim/*/1/fault", payload=msgpack.packb({"error_code": 0x1234}), timeout=2))
+    assert [msgpack.unpackb(r.ok.payload.to_bytes())["ok"] for r in replies if r.ok is not None] == [True]
+    assert bus.model(1).error_code == 0x1234
+    replies = list(client.get(f"drives/@sim/{seg}/1/*", timeout=2))
+    assert replies and all(r.err is not None for r in replies)  # an action must be named
