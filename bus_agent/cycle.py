@@ -24,6 +24,7 @@ from __future__ import annotations
 import collections
 import gc
 import logging
+import os
 import sys
 import threading
 import time
@@ -136,7 +137,7 @@ class Cycle:
     def __init__(self, bus: Bus, config: AgentConfig, clock_ns: Callable[[], int] = time.monotonic_ns, *,
                  sleep: Callable[[float], None] = time.sleep, wall_ns: Callable[[], int] = time.time_ns,
                  manage_gc: bool = True, switch_interval_s: float | None = 0.0005,
-                 record_periods: int = 0) -> None:
+                 record_periods: int = 0, rt_priority: int = 0) -> None:
         self.bus = bus
         self.config = config
         self.clock_ns = clock_ns
@@ -145,6 +146,8 @@ class Cycle:
         self.period_ns = config.cycle_us * 1000
         self.manage_gc = manage_gc
         self.switch_interval_s = switch_interval_s
+        #: SCHED_FIFO priority of the cycle thread (0: normal scheduling). Needs CAP_SYS_NICE.
+        self.rt_priority = rt_priority
         #: Called with each CycleSnapshot from the cycle thread; must only enqueue.
         self.snapshot_sink: Callable[[CycleSnapshot], None] | None = None
         #: Called (group, reason) from the cycle thread when a local member triggers a group.
@@ -357,6 +360,12 @@ class Cycle:
     def _run(self) -> None:
         if not hasattr(self, "_old_switch"):
             self._prepare_process()
+        if self.rt_priority:
+            try:  # pid 0 = the calling thread on Linux
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+            except (OSError, AttributeError) as e:
+                log.warning("host %s: SCHED_FIFO %d for the cycle thread refused: %s",
+                            self.config.host, self.rt_priority, e)
         try:
             period = self.period_ns
             t0 = self.clock_ns()

@@ -1,0 +1,370 @@
+"""Benchmark: the agent cycle vs a bare pysoem loop, 16 drives at 1 kHz on the virtual segment.
+
+    python -m bench.bench_agent [--drives 16] [--seconds 60] [--cycle-us 1000] [--no-gateway] [--out FILE]
+
+One veth pair and one ``ecat-sim`` serve every phase, run one after the other, each in its own
+process (so process CPU is its own):
+
+1. ``bare``: pysoem send/receive on drift-free deadlines (sleep coarse, spin the last 150 us,
+   like the cycle), the same GC and switch-interval settings, outputs packed every cycle;
+2. ``agent``: ``bus_agent.cycle.Cycle`` over ``PysoemBus``, every drive enabled (controllers
+   stepping, snapshots built and handed to a sink every cycle);
+3. ``gateway``: the full ``bus_agent.agent.Agent`` (cycle + Zenoh gateway) while a separate
+   process sends 200 queries/s (gets on drive status keys) and subscribes to all status.
+
+Per phase: period p50/p99/max, jitter |period - cycle| p50/p99/max, overruns, WKC errors and the
+phase process's CPU. Ratios: agent p99 jitter / bare p99 jitter. JSON is printed and written to
+bench/results/bench_agent.json. Needs root (veth, raw sockets).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import resource
+import select
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from array import array
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = ROOT / "bench" / "results" / "bench_agent.json"
+SPIN_NS = 150_000
+
+
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _figures(periods: list[int], cycle_ns: int) -> dict:
+    if not periods:
+        return {}
+    ps = sorted(periods)
+    js = sorted(abs(p - cycle_ns) for p in periods)
+    n = len(ps)
+
+    def q(v: list[int], f: float) -> float:
+        return round(v[min(n - 1, int(f * n))] / 1000, 1)
+
+    return {"samples": n,
+            "period_us": {"p50": q(ps, 0.5), "p99": q(ps, 0.99), "p999": q(ps, 0.999), "max": round(ps[-1] / 1000, 1)},
+            "jitter_us": {"p50": q(js, 0.5), "p99": q(js, 0.99), "p999": q(js, 0.999), "max": round(js[-1] / 1000, 1)}}
+
+
+def _rt(prio: int) -> None:
+    if prio:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+        except OSError as e:
+            print(f"SCHED_FIFO {prio} refused: {e}", file=sys.stderr)
+
+
+# ---- phases (each in its own process) ---------------------------------------------------------
+
+
+def phase_bare(args) -> dict:
+    """Bare pysoem: the loop any pysoem program would write, with the cycle's timing method."""
+    import pysoem
+
+    from bus_agent.pdo import RX_STRUCT
+
+    m = pysoem.Master()
+    m.open(args.ifname)
+    if m.config_init() != args.drives:
+        raise RuntimeError("config_init did not find every drive")
+    m.config_map()
+    if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
+        raise RuntimeError("SAFE-OP not reached")
+    m.send_processdata()
+    m.receive_processdata(2000)
+    m.state = pysoem.OP_STATE
+    m.write_state()
+    deadline = time.monotonic() + 5
+    while m.state_check(pysoem.OP_STATE, 5000) != pysoem.OP_STATE:
+        if time.monotonic() > deadline:
+            raise RuntimeError("OP not reached")
+        m.send_processdata()
+        m.receive_processdata(2000)
+    expected = m.expected_wkc
+    slaves = list(m.slaves)
+    period = args.cycle_us * 1000
+    n = int(args.seconds * 1e9 / period)
+    log = array("q", bytes(8 * n))
+    clock, sleep = time.monotonic_ns, time.sleep
+    wkc_errors = overruns = 0
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(0.0005)
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    _rt(args.rt_priority)
+    cpu0 = _cpu_s()
+    t0 = clock()
+    last = 0
+    k = 0
+    for i in range(n):
+        dl = t0 + k * period
+        rem = dl - clock() - SPIN_NS
+        if rem > 0:
+            sleep(rem / 1e9)
+        while clock() < dl:
+            pass
+        now = clock()
+        if now - dl > period:
+            overruns += 1
+            k = (now - t0) // period
+        if last:
+            log[i] = now - last
+        last = now
+        m.send_processdata(release_gil=True)
+        wkc = m.receive_processdata(args.receive_timeout_us, release_gil=True)
+        if wkc != expected:
+            wkc_errors += 1
+        for s in slaves:  # what any program does each cycle: read inputs, write outputs
+            _ = s.input
+            s.output = RX_STRUCT.pack(0, 0, 0, 0, 8)
+        k += 1
+    elapsed = (clock() - t0) / 1e9
+    cpu = _cpu_s() - cpu0
+    gc.enable()
+    sys.setswitchinterval(old)
+    m.state = pysoem.INIT_STATE
+    m.write_state()
+    m.close()
+    return {"cycles": n, "seconds": round(elapsed, 2), "overruns": overruns, "wkc_errors": wkc_errors,
+            "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(list(log[1:]), period)}
+
+
+def _enable_all(cyc, timeout_s: float = 10.0) -> None:
+    from bus_agent.runtime import DriveCommand
+
+    done = threading.Semaphore(0)
+    outs = []
+
+    def on(o):
+        outs.append(o)
+        done.release()
+
+    assert cyc.submit(DriveCommand(request_id="bench-enable", op="enable", axes=cyc.axes, on_outcome=on,
+                                   received_ns=time.monotonic_ns(), timeout_s=timeout_s))
+    for _ in cyc.axes:
+        if not done.acquire(timeout=timeout_s + 2):
+            raise RuntimeError("enable did not finish")
+    bad = [o for o in outs if o.outcome != "done"]
+    if bad:
+        raise RuntimeError(f"enable failed: {bad[:3]}")
+
+
+def _measure(cyc, args) -> dict:
+    period = args.cycle_us * 1000
+    n = int(args.seconds * 1e9 / period)
+    ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
+    cpu0 = _cpu_s()
+    t0 = time.monotonic()
+    cyc.period_log_len = 0
+    cyc.period_log = array("q", bytes(8 * n))
+    while cyc.period_log_len < n and time.monotonic() - t0 < args.seconds * 3 + 10:
+        time.sleep(0.05)
+    elapsed = time.monotonic() - t0
+    cpu = _cpu_s() - cpu0
+    got = cyc.period_log_len
+    log = list(cyc.period_log[:got])
+    cyc.period_log = None
+    return {"cycles": cyc.cycles - c0, "seconds": round(elapsed, 2), "overruns": cyc.overruns - ov0,
+            "wkc_errors": cyc.wkc_errors - wk0, "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(log, period)}
+
+
+def phase_agent(args) -> dict:
+    from collections import deque
+
+    from bus_agent.bus.pysoem_bus import PysoemBus
+    from bus_agent.config import AgentConfig
+    from bus_agent.cycle import Cycle
+
+    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us)
+    cyc = Cycle(PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us), cfg, rt_priority=args.rt_priority)
+    sink: deque = deque(maxlen=64)
+    cyc.snapshot_sink = sink.append  # what a gateway does: enqueue only
+    cyc.start()
+    try:
+        _enable_all(cyc)
+        return _measure(cyc, args)
+    finally:
+        cyc.stop()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def phase_gateway(args) -> dict:
+    from bus_agent.agent import Agent
+    from bus_agent.bus.pysoem_bus import PysoemBus
+    from bus_agent.config import AgentConfig, ZenohConfig
+
+    port = _free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us,
+                      zenoh=ZenohConfig(mode="peer", listen=(ep,), scouting=False))
+    agent = Agent(cfg, bus=PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us))
+    agent.start()
+    load = None
+    try:
+        _enable_all(agent.cycle)
+        load = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "load", "--connect", ep,
+                                 "--host", "bench", "--drives", str(args.drives), "--rate", str(args.query_rate),
+                                 "--seconds", str(args.seconds + 5)],
+                                cwd=ROOT, stdout=subprocess.PIPE, text=True)
+        time.sleep(2.0)  # load warm-up: subscription and queries flowing
+        res = _measure(agent.cycle, args)
+        out, _ = load.communicate(timeout=args.seconds + 30)
+        res["load"] = json.loads(out.strip().splitlines()[-1])
+        return res
+    finally:
+        if load is not None and load.poll() is None:
+            load.kill()
+            load.wait()
+        agent.stop()
+
+
+def phase_load(args) -> dict:
+    """Another process: 200 queries/s on drive status keys, subscribed to all drive status."""
+    import zenoh
+
+    from bus_agent.zenoh_config import make_zenoh_config
+    from schemas import keys
+
+    session = zenoh.open(make_zenoh_config("peer", connect=[args.connect]))
+    received = [0]
+    sub = session.declare_subscriber(keys.ALL_DRIVE_STATUS, lambda s: received.__setitem__(0, received[0] + 1))
+    axes = [f"axis{i}" for i in range(args.drives)]
+    period = 1.0 / args.query_rate
+    t0 = time.monotonic()
+    sent = replies = errors = 0
+    rtts = []
+    k = 0
+    while time.monotonic() - t0 < args.seconds:
+        dl = t0 + k * period
+        d = dl - time.monotonic()
+        if d > 0:
+            time.sleep(d)
+        q0 = time.monotonic()
+        try:
+            for r in session.get(keys.drive_status(args.host, axes[k % len(axes)]), timeout=1.0):
+                if r.ok is not None:
+                    replies += 1
+                else:
+                    errors += 1
+        except Exception:
+            errors += 1
+        rtts.append(time.monotonic() - q0)
+        sent += 1
+        k += 1
+    el = time.monotonic() - t0
+    sub.undeclare()
+    session.close()
+    rtts.sort()
+    return {"queries": sent, "query_rate": round(sent / el, 1), "replies": replies, "errors": errors,
+            "query_rtt_ms_p50": round(rtts[len(rtts) // 2] * 1000, 2) if rtts else None,
+            "query_rtt_ms_p99": round(rtts[int(len(rtts) * 0.99)] * 1000, 2) if rtts else None,
+            "status_samples_received": received[0]}
+
+
+PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway": phase_gateway, "load": phase_load}
+
+
+# ---- orchestration ---------------------------------------------------------------------------
+
+
+def _run_phase(name: str, ifname: str, args) -> dict:
+    cmd = [sys.executable, "-m", "bench.bench_agent", "--phase", name, "--ifname", ifname,
+           "--drives", str(args.drives), "--seconds", str(args.seconds), "--cycle-us", str(args.cycle_us),
+           "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
+           "--rate", str(args.query_rate)]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=args.seconds * 4 + 120)
+    if p.returncode != 0:
+        raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def run(args) -> dict:
+    from bus_agent.sim.netns import pair_names, veth_down, veth_up
+
+    master_if, sim_if = pair_names(f"bag{os.getpid() % 100000:05d}", 0)
+    workdir = tempfile.mkdtemp(prefix="bench-agent-")
+    veth_up(master_if, sim_if)
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim_if, "--drives", str(args.drives),
+         "--control", os.path.join(workdir, "ctl.sock"), "--rt-priority", str(args.sim_rt_priority)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=open(os.path.join(workdir, "sim.log"), "w"), text=True)
+    try:
+        ready, _, _ = select.select([sim.stdout], [], [], 20)
+        if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
+            raise RuntimeError("ecat-sim did not start")
+        phases = ["bare", "agent"] + ([] if args.no_gateway else ["gateway"])
+        results = {}
+        for name in phases:
+            print(f"bench_agent: phase {name} ({args.seconds:g} s)...", file=sys.stderr, flush=True)
+            results[name] = _run_phase(name, master_if, args)
+        bare_j = results["bare"]["jitter_us"]["p99"] or 0.1
+        ratios = {f"{k}_p99_jitter_over_bare": round(results[k]["jitter_us"]["p99"] / bare_j, 2)
+                  for k in results if k != "bare"}
+        return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds": args.seconds,
+                "rt_priority": args.rt_priority, "sim_rt_priority": args.sim_rt_priority,
+                "receive_timeout_us": args.receive_timeout_us, "query_rate": args.query_rate,
+                "gateway_phase": not args.no_gateway, "phases": results, "ratios": ratios,
+                "loadavg_1m": os.getloadavg()[0], "cpus": os.cpu_count()}
+    finally:
+        sim.terminate()
+        try:
+            sim.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+        veth_down(master_if)
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.bench_agent", description=__doc__.split("\n\n")[0])
+    p.add_argument("--drives", type=int, default=16)
+    p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument("--cycle-us", type=int, default=1000)
+    p.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the loop thread (0: off)")
+    p.add_argument("--sim-rt-priority", type=int, default=20, help="SCHED_FIFO priority of ecat-sim (0: off)")
+    p.add_argument("--receive-timeout-us", type=int, default=1000)
+    p.add_argument("--query-rate", "--rate", dest="query_rate", type=float, default=200.0)
+    p.add_argument("--no-gateway", action="store_true", help="skip the agent+gateway+load phase")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    # internal: one phase in this process
+    p.add_argument("--phase", choices=sorted(PHASES), help=argparse.SUPPRESS)
+    p.add_argument("--ifname", help=argparse.SUPPRESS)
+    p.add_argument("--connect", help=argparse.SUPPRESS)
+    p.add_argument("--host", default="bench", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.phase:
+        print(json.dumps(PHASES[args.phase](args)), flush=True)
+        return 0
+    if os.geteuid() != 0:
+        print("bench_agent: needs root (veth pairs, raw sockets)", file=sys.stderr)
+        return 1
+    result = run(args)
+    text = json.dumps(result, indent=2)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
