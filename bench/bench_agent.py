@@ -221,6 +221,12 @@ def phase_gateway(args) -> dict:
     agent.start()
     load = None
     try:
+        if args.rt_priority:  # the Agent built the Cycle; set its running thread's policy by tid
+            try:
+                os.sched_setscheduler(agent.cycle._thread.native_id, os.SCHED_FIFO,
+                                      os.sched_param(args.rt_priority))
+            except OSError as e:
+                print(f"SCHED_FIFO refused: {e}", file=sys.stderr)
         _enable_all(agent.cycle)
         load = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "load", "--connect", ep,
                                  "--host", "bench", "--drives", str(args.drives), "--rate", str(args.query_rate),
