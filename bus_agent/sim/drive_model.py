@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Mapping
 
 from bus_agent.cia402.states import (

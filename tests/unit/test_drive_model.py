@@ -565,3 +565,19 @@ def test_decode_command_table() -> None:
     assert decode_command(0x0004) == "disable_voltage"
     assert decode_command(0x0002) == "quick_stop"
     assert decode_command(0x000B) == "quick_stop"
+
+
+def test_communication_lost_from_quick_stop_active() -> None:
+    m = to_state(S.QUICK_STOP_ACTIVE, x605A=6)
+    m.communication_lost()
+    assert m.state is S.FAULT_REACTION_ACTIVE
+    assert m.read(0x603F, 0) == ERROR_COMMUNICATION_LOST
+
+
+def test_step_rejects_bad_dt_and_changes_nothing() -> None:
+    m = to_state(S.SWITCH_ON_DISABLED)
+    m.write(0x6040, 0, 0x0006)
+    for dt in (-0.001, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            m.step(dt)
+    assert m.state is S.SWITCH_ON_DISABLED
