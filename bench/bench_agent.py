@@ -2,8 +2,9 @@
 
     python -m bench.bench_agent [--drives 16] [--seconds 60] [--cycle-us 1000] [--no-gateway] [--out FILE]
 
-One veth pair and one ``ecat-sim`` serve every phase, run one after the other, each in its own
-process (so process CPU is its own):
+One veth pair and one ``ecat-sim`` serve every phase; the phases alternate in ``--rounds``
+rounds (N/rounds seconds each), each run in its own process (so process CPU is its own), and
+the periods of all rounds of a phase are merged:
 
 1. ``bare``: pysoem send/receive on drift-free deadlines (sleep coarse, spin the last 150 us,
    like the cycle), the same GC and switch-interval settings, outputs packed every cycle;
@@ -58,6 +59,12 @@ def _figures(periods: list[int], cycle_ns: int) -> dict:
     return {"samples": n,
             "period_us": {"p50": q(ps, 0.5), "p99": q(ps, 0.99), "p999": q(ps, 0.999), "max": round(ps[-1] / 1000, 1)},
             "jitter_us": {"p50": q(js, 0.5), "p99": q(js, 0.99), "p999": q(js, 0.999), "max": round(js[-1] / 1000, 1)}}
+
+
+def _dump(args, periods) -> None:
+    if getattr(args, "log_file", None):
+        with open(args.log_file, "wb") as f:
+            array("q", periods).tofile(f)
 
 
 def _rt(prio: int) -> None:
@@ -140,8 +147,9 @@ def phase_bare(args) -> dict:
     m.state = pysoem.INIT_STATE
     m.write_state()
     m.close()
+    _dump(args, log[1:])
     return {"cycles": n, "seconds": round(elapsed, 2), "overruns": overruns, "wkc_errors": wkc_errors,
-            "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(list(log[1:]), period)}
+            "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(list(log[1:]), period)}
 
 
 def _enable_all(cyc, timeout_s: float = 10.0) -> None:
@@ -179,8 +187,10 @@ def _measure(cyc, args) -> dict:
     got = cyc.period_log_len
     log = list(cyc.period_log[:got])
     cyc.period_log = None
+    _dump(args, array("q", log))
     return {"cycles": cyc.cycles - c0, "seconds": round(elapsed, 2), "overruns": cyc.overruns - ov0,
-            "wkc_errors": cyc.wkc_errors - wk0, "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(log, period)}
+            "wkc_errors": cyc.wkc_errors - wk0, "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1),
+            **_figures(log, period)}
 
 
 def phase_agent(args) -> dict:
@@ -293,15 +303,39 @@ PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway": phase_gateway, "l
 # ---- orchestration ---------------------------------------------------------------------------
 
 
-def _run_phase(name: str, ifname: str, args) -> dict:
+def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str) -> dict:
     cmd = [sys.executable, "-m", "bench.bench_agent", "--phase", name, "--ifname", ifname,
-           "--drives", str(args.drives), "--seconds", str(args.seconds), "--cycle-us", str(args.cycle_us),
+           "--drives", str(args.drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us),
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
-           "--rate", str(args.query_rate)]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=args.seconds * 4 + 120)
+           "--rate", str(args.query_rate), "--log-file", log_file]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds * 4 + 120)
     if p.returncode != 0:
         raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
+    periods: list[int] = []
+    for path in logs:
+        a = array("q")
+        with open(path, "rb") as f:
+            a.frombytes(f.read())
+        periods.extend(a)
+    seconds = sum(p["seconds"] for p in parts)
+    cpu = sum(p["cpu_s"] for p in parts)
+    out = {"rounds": len(parts), "cycles": sum(p["cycles"] for p in parts), "seconds": round(seconds, 2),
+           "overruns": sum(p["overruns"] for p in parts), "wkc_errors": sum(p["wkc_errors"] for p in parts),
+           "cpu_pct": round(100 * cpu / seconds, 1) if seconds else None,
+           "overruns_per_round": [p["overruns"] for p in parts],
+           "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **_figures(periods, cycle_ns)}
+    loads = [p["load"] for p in parts if "load" in p]
+    if loads:
+        out["load"] = {"queries": sum(x["queries"] for x in loads), "errors": sum(x["errors"] for x in loads),
+                       "query_rate": round(sum(x["query_rate"] for x in loads) / len(loads), 1),
+                       "query_rtt_ms_p50": max(x["query_rtt_ms_p50"] or 0 for x in loads),
+                       "query_rtt_ms_p99": max(x["query_rtt_ms_p99"] or 0 for x in loads),
+                       "status_samples_received": sum(x["status_samples_received"] for x in loads)}
+    return out
 
 
 def run(args) -> dict:
@@ -319,15 +353,24 @@ def run(args) -> dict:
         if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
             raise RuntimeError("ecat-sim did not start")
         phases = ["bare", "agent"] + ([] if args.no_gateway else ["gateway"])
-        results = {}
-        for name in phases:
-            print(f"bench_agent: phase {name} ({args.seconds:g} s)...", file=sys.stderr, flush=True)
-            results[name] = _run_phase(name, master_if, args)
+        # Phases alternate in rounds, so a burst of load from other work on the host lands on
+        # all of them alike rather than on whichever phase happened to run then.
+        per_round = args.seconds / args.rounds
+        parts: dict[str, list[dict]] = {p: [] for p in phases}
+        logs: dict[str, list[str]] = {p: [] for p in phases}
+        for r in range(args.rounds):
+            for name in phases:
+                print(f"bench_agent: round {r + 1}/{args.rounds} phase {name} ({per_round:g} s)...",
+                      file=sys.stderr, flush=True)
+                log_file = os.path.join(workdir, f"{name}-{r}.periods")
+                parts[name].append(_run_phase(name, master_if, args, per_round, log_file))
+                logs[name].append(log_file)
+        results = {name: _merge(parts[name], logs[name], args.cycle_us * 1000) for name in phases}
         bare_j = results["bare"]["jitter_us"]["p99"] or 0.1
         ratios = {f"{k}_p99_jitter_over_bare": round(results[k]["jitter_us"]["p99"] / bare_j, 2)
                   for k in results if k != "bare"}
-        return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds": args.seconds,
-                "rt_priority": args.rt_priority, "sim_rt_priority": args.sim_rt_priority,
+        return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds_per_phase": args.seconds,
+                "rounds": args.rounds, "rt_priority": args.rt_priority, "sim_rt_priority": args.sim_rt_priority,
                 "receive_timeout_us": args.receive_timeout_us, "query_rate": args.query_rate,
                 "gateway_phase": not args.no_gateway, "phases": results, "ratios": ratios,
                 "loadavg_1m": os.getloadavg()[0], "cpus": os.cpu_count()}
@@ -350,6 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sim-rt-priority", type=int, default=20, help="SCHED_FIFO priority of ecat-sim (0: off)")
     p.add_argument("--receive-timeout-us", type=int, default=1000)
     p.add_argument("--query-rate", "--rate", dest="query_rate", type=float, default=200.0)
+    p.add_argument("--rounds", type=int, default=6, help="phases alternate in this many rounds (default 6)")
     p.add_argument("--no-gateway", action="store_true", help="skip the agent+gateway+load phase")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     # internal: one phase in this process
@@ -357,6 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ifname", help=argparse.SUPPRESS)
     p.add_argument("--connect", help=argparse.SUPPRESS)
     p.add_argument("--host", default="bench", help=argparse.SUPPRESS)
+    p.add_argument("--log-file", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.phase:
         print(json.dumps(PHASES[args.phase](args)), flush=True)
