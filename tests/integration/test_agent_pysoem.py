@@ -182,3 +182,46 @@ def test_sm_watchdog_when_the_master_stops(ecat_segment):
         assert all(s in ("switch_on_disabled", "fault") for s in _drive_states(control)), _drive_states(control)
     finally:
         agent.cycle.stop()
+
+
+def test_nmt_commands_over_pysoem(ecat_segment):
+    from bus_agent.runtime import AgentCommand
+
+    ifname, control = ecat_segment(2, "generic")
+    agent = Agent(ifname, 2)
+    agent.cycle.start()
+
+    def nmt(command: str, axis: str | None = None) -> Outcome:
+        got: list[Outcome] = []
+        args = {"command": command} if axis is None else {"command": command, "axis": axis}
+        assert agent.cycle.submit(AgentCommand(request_id=f"n-{command}", op="nmt", args=args, timeout_s=10,
+                                               received_ns=time.monotonic_ns(), on_outcome=got.append))
+        _wait(lambda: got, 15, f"nmt {command}")
+        return got[0]
+
+    def al_states() -> list[str]:
+        return [s["al_state"] for s in control.request("status")["slaves"]]
+
+    try:
+        rid = agent.cmd("enable", "axis1")
+        assert agent.wait_outcomes(rid, 1)[0].outcome == "done"
+        o = nmt("stop", "axis1")
+        assert o.outcome == "done", o
+        assert al_states() == ["op", "safeop"]
+        assert _drive_states(control)[1] == "switch_on_disabled"  # taken down before leaving OP
+        assert not agent.has_event("lost", "axis1")
+        o = nmt("start")
+        assert o.outcome == "done", o
+        assert al_states() == ["op", "op"]
+        o = nmt("reset_comm", "axis0")
+        assert o.outcome == "done", o
+        assert al_states() == ["preop", "op"]
+        o = nmt("reset_node")
+        assert o.outcome == "done", o
+        assert al_states() == ["op", "op"]
+        time.sleep(0.2)
+        assert all(d.goal == "disabled" and not d.lost for d in agent.cycle.latest.drives)
+        rid = agent.cmd("enable", "axis0", "axis1")
+        assert [o.outcome for o in agent.wait_outcomes(rid, 2)] == ["done", "done"]
+    finally:
+        agent.cycle.stop()

@@ -380,3 +380,21 @@ def test_overruns_counted_with_injected_clock():
     # drift-free: back on the 1 ms grid after each overrun (within the fake clock's 1 us reads)
     assert abs(periods[len(periods) // 2] - 1_000_000) <= 5_000
     cyc.stop()
+
+
+def test_auto_reset_is_off_by_default_and_bounded_when_configured():
+    from bus_agent.config import AutoReset
+
+    policy = DrivePolicy(auto_reset=AutoReset(enabled=True, max_attempts=2, backoff_s=0.02, backoff_max_s=0.05))
+    hh = Harness(n=2, drives=(DriveConfig(slave=0, policy=policy), DriveConfig(slave=1))).open()
+    try:
+        hh.bus.inject_fault(0, 0x2310)
+        hh.bus.inject_fault(1, 0x2310)
+        hh.until(lambda s: hh.state(0) == State.SWITCH_ON_DISABLED, 500)
+        warnings = [e for s in hh.snaps for e in s.events if e.kind == "warning" and e.axis == "axis0"]
+        assert warnings and "auto fault reset attempt 1/2" in warnings[0].detail
+        hh.ticks(300)
+        assert hh.state(1) == State.FAULT  # not configured: never reset without a command
+        assert hh.snap_drive("axis0").goal == "disabled"  # reset, not re-enabled
+    finally:
+        hh.cycle.stop(timeout_s=1.0)
