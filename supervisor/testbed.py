@@ -13,7 +13,6 @@ Not for production: it picks free loopback ports and turns multicast scouting of
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -166,21 +165,8 @@ def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int
 
 
 def _router_main(endpoint: str) -> int:
-    import zenoh
-
-    conf = zenoh.Config.from_json5(json.dumps({
-        "mode": "router",
-        "listen": {"endpoints": [endpoint]},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-    }))
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    with zenoh.open(conf):
-        print(f"router ready {endpoint}", flush=True)
-        while not stop.wait(0.5):
-            pass
-    return 0
+    from bus_agent.router import main as router_main  # prints "drives-router ready ..."
+    return router_main(["--listen", endpoint])
 
 
 if __name__ == "__main__":

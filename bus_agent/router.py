@@ -1,0 +1,124 @@
+"""``drives-router``: a standalone Zenoh router process (the PyPI wheel ships no ``zenohd``).
+
+    drives-router                                             # listens on tcp/127.0.0.1:7447
+    drives-router --config deploy/router.json5                # TLS, ACL, ... from the file
+    drives-router --listen tcp/10.213.7.1:7447 --connect tcp/10.213.7.2:7447
+
+One router per host: the host's bus agents and supervisors connect to it, and routers connect
+to each other with explicit ``--connect`` endpoints (see docs/deployment.md). The session is
+built by :func:`bus_agent.zenoh_config.make_zenoh_config` (multicast scouting off, 3 s link
+lease, background reconnection). ``--listen`` / ``--connect`` replace the file's endpoint
+lists when given. Once the session is open it prints one line,
+``drives-router ready zid=<zid> listen=<eps> connect=<eps>``; SIGTERM or SIGINT closes the
+session and exits 0.
+
+Exit codes: 0 stopped cleanly; 2 bad command line or configuration; 3 the session did not open
+(e.g. the listen address is in use or not on this host).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+from typing import Sequence
+
+import zenoh
+
+from bus_agent.zenoh_config import ZenohConfigError, make_zenoh_config
+
+log = logging.getLogger("bus_agent.router")
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+EXIT_OK, EXIT_USAGE, EXIT_STARTUP = 0, 2, 3
+
+
+class RouterConfigError(ValueError):
+    """A router setting that cannot work (unreadable file, malformed endpoint)."""
+
+
+def _file_endpoints(conf: zenoh.Config, key: str) -> list[str]:
+    raw = conf.get_json(key)
+    value = json.loads(raw) if raw else []
+    return [str(ep) for ep in value or []]
+
+
+def build_config(config_file: str | None, listen: Sequence[str] = (), connect: Sequence[str] = ()) -> tuple[
+        zenoh.Config, list[str], list[str]]:
+    """The router's ``zenoh.Config`` and its effective listen and connect endpoints.
+
+    The file (JSON5, e.g. deploy/router.json5) is loaded first; ``listen``/``connect`` replace
+    its lists when non-empty. With neither, the router listens on :data:`DEFAULT_LISTEN`.
+    Raises :class:`RouterConfigError`.
+    """
+    base = None
+    if config_file:
+        try:
+            base = zenoh.Config.from_file(str(config_file))
+        except Exception as exc:  # zenoh raises ZError with the parser's message
+            raise RouterConfigError(f"router config {config_file}: {exc}") from None
+        if not listen:
+            listen = _file_endpoints(base, "listen/endpoints")
+        if not connect:
+            connect = _file_endpoints(base, "connect/endpoints")
+    listen = list(listen) or ([] if config_file else [DEFAULT_LISTEN])
+    connect = list(connect)
+    if not listen and not connect:
+        raise RouterConfigError("a router needs at least one --listen or --connect endpoint")
+    try:
+        conf = make_zenoh_config("router", listen, connect, base=base)
+    except ZenohConfigError as exc:
+        raise RouterConfigError(str(exc)) from None
+    return conf, listen, connect
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="drives-router", description="Run a Zenoh router for the drive network "
+                                "(multicast scouting off, 3 s link lease).")
+    p.add_argument("--config", metavar="JSON5", help="zenoh router configuration file (see deploy/router.json5)")
+    p.add_argument("--listen", action="append", default=[], metavar="EP",
+                   help=f"listen endpoint (repeatable; default {DEFAULT_LISTEN} without --config)")
+    p.add_argument("--connect", action="append", default=[], metavar="EP",
+                   help="another router to connect to (repeatable; retried in the background)")
+    p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        conf, listen, connect = build_config(args.config, args.listen, args.connect)
+    except RouterConfigError as exc:
+        print(f"drives-router: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    stop = threading.Event()
+    # Handlers go in before the session opens, so an early SIGTERM still closes it cleanly.
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        try:
+            session = zenoh.open(conf)
+        except Exception as exc:
+            print(f"drives-router: cannot open the router session: {exc}", file=sys.stderr)
+            return EXIT_STARTUP
+        try:
+            print(f"drives-router ready zid={session.info.zid()} listen={','.join(listen) or '-'} "
+                  f"connect={','.join(connect) or '-'}", flush=True)
+            log.info("router up: listen %s connect %s", listen, connect)
+            while not stop.wait(0.5):
+                pass
+            log.info("router stopping")
+        finally:
+            session.close()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())
