@@ -5,6 +5,14 @@ Life cycle (explicit, :class:`AgentState`)::
     created --start()--> running --stop()--> stopped
        |                     (start error: everything opened so far is closed, AgentError)
 
+Two compositions (``AgentConfig.gateway``, docs/agent-gateway.md "Process model"):
+
+- ``"process"`` (default): the gateway runs in a child process (``bus_agent.bridge``); this
+  process holds only the bus, the cycle thread and the bridge's two threads, and never opens
+  a Zenoh session. If the child dies, :attr:`Agent.failure` says so, ``on_failure`` is called
+  and the caller (the CLI) runs the ordered shutdown and exits non-zero.
+- ``"thread"``: the gateway's threads and the Zenoh session in this process (tests, debugging).
+
 Start: open the bus and bring it to OP (identity checked, AL errors named) -> open the Zenoh
 session -> declare the gateway (publishers, queryables, liveliness) -> start the cycle thread
 -> with a simulated bus, serve fault injection on ``drives/@sim/<host>/*/*``.
@@ -18,15 +26,12 @@ from __future__ import annotations
 import logging
 import threading
 from enum import Enum
-from typing import Any
+from typing import Any, Callable
 
-import zenoh
-
+from bus_agent.bridge import BridgeError, GatewayProcess
 from bus_agent.bus.base import Bus, BusError
 from bus_agent.config import AgentConfig, ConfigError
 from bus_agent.cycle import Cycle
-from bus_agent.gateway import Gateway, GatewaySettings
-from bus_agent.zenoh_config import ZenohConfigError, from_settings
 
 log = logging.getLogger(__name__)
 
@@ -55,15 +60,19 @@ def make_bus(config: AgentConfig) -> Bus:
 
 
 class Agent:
-    """One bus agent. ``bus``: inject a backend (tests); default from the configuration."""
+    """One bus agent. ``bus``: inject a backend (tests); default from the configuration.
+    ``on_failure(reason)``: called once, from a bridge thread, if the gateway process dies."""
 
-    def __init__(self, config: AgentConfig, bus: Bus | None = None) -> None:
+    def __init__(self, config: AgentConfig, bus: Bus | None = None,
+                 on_failure: Callable[[str], None] | None = None) -> None:
         self.config = config
         self.bus = bus
+        self.on_failure = on_failure
         self.state = AgentState.CREATED
         self.cycle: Cycle | None = None
-        self.session: zenoh.Session | None = None
-        self.gateway: Gateway | None = None
+        self.session: Any = None        # zenoh.Session, thread mode only
+        self.gateway: Any = None        # gateway.Gateway, thread mode only
+        self.bridge: GatewayProcess | None = None  # process mode only
         self.sim_control: Any = None
         self._stop_lock = threading.Lock()
 
@@ -76,19 +85,57 @@ class Agent:
         cfg = self.config
         try:
             self.bus = self.bus or make_bus(cfg)
-            self.cycle = Cycle(self.bus, cfg)
+            self.cycle = Cycle(self.bus, cfg, rt_priority=cfg.rt_priority)
             self.cycle.open()
         except (BusError, ConfigError, ValueError, OSError) as exc:
             self._abort()
             raise AgentError(f"agent {cfg.host}: bus start-up failed: {exc}") from None
+        if cfg.gateway == "process":
+            self._start_process_gateway()
+        else:
+            self._start_thread_gateway()
+        self.state = AgentState.RUNNING
+        log.info("agent %s running: %d drive(s) on %s, gateway in %s", cfg.host, len(self.axes), self.bus.backend,
+                 f"process {self.bridge.pid}" if self.bridge else "this process")
+
+    def _zenoh_error(self, exc: object) -> AgentError:
+        z = self.config.zenoh
+        return AgentError(f"agent {self.config.host}: zenoh session failed (listen {', '.join(z.listen) or '-'}, "
+                          f"connect {', '.join(z.connect) or '-'}): {exc}")
+
+    def _start_process_gateway(self) -> None:
+        assert self.cycle is not None and self.bus is not None
+        sim = self.bus.control_handlers() if self.bus.backend == "sim" and hasattr(self.bus, "control_handlers") \
+            else None
+        self.bridge = GatewayProcess(self.cycle, self._gateway_settings(), self.config.zenoh, sim_handlers=sim,
+                                     n_slaves=len(self.cycle.slaves), on_lost=self._gateway_lost)
+        try:
+            self.bridge.start()
+            self.cycle.start()
+        except BridgeError as exc:
+            self._abort()
+            if exc.what == "zenoh":
+                raise self._zenoh_error(exc) from None
+            raise AgentError(f"agent {self.config.host}: start-up failed: {exc}") from None
+        except Exception as exc:
+            self._abort()
+            raise AgentError(f"agent {self.config.host}: start-up failed: {exc}") from None
+
+    def _start_thread_gateway(self) -> None:
+        import zenoh
+
+        from bus_agent.gateway import Gateway, GatewaySettings
+        from bus_agent.zenoh_config import ZenohConfigError, from_settings
+
+        assert self.cycle is not None and self.bus is not None
+        cfg = self.config
         try:
             self.session = zenoh.open(from_settings(cfg.zenoh))
         except (ZenohConfigError, zenoh.ZError) as exc:
             self._abort()
-            raise AgentError(f"agent {cfg.host}: zenoh session failed (listen {', '.join(cfg.zenoh.listen) or '-'}, "
-                             f"connect {', '.join(cfg.zenoh.connect) or '-'}): {exc}") from None
+            raise self._zenoh_error(exc) from None
         try:
-            self.gateway = Gateway(self.session, self.cycle, self._gateway_settings())
+            self.gateway = Gateway(self.session, self.cycle, GatewaySettings(**self._gateway_settings()))
             self.gateway.start()
             self.cycle.start()
             if self.bus.backend == "sim" and hasattr(self.bus, "control_handlers"):
@@ -99,14 +146,13 @@ class Agent:
         except Exception as exc:
             self._abort()
             raise AgentError(f"agent {cfg.host}: start-up failed: {exc}") from None
-        self.state = AgentState.RUNNING
-        log.info("agent %s running: %d drive(s) on %s", cfg.host, len(self.axes), self.bus.backend)
 
-    def _gateway_settings(self) -> GatewaySettings:
+    def _gateway_settings(self) -> dict[str, Any]:
+        """``GatewaySettings`` keyword arguments (plain data: they cross to the gateway process)."""
         assert self.cycle is not None
         cfg = self.config
         drives = cfg.drive_configs(len(self.cycle.slaves))
-        return GatewaySettings(
+        return dict(
             host=cfg.host, axes=self.cycle.axes,
             heartbeat_s=cfg.heartbeat_s, agent_period_s=cfg.heartbeat_s, backend=self.bus.backend if self.bus else "",
             cycle_us=cfg.cycle_us, groups={g: tuple(ms) for g, ms in cfg.groups.items()},
@@ -114,16 +160,31 @@ class Agent:
             lease_ttl_s={d.axis: d.policy.lease_ttl_s for d in drives},
         )
 
+    def _gateway_lost(self, reason: str) -> None:
+        if self.on_failure is not None:
+            self.on_failure(reason)
+
+    @property
+    def failure(self) -> str | None:
+        """Why the agent must stop, or None: the cycle thread died, or the gateway process did."""
+        if self.cycle is not None and self.cycle.state == "error":
+            return f"the cycle failed: {self.cycle.error}"
+        if self.bridge is not None and self.bridge.lost_reason:
+            return self.bridge.lost_reason
+        return None
+
     @property
     def failed(self) -> bool:
-        """The cycle thread died (its error is logged): the agent must stop."""
-        return self.cycle is not None and self.cycle.state == "error"
+        """The cycle thread or the gateway process died (the log says why): the agent must stop."""
+        return self.failure is not None
 
     def stop(self, ordered: bool = True) -> None:
         """Ordered shutdown (see the module docstring). Idempotent."""
         with self._stop_lock:
             if self.state is AgentState.STOPPED:
                 return
+            if self.bridge is not None:
+                self.bridge.stop_commands()
             gw = self.gateway
             if gw is not None:
                 gw.stop_commands()
@@ -131,11 +192,17 @@ class Agent:
             if self.cycle is not None:
                 log.info("agent %s: ordered shutdown", self.config.host)
                 self.cycle.stop(ordered=ordered)
+                if self.bridge is not None and self.bridge.lost_reason and self.cycle.latest is not None:
+                    log.warning("agent %s: drives at stop: %s", self.config.host, ", ".join(
+                        f"{d.axis}={'lost' if d.lost else d.state}" for d in self.cycle.latest.drives))
             self._close_zenoh()
             self.state = AgentState.STOPPED
             log.info("agent %s stopped", self.config.host)
 
     def _close_zenoh(self) -> None:
+        if self.bridge is not None:
+            self.bridge.close()
+            self.bridge = None
         if self.sim_control is not None:
             self.sim_control.close()
             self.sim_control = None

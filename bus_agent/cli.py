@@ -8,9 +8,12 @@
 Flags override the configuration file. Once everything is up it prints one line,
 ``bus-agent ready host=<host> drives=<a,b,..> backend=<sim|pysoem> listen=<eps> connect=<eps>``.
 SIGINT/SIGTERM run the ordered shutdown of every drive, then AL INIT, and exit 0.
+The Zenoh gateway runs in a child process (``bus_agent.bridge``) unless ``--gateway-thread``
+(or ``gateway = "thread"`` in the file); if that child dies, the agent runs the same ordered
+shutdown and exits 1.
 
-Exit codes: 0 stopped cleanly; 1 the cycle failed while running; 2 bad command line or
-configuration; 3 start-up failed (bus, slave identity, AL state, zenoh session).
+Exit codes: 0 stopped cleanly; 1 the cycle or the gateway process failed while running; 2 bad
+command line or configuration; 3 start-up failed (bus, slave identity, AL state, zenoh session).
 """
 
 from __future__ import annotations
@@ -46,6 +49,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", metavar="EP", help="zenoh listen endpoint (repeatable)")
     p.add_argument("--connect", action="append", metavar="EP", help="zenoh connect endpoint, e.g. a router (repeatable)")
     p.add_argument("--mode", choices=ZENOH_MODES, help="zenoh session mode (default peer)")
+    p.add_argument("--rt-priority", type=int, metavar="N",
+                   help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; 0 = off)")
+    p.add_argument("--gateway-thread", action="store_true",
+                   help="run the Zenoh gateway as threads of this process (debugging) instead of a child process")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
 
@@ -61,7 +68,8 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
         raise ConfigError(f"--sim: {args.sim} must be a number of drives >= 1")
     overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
-                     listen=args.listen, connect=args.connect)
+                     listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
+                     gateway="thread" if args.gateway_thread else None)
     if args.config:
         return load_config(args.config).with_overrides(**overrides)
     if args.ifname is None and args.sim is None:
@@ -96,7 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from bus_agent.agent import Agent, AgentError  # after arg parsing: `--help` stays fast
 
-    agent = Agent(config)
+    agent = Agent(config, on_failure=lambda _reason: stop.set())
     try:
         agent.start()
     except AgentError as exc:
@@ -108,9 +116,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = EXIT_OK
     while not stop.wait(0.2):
         if agent.failed:
-            log.error("agent %s: the cycle failed; shutting down", config.host)
-            code = EXIT_FAILED
             break
+    if agent.failed:
+        log.error("agent %s: %s; shutting down", config.host, agent.failure)
+        code = EXIT_FAILED
     if signals:
         log.info("agent %s: signal %s: shutting down", config.host, signal.Signals(signals[0]).name)
     agent.stop(ordered=True)

@@ -23,6 +23,8 @@ LEASE_REACTIONS = ("quick_stop_then_disable", "quick_stop", "disable")
 #: What the other local members of a group do when one member faults or is lost.
 REFLEXES = ("quick_stop", "disable")
 SIM_PROFILES = ("generic", "indy7")
+#: Where the Zenoh gateway runs: a child process (the cycle keeps its GIL) or threads of the agent.
+GATEWAY_MODES = ("process", "thread")
 
 
 class ConfigError(ValueError):
@@ -114,6 +116,8 @@ class AgentConfig:
     reflex: str = "quick_stop"
     heartbeat_s: float = 1.0
     default_policy: DrivePolicy = DrivePolicy()
+    gateway: str = "process"            # GATEWAY_MODES
+    rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -137,10 +141,11 @@ class AgentConfig:
     def with_overrides(self, **overrides: Any) -> "AgentConfig":
         """A copy with CLI flags applied (``host``, ``ifname``, ``sim_drives``, ``sim_profile``,
         ``cycle_us``, ``reflex``, ``heartbeat_s``, ``zenoh_mode``, ``listen``, ``connect``,
-        ``scouting``); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
+        ``scouting``, ``gateway``, ``rt_priority``); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
         o = {k: v for k, v in overrides.items() if v is not None}
         zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting"}
-        top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s"}
+        top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s", "gateway",
+               "rt_priority"}
         unknown = set(o) - top - set(zkeys)
         if unknown:
             raise ConfigError(f"unknown override(s): {', '.join(sorted(unknown))}")
@@ -179,6 +184,10 @@ def _validate(c: AgentConfig) -> None:
         raise ConfigError(f"reflex: {c.reflex!r} is not one of {', '.join(REFLEXES)}")
     if not c.heartbeat_s > 0:
         raise ConfigError(f"status.heartbeat_s: {c.heartbeat_s} must be > 0")
+    if c.gateway not in GATEWAY_MODES:
+        raise ConfigError(f"gateway: {c.gateway!r} is not one of {', '.join(GATEWAY_MODES)}")
+    if isinstance(c.rt_priority, bool) or not isinstance(c.rt_priority, int) or not 0 <= c.rt_priority <= 99:
+        raise ConfigError(f"cycle.rt_priority: {c.rt_priority!r} must be 0 (off) or a SCHED_FIFO priority 1..99")
     _validate_policy(c.default_policy, "defaults")
     slaves: dict[int, int] = {}
     axes: dict[str, int] = {}
@@ -310,6 +319,9 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     s = t.table("status")
     heartbeat_s = s.get("heartbeat_s", _NUM, 1.0)
     s.done()
+    cy = t.table("cycle")
+    rt_priority = cy.get("rt_priority", int, 0)
+    cy.done()
     defaults_t = t.table("defaults")
     defaults = _policy(defaults_t, DrivePolicy())
     defaults_t.done()
@@ -351,6 +363,8 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         reflex=t.get("reflex", str, "quick_stop"),
         heartbeat_s=heartbeat_s,
         default_policy=defaults,
+        gateway=t.get("gateway", str, "process"),
+        rt_priority=rt_priority,
     )
     t.done()
     return cfg

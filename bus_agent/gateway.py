@@ -300,6 +300,12 @@ class Gateway:
             self._events.extend((ev, snap.cycle, snap.time_ns) for ev in snap.events)
         self._wake.set()
 
+    def on_events(self, items: Iterable[tuple[rt.CycleEvent, int, int]]) -> None:
+        """Event sink of a cycle in another process (``bridge.CycleProxy.event_sink``): events
+        with the cycle number and wall time of the snapshot they came in, in order."""
+        self._events.extend(items)
+        self._wake.set()
+
     # ---- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
@@ -330,6 +336,8 @@ class Gateway:
                          threading.Thread(target=self._command_loop, name="gw-command", daemon=True)]
         for t in self._threads:
             t.start()
+        if hasattr(self.cycle, "event_sink"):  # a cycle behind the process bridge forwards events apart
+            self.cycle.event_sink = self.on_events
         self.cycle.snapshot_sink = self.on_snapshot
         # Commands last: by now status flows and the lease/group subscribers are in place.
         self._accepting = True
