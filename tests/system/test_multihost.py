@@ -1,0 +1,125 @@
+"""The full stack across a real (virtual) network: hosts as network namespaces (root).
+
+Bed (``tests/system/multihost.py``): namespaces h1, h2 and sup on one bridge (10.213.7.0/24,
+never routed outside). In h1 and h2: ``ecat-sim`` with 3 drives on ``ecs0``, ``drives-router``
+on the host's address (h2's connects to h1's), ``bus-agent --ifname ecm0`` (pysoem, real
+EtherCAT frames) connected to its own router, with group ``xg = h1/axis0 + h2/axis0`` in both
+agents' TOML. Supervisors (``supervisor.Fleet`` children, and ``drivectl``) run in sup,
+connected to h1's router. Drive states are read on the drive side (ecat-sim ``status``).
+
+The tests run in file order on one bed; each states what it needs from the previous one.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import pytest
+
+from bus_agent.zenoh_config import DEFAULT_LINK_LEASE_MS
+from tests.conftest import require, require_root
+from tests.system.multihost import MultiHostRun, SupervisorProc, wait_for
+
+pytestmark = [pytest.mark.root, pytest.mark.slow, pytest.mark.timeout(150)]
+
+DRIVES = 3
+GROUP = ["h1/axis0", "h2/axis0"]
+LEASE_TTL_S = 2.0
+OPERATION_ENABLED = "operation_enabled"
+
+
+@pytest.fixture(scope="module")
+def run() -> MultiHostRun:
+    require_root()
+    require(shutil.which("ip") is not None, "iproute2 (`ip`)", "install iproute2")
+    bed = MultiHostRun(hosts=2, drives=DRIVES, groups={"xg": GROUP})
+    try:
+        bed.start()
+        yield bed
+    except BaseException:
+        print(bed.diagnostics())
+        raise
+    finally:
+        bed.close()
+
+
+@pytest.fixture(scope="module")
+def sup(run: MultiHostRun) -> SupervisorProc:
+    return run.start_supervisor("sup", "h1", "sup1")
+
+
+def test_discovery_of_both_agents_and_all_drives_across_hosts(run, sup):
+    got = sup.call("wait_agents", hosts=["h1", "h2"], drives=2 * DRIVES, timeout_s=15.0)
+    assert got["ok"], got
+    assert sorted(got["hosts"]) == ["h1", "h2"]
+    assert sorted(got["roster"]) == sorted(f"{h}/axis{i}" for h in ("h1", "h2") for i in range(DRIVES))
+    # The bed is real: every slave is in OP behind its agent, nothing enabled unless asked.
+    for h in ("h1", "h2"):
+        slaves = run.controls[h].slaves()
+        assert [s["al_state"] for s in slaves] == ["op"] * DRIVES, slaves
+        assert OPERATION_ENABLED not in [s["drive_state"] for s in slaves]
+
+
+def test_drivectl_two_phase_enable_of_every_drive_reaches_operation_enabled(run, sup):
+    proc = run.drivectl("sup", "h1", "enable", "*/*")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for h in ("h1", "h2"):
+        # drivectl returns when the agents answered done; the drive side must agree.
+        wait_for(lambda: run.controls[h].drive_states() == [OPERATION_ENABLED] * DRIVES, 2.0,
+                 f"every drive of {h} in operation_enabled (drive side)")
+
+
+def test_cross_host_group_reflex_without_supervisor(run, sup):
+    assert run.controls["h2"].drive_states()[0] == OPERATION_ENABLED, "needs the enable test before"
+    reply = run.controls["h1"].request("fault", slave=0, error_code=0x7305)
+    assert reply["ok"], reply
+    # h2's agent sees h1/axis0's status turn fault through the two routers and quick-stops its member.
+    wait_for(lambda: run.controls["h2"].drive_states()[0] != OPERATION_ENABLED, 2.0,
+             "h2/axis0 leaving operation_enabled after the fault on h1/axis0")
+    assert run.controls["h2"].drive_states()[0] in ("quick_stop_active", "switch_on_disabled")
+    assert run.controls["h1"].drive_states()[0] == "fault"
+    # Drives outside the group keep running.
+    assert run.controls["h1"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1)
+    assert run.controls["h2"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1)
+
+
+def test_killed_agent_is_gone_within_1s_and_the_sm_watchdog_stops_its_drives(run, sup):
+    agent = run.agents["h2"]
+    killed_at = time.monotonic()
+    agent.kill()
+    # The supervisor (in sup, behind h1's router) sees h2's liveliness token vanish.
+    wait_for(lambda: sup.event_times("departure", "h2"), 1.0, "the supervisor reporting h2 gone")
+    # Nobody writes process data any more: the ESCs' SM watchdog (100 ms) drops OP (0x001B)
+    # and the drives' communication-loss reaction takes them out of operation_enabled.
+    wait_for(lambda: all(s["al_state"] == "safeop" and s["al_status_code"] == 0x001B
+                         for s in run.controls["h2"].slaves()), 2.0, "SM watchdog on every h2 slave")
+    assert OPERATION_ENABLED not in run.controls["h2"].drive_states()
+    assert sup.event_times("departure", "h2")[0] - killed_at < 1.0
+    # h1 is unaffected apart from the group member (already in fault).
+    assert run.controls["h1"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1)
+
+
+def test_cut_link_ends_in_a_defined_stop_of_leased_drives(run, sup):
+    leased = [f"h1/axis{i}" for i in range(1, DRIVES)]
+    assert run.controls["h1"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1), "needs the tests before"
+    # A supervisor on h2's side of the cable holds h1's running drives.
+    remote = run.start_supervisor("h2", "h2", "sup2")
+    assert remote.call("wait_agents", hosts=["h1"], drives=DRIVES, timeout_s=10.0)["ok"]
+    lease = remote.call("lease", selectors=leased, ttl_s=LEASE_TTL_S)
+    assert lease["ok"], lease
+    wait_for(lambda: all(sup.call("drives")[d]["lease_holder"] == "sup2" for d in leased), 2.0,
+             "the lease visible in h1's drive status")
+    run.link("h2", up=False)
+    try:
+        # Renewals stop reaching h1: the ttl runs out (or h1 sees sup2's token vanish when the
+        # link lease ends) and the lease reaction stops the drives: quick stop, then disable.
+        deadline_s = DEFAULT_LINK_LEASE_MS / 1000 + LEASE_TTL_S + 1.0
+        wait_for(lambda: all(s != OPERATION_ENABLED for s in run.controls["h1"].drive_states()[1:]), deadline_s,
+                 "h1's leased drives leaving operation_enabled after the cut")
+        wait_for(lambda: run.controls["h1"].drive_states()[1:] == ["switch_on_disabled"] * (DRIVES - 1), 3.0,
+                 "h1's leased drives disabled (quick stop, then disable)")
+        # The supervisor on h1's side still sees h1, now without a lease holder.
+        wait_for(lambda: all(sup.call("drives")[d]["lease_holder"] == "" for d in leased), 2.0, "lease ended")
+    finally:
+        run.link("h2", up=True)
