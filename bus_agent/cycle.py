@@ -11,9 +11,12 @@ through three thread-safe doors and one callback:
 - :attr:`Cycle.group_sink` -- called ``(group, reason)`` when a *local* member faults or is lost,
   so the gateway can carry the trigger to the other hosts (must only enqueue).
 
-One cycle (``_cycle``): exchange -> working counter check (AL status on a mismatch; lost/found)
--> commands and remote triggers -> group reflexes -> step every controller -> write outputs ->
-pending-command deadlines -> snapshot. Timing: drift-free deadlines ``t0 + k * period`` from a
+One cycle (``_cycle``): exchange -> working counter check -> management reports (AL status,
+lost/found) -> commands and remote triggers -> group reflexes -> step every controller -> write
+outputs -> pending-command deadlines -> snapshot. Everything that can block on a slave (AL status
+reads, AL state requests, recovery of a lost slave with its SDOs) runs in a separate management
+thread (:class:`_Management`) while the cycle keeps exchanging process data; the cycle only posts
+requests to it and reads its reports. Timing: drift-free deadlines ``t0 + k * period`` from a
 monotonic clock; sleep coarse, spin the last :data:`SPIN_NS`; a cycle that starts more than one
 period late counts as an overrun and the schedule skips the missed slots (no burst of catch-up
 cycles). See docs/agent-cycle.md for the decisions (outcomes, NMT, shutdown, GC).
@@ -54,10 +57,13 @@ STATS_WINDOW = 1000
 STATS_EVERY = 250
 #: Read every slave's AL status at least this often (cycles), and on a working counter error.
 AL_POLL_CYCLES = 100
-#: While the working counter stays wrong for a known reason, poll the AL status at most this often.
+#: While something is wrong (working counter, a lost slave, an NMT command), poll this often.
 AL_POLL_MIN_CYCLES = 10
 #: Call bus.recover() for a lost slave every this many cycles (each call is a few round trips).
 RECOVER_EVERY_CYCLES = 10
+#: A slave that does not answer the AL status read is lost only when it still does not answer
+#: this many cycles later (a later poll): a few dropped or late frames are not a lost slave.
+NO_ANSWER_CONFIRM_CYCLES = 8
 
 GOAL_OF_OP = {
     "enable": Goal.ENABLED,
@@ -74,6 +80,135 @@ _DOWN_STATES = (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FA
 NMT_TARGET = {"start": ALState.OP, "stop": ALState.SAFEOP, "preop": ALState.PREOP,
               "reset_comm": ALState.PREOP, "reset_node": ALState.OP}
 _VALID_MODES = frozenset(int(m) for m in Mode)
+SUPPORTED_DRIVE_MODES = 0x6502
+
+
+def decode_supported_modes(bits: int) -> frozenset[int]:
+    """The modes of operation set in a 0x6502 (supported drive modes) value."""
+    return frozenset(int(m) for m in Mode if bits >> m.supported_bit & 1)
+
+
+class _Management:
+    """AL status reads, AL state requests and lost-slave recovery, off the cycle thread.
+
+    Runs in its own thread while the cycle thread runs (:meth:`start`), or inline from
+    :meth:`Cycle.tick` (:meth:`run_once`, tests and tools). The cycle posts requests (plain
+    attributes and a deque; :meth:`kick` wakes the thread) and drains :attr:`reports` in order:
+    ``("al", statuses, ticket)`` -- the AL status of every slave, read after the AL requests up
+    to ``ticket`` were written -- and ``("returned", slave, epoch)`` -- a slave of the recover
+    set is back in OP. Nothing here touches drives, controllers or snapshots.
+    """
+
+    def __init__(self, bus: Bus, clock_ns: Callable[[], int], period_ns: int, host: str) -> None:
+        self.bus = bus
+        self.clock_ns = clock_ns
+        self.host = host
+        self.slow_ns = AL_POLL_CYCLES * period_ns
+        self.fast_ns = AL_POLL_MIN_CYCLES * period_ns
+        self.recover_ns = RECOVER_EVERY_CYCLES * period_ns
+        # cycle -> management (written by the cycle thread only)
+        self.fast = False
+        self.recover_set: frozenset[tuple[int, int]] = frozenset()  # (slave, epoch)
+        self.requests: collections.deque[tuple[int, int | None, ALState]] = collections.deque()
+        self.tickets = 0
+        self._poll_asap = True
+        # management -> cycle
+        self.reports: collections.deque[tuple] = collections.deque()
+        self._done_ticket = 0
+        self._last_poll_ns: int | None = None
+        self._next_recover: dict[int, int] = {}
+        self._reported: set[tuple[int, int]] = set()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # cycle side
+    def kick(self) -> None:
+        """Read the AL status as soon as possible."""
+        self._poll_asap = True
+        self._wake.set()
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def request_state(self, slave: int | None, state: ALState) -> int:
+        """Queue an AL control write (one slave or all); returns its ticket."""
+        self.tickets += 1
+        self.requests.append((self.tickets, slave, state))
+        self.kick()
+        return self.tickets
+
+    # management side
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"cycle-mgmt-{self.host}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the thread (idempotent); the bus is the cycle's again afterwards."""
+        self._stop.set()
+        self._wake.set()
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout_s)
+            if t.is_alive():
+                log.error("host %s: management thread did not stop", self.host)
+
+    @property
+    def threaded(self) -> bool:
+        return self._thread is not None
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.clear()
+            try:
+                self.run_once(self.clock_ns())
+            except Exception:  # keep managing: one failed step must not end recovery for good
+                log.exception("host %s: management step failed", self.host)
+            now = self.clock_ns()
+            due = (self._last_poll_ns or now) + (self.fast_ns if self.fast else self.slow_ns)
+            for _slave, _epoch in self.recover_set:
+                due = min(due, self._next_recover.get(_slave, now))
+            self._wake.wait(min(max(due - now, 200_000), 100_000_000) / 1e9)
+
+    def run_once(self, now_ns: int) -> None:
+        """Due work: queued AL requests, then an AL status read, then recover steps."""
+        bus = self.bus
+        while self.requests:
+            ticket, slave, state = self.requests.popleft()
+            try:
+                bus.request_al_state(slave, state)
+            except Exception as e:
+                log.warning("host %s: AL %s request for %s failed: %s", self.host, state.wire_name,
+                            "all slaves" if slave is None else f"slave {slave}", e)
+            self._done_ticket = ticket
+        interval = self.fast_ns if self.fast else self.slow_ns
+        if self._poll_asap or self._last_poll_ns is None or now_ns - self._last_poll_ns >= interval:
+            self._poll_asap = False
+            self._last_poll_ns = now_ns
+            ticket = self._done_ticket
+            try:
+                statuses: tuple[SlaveALStatus, ...] | None = tuple(bus.read_al_status())
+            except Exception as e:
+                log.warning("host %s: AL status read failed: %s", self.host, e)
+                statuses = None
+            self.reports.append(("al", statuses, ticket))
+        keys = self.recover_set
+        self._reported &= keys
+        for key in sorted(keys):
+            if key in self._reported or self._stop.is_set():
+                continue
+            slave = key[0]
+            if now_ns < self._next_recover.get(slave, 0):
+                continue
+            self._next_recover[slave] = now_ns + self.recover_ns
+            try:
+                back = bus.recover(slave)
+            except Exception as e:
+                log.debug("host %s: slave %d recover: %s", self.host, slave, e)
+                back = False
+            if back:
+                self._reported.add(key)
+                self.reports.append(("returned", slave, key[1]))
 
 
 class IdentityMismatch(BusError):
@@ -123,6 +258,7 @@ class _Nmt:
     deadline_ns: int
     down_deadline_ns: int
     note: str = ""
+    ticket: int = 0           # AL status must be read after this management request
 
 
 class Cycle:
@@ -187,6 +323,11 @@ class Cycle:
         self._stats = CycleStats(cycle_us=config.cycle_us)
         self._last_al_poll = -AL_POLL_CYCLES
         self._al_poll_ok = True
+        self._al_ticket = 0
+        self._wkc_was_bad = False
+        self._no_answer_since: dict[int, int] = {}
+        self._epoch: dict[int, int] = {}
+        self._mgmt = _Management(bus, clock_ns, self.period_ns, config.host)
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.
         self.period_log = array("q", bytes(8 * record_periods)) if record_periods else None
         self.period_log_len = 0
@@ -221,6 +362,7 @@ class Cycle:
                              d.slave, info.name, d.axis, ident.vendor_id, ident.product_code)
             overrides = {d.slave: d.pdo for d in configs if d.pdo is not None}
             self.bus.start(overrides or None)
+            supported = {d.slave: self._read_supported_modes(d) for d in configs}
         except BaseException:
             self.state = "error"
             self._close_bus()
@@ -229,7 +371,8 @@ class Cycle:
             p = d.policy
             cc = ControllerConfig(transition_timeout_s=p.transition_timeout_s, fault_reset_retries=p.fault_reset_retries,
                                   mode_timeout_s=p.transition_timeout_s)
-            drv = _Drive(cfg=d, axis=d.axis, slave=d.slave, ctrl=DriveController(cc, mode=d.mode))
+            drv = _Drive(cfg=d, axis=d.axis, slave=d.slave,
+                         ctrl=DriveController(cc, mode=d.mode, supported_modes=supported[d.slave]))
             self.drives.append(drv)
         self._by_axis = {d.axis: d for d in self.drives}
         self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
@@ -244,12 +387,36 @@ class Cycle:
                  self.config.host, len(self.slaves), len(self.drives), ",".join(self.axes), self.bus.expected_wkc)
         return self.slaves
 
+    def _read_supported_modes(self, d: DriveConfig) -> frozenset[int] | None:
+        """0x6502 (supported drive modes) by SDO; None (any mode tried) when the drive has no
+        0x6502 or the read fails. Raises ConfigError when the configured mode is not supported."""
+        sdo_read = getattr(self.bus, "sdo_read", None)
+        if sdo_read is None:
+            return None
+        try:
+            raw = sdo_read(d.slave, SUPPORTED_DRIVE_MODES, 0, 4)
+            if len(raw) < 1:
+                raise BusError(f"slave {d.slave}: 0x6502 is empty")
+            bits = int.from_bytes(bytes(raw)[:4], "little")
+        except BusError as e:
+            log.info("axis %s (slave %d): supported drive modes (0x6502) not available, any mode is tried: %s",
+                     d.axis, d.slave, e)
+            return None
+        modes = decode_supported_modes(bits)
+        log.info("axis %s (slave %d): 0x6502 = 0x%08X, modes %s", d.axis, d.slave, bits, sorted(modes))
+        if d.mode not in modes:
+            raise ConfigError(f"axis {d.axis!r} (slave {d.slave}): configured mode {d.mode} (0x6060) is not "
+                              f"supported by the drive (0x6502 = 0x{bits:08X}: modes {sorted(modes)})")
+        return modes
+
     def start(self) -> None:
-        """Open (if not yet) and run the loop in its own thread. Returns once the thread runs."""
+        """Open (if not yet) and run the loop in its own thread, and the management thread
+        (AL status, AL requests, recovery). Returns once the threads run."""
         if self._thread is not None:
             return
         self.open()
         self._prepare_process()
+        self._mgmt.start()
         self._thread = threading.Thread(target=self._run, name=f"cycle-{self.config.host}", daemon=True)
         self._thread.start()
 
@@ -289,6 +456,7 @@ class Cycle:
         return all(d.lost or d.state in _DOWN_STATES for d in self.drives)
 
     def _finish_stop(self) -> None:
+        self._mgmt.stop()  # the bus is the cycle's alone from here
         not_down = [f"{d.axis}={d.state.value}" for d in self.drives if not d.lost and d.state not in _DOWN_STATES]
         if not_down and self._ordered_stop:
             log.warning("host %s: ordered shutdown deadline passed with drives not down: %s",
@@ -303,6 +471,7 @@ class Cycle:
         if self._closed:
             return
         self._closed = True
+        self._mgmt.stop()
         try:
             self.bus.close()
         except Exception as e:
@@ -390,6 +559,7 @@ class Cycle:
             self.error = e
             self.state = "error"
             log.exception("host %s: cycle thread failed", self.config.host)
+            self._mgmt.stop()
             try:
                 self.bus.request_al_state(None, ALState.INIT)
             except Exception:
@@ -451,11 +621,18 @@ class Cycle:
         wkc_bad = wkc != bus.expected_wkc
         if wkc_bad and all_op_wanted:
             self.wkc_errors += 1
-        since = cycle - self._last_al_poll
-        if (since >= AL_POLL_CYCLES or self._nmt is not None
-                or (wkc_bad and (self._al_poll_ok or since >= AL_POLL_MIN_CYCLES))
-                or (any(d.lost for d in self.drives) and since >= AL_POLL_MIN_CYCLES)):
-            self._poll_al(now_ns)
+        mgmt = self._mgmt
+        if wkc_bad and self._al_poll_ok and not self._wkc_was_bad:
+            mgmt.kick()  # a new working counter error: look at the AL status now
+        self._wkc_was_bad = wkc_bad
+        fast = wkc_bad or self._nmt is not None or not self._al_poll_ok or bool(self._no_answer_since)
+        if fast != mgmt.fast:
+            mgmt.fast = fast
+            mgmt.wake()
+        if not mgmt.threaded and not self._closed:
+            mgmt.run_once(now_ns)
+        if mgmt.reports:
+            self._apply_reports(now_ns)
 
         for d in self.drives:
             d.inputs = bus.inputs(d.slave)
@@ -529,7 +706,8 @@ class Cycle:
                 self._resolve(d, "timeout", f"{p.cmd.op} not done within {p.cmd.timeout_s:g} s", now_ns)
         if self._nmt is not None:
             self._step_nmt(now_ns)
-        self._recover_lost(now_ns)
+        if cycle % RECOVER_EVERY_CYCLES == 0:
+            self._update_recover_set()
 
         if cycle % STATS_EVERY == 0:
             self._update_stats()
@@ -542,12 +720,20 @@ class Cycle:
 
     # ---- AL state, lost and found ------------------------------------------------------------------
 
-    def _poll_al(self, now_ns: int) -> None:
+    def _apply_reports(self, now_ns: int) -> None:
+        """Reports of the management thread, in the order they were made."""
+        reports = self._mgmt.reports
+        while reports:
+            r = reports.popleft()
+            if r[0] == "al":
+                self._apply_al(r[1], r[2], now_ns)
+            else:
+                self._apply_returned(r[1], r[2], now_ns)
+
+    def _apply_al(self, statuses: Sequence[SlaveALStatus] | None, ticket: int, now_ns: int) -> None:
         self._last_al_poll = self.cycles
-        try:
-            statuses = list(self.bus.read_al_status())
-        except Exception as e:
-            log.warning("host %s: AL status read failed: %s", self.config.host, e)
+        self._al_ticket = ticket
+        if statuses is None:
             statuses = [SlaveALStatus(ALState.NONE, False, 0)] * len(self.slaves)
         ok = True
         nmt_slaves = self._nmt.slaves if self._nmt is not None else ()
@@ -559,18 +745,31 @@ class Cycle:
                 for d in self.drives:
                     if d.slave == pos:
                         self._event(d.axis, "al_state", f"slave {pos} AL {old.state.wire_name} -> {st.state.wire_name}"
+                                    + (" (no answer)" if st.state == ALState.NONE else "")
                                     + (f" error 0x{st.status_code:04X} {al_status_text(st.status_code)}" if st.error else ""),
                                     error_code=st.status_code if st.error else 0)
             want = self._desired_al.get(pos, ALState.OP)
             if st.state != want or st.error:
                 ok = False
+            if st.state != ALState.NONE:
+                self._no_answer_since.pop(pos, None)
+        confirm_ns = NO_ANSWER_CONFIRM_CYCLES * self.period_ns
+        lost_now = False
         for d in self.drives:
             d.al = self._al_status[d.slave]
             want = self._desired_al.get(d.slave, ALState.OP)
             gone = d.al.state != want or (d.al.error and want == ALState.OP)
             if gone and not d.lost and d.slave not in nmt_slaves:
+                if d.al.state == ALState.NONE:
+                    # No answer: lost only if a later read confirms it (not a dropped frame).
+                    since = self._no_answer_since.setdefault(d.slave, now_ns)
+                    if now_ns - since < confirm_ns:
+                        continue
                 self._mark_lost(d, now_ns)
+                lost_now = True
         self._al_poll_ok = ok
+        if lost_now:
+            self._update_recover_set()
 
     def _mark_lost(self, d: _Drive, now_ns: int) -> None:
         st = d.al
@@ -578,6 +777,8 @@ class Cycle:
                + (f" error 0x{st.status_code:04X} {al_status_text(st.status_code)}" if st.error else "")
                + f", working counter {self._last_wkc}/{self.bus.expected_wkc}")
         d.lost = True
+        self._no_answer_since.pop(d.slave, None)
+        self._epoch[d.slave] = self._epoch.get(d.slave, 0) + 1
         log.warning("drive %s/%s lost: %s", self.config.host, d.axis, why)
         self._event(d.axis, "lost", why, from_state=d.state.value, error_code=st.status_code if st.error else 0)
         if d.pending is not None:
@@ -588,29 +789,42 @@ class Cycle:
         for g in self.groups.of_axis(d.axis):
             self._lost_origins.append((g, f"{self.config.host}/{d.axis} lost ({why})"))
 
-    def _recover_lost(self, now_ns: int) -> None:
-        if self.state != "running" or self.cycles % RECOVER_EVERY_CYCLES:
-            return
-        done: set[int] = set()
-        for d in self.drives:
-            if not d.lost or d.slave in done or self._desired_al.get(d.slave) != ALState.OP:
+    def _update_recover_set(self) -> None:
+        """Tell the management thread which slaves to bring back to OP: lost ones wanted in OP
+        (while running) and those of an NMT command in its recover phase."""
+        keys: set[tuple[int, int]] = set()
+        if self.state == "running":
+            for d in self.drives:
+                if d.lost and self._desired_al.get(d.slave) == ALState.OP:
+                    keys.add((d.slave, self._epoch.get(d.slave, 0)))
+        n = self._nmt
+        if n is not None and n.phase == "recover":
+            for s in n.slaves:
+                st = self._al_status[s]
+                if st.state != ALState.OP or st.error:
+                    keys.add((s, self._epoch.get(s, 0)))
+        fs = frozenset(keys)
+        if fs != self._mgmt.recover_set:
+            self._mgmt.recover_set = fs
+            self._mgmt.wake()
+
+    def _apply_returned(self, slave: int, epoch: int, now_ns: int) -> None:
+        """A slave of the recover set is back in OP: 'found', goal stays DISABLED."""
+        if epoch != self._epoch.get(slave, 0):
+            return  # lost again since that recovery began
+        self._al_status[slave] = SlaveALStatus(ALState.OP, False, 0)
+        self._no_answer_since.pop(slave, None)
+        for other in self.drives:
+            if other.slave != slave:
                 continue
-            done.add(d.slave)
-            try:
-                back = self.bus.recover(d.slave)
-            except Exception as e:
-                log.debug("slave %d recover: %s", d.slave, e)
-                back = False
-            if back:
-                for other in self.drives:
-                    if other.slave == d.slave and other.lost:
-                        other.lost = False
-                        other.al = self._al_status[d.slave] = SlaveALStatus(ALState.OP, False, 0)
-                        other.state = decode_statusword(other.inputs.statusword)
-                        other.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
-                        log.info("drive %s/%s found: slave %d back in OP, goal disabled",
-                                 self.config.host, other.axis, d.slave)
-                        self._event(other.axis, "found", f"slave {d.slave} back in OP; goal stays disabled")
+            other.al = self._al_status[slave]
+            if other.lost:
+                other.lost = False
+                other.state = decode_statusword(other.inputs.statusword)
+                other.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
+                log.info("drive %s/%s found: slave %d back in OP, goal disabled", self.config.host, other.axis, slave)
+                self._event(other.axis, "found", f"slave {slave} back in OP; goal stays disabled")
+        self._update_recover_set()
 
     # ---- commands ----------------------------------------------------------------------------------
 
@@ -684,6 +898,12 @@ class Cycle:
                 mode = cmd.args.get("mode")
                 if not isinstance(mode, int) or isinstance(mode, bool) or mode not in _VALID_MODES:
                     self._reply(d, cmd, "rejected", f"mode {mode!r} is not a CiA 402 mode (0x6060)", now_ns, start_ns)
+                    continue
+                sup = d.ctrl.supported_modes
+                if sup is not None and mode not in sup:
+                    # Known from 0x6502 at start-up: rejected now, nothing sent, nothing superseded.
+                    self._reply(d, cmd, "rejected", f"mode {mode} ({Mode(mode).name.lower()}) is not supported by the "
+                                f"drive (0x6502: modes {sorted(sup)})", now_ns, start_ns)
                     continue
                 d.ctrl.request_mode(mode, now_s)
                 kind = "mode"
@@ -846,9 +1066,16 @@ class Cycle:
                     d.ctrl.set_halt(False)
                     d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
         else:
-            self._nmt.phase = "recover"
-            for s in slaves:
-                self._desired_al[s] = ALState.OP
+            self._enter_nmt_recover(self._nmt)
+        self._nmt.ticket = self._mgmt.tickets
+        self._mgmt.kick()
+
+    def _enter_nmt_recover(self, n: _Nmt) -> None:
+        n.phase = "recover"
+        for s in n.slaves:
+            self._desired_al[s] = ALState.OP
+            self._epoch[s] = self._epoch.get(s, 0) + 1
+        self._update_recover_set()
 
     def _step_nmt(self, now_ns: int) -> None:
         n = self._nmt
@@ -856,7 +1083,7 @@ class Cycle:
         if now_ns >= n.deadline_ns:
             self._finish_nmt("timeout", f"nmt {n.command} not done within {n.cmd.timeout_s:g} s ({n.phase})", now_ns)
             return
-        bus = self.bus
+        mgmt = self._mgmt
         if n.phase == "bring_down":
             up = [d for d in self.drives if d.slave in n.slaves and not d.lost
                   and d.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.SWITCHED_ON,
@@ -871,25 +1098,25 @@ class Cycle:
                 target = NMT_TARGET[n.command]
                 for s in n.slaves:
                     if self._al_status[s].state != target:
-                        bus.request_al_state(s, target)
+                        n.ticket = mgmt.request_state(s, target)
                 n.phase = "to_target"
             else:
                 for s in n.slaves:
-                    bus.request_al_state(s, ALState.INIT)
+                    n.ticket = mgmt.request_state(s, ALState.INIT)
                 n.phase = "to_init"
             return
+        if self._al_ticket < n.ticket:
+            return  # no AL status read since the last request was written
         states = [self._al_status[s] for s in n.slaves]
         if n.phase == "to_init":
             if all(st.state == ALState.INIT for st in states):
                 if n.command == "reset_comm":
                     for s in n.slaves:
                         self._desired_al[s] = ALState.PREOP
-                        bus.request_al_state(s, ALState.PREOP)
+                        n.ticket = mgmt.request_state(s, ALState.PREOP)
                     n.phase = "to_target"
-                else:  # reset_node: full reconfiguration back to OP
-                    for s in n.slaves:
-                        self._desired_al[s] = ALState.OP
-                    n.phase = "recover"
+                else:  # reset_node: full reconfiguration back to OP (management thread)
+                    self._enter_nmt_recover(n)
             return
         if n.phase == "to_target":
             target = self._desired_al[n.slaves[0]]
@@ -897,19 +1124,14 @@ class Cycle:
                 self._finish_nmt("done", f"AL {target.wire_name}{n.note}", now_ns)
             return
         if n.phase == "recover":
-            pending = [s for s, st in zip(n.slaves, states) if st.state != ALState.OP or st.error]
-            for s in pending:
-                try:
-                    if bus.recover(s):
-                        self._al_status[s] = SlaveALStatus(ALState.OP, False, 0)
-                except Exception as e:
-                    log.debug("slave %d recover: %s", s, e)
+            # The management thread recovers the slaves (recover set); reports set _al_status.
             if all(self._al_status[s].state == ALState.OP and not self._al_status[s].error for s in n.slaves):
                 for d in self.drives:
                     if d.slave in n.slaves:
                         d.lost = False
                         d.al = self._al_status[d.slave]
                 self._finish_nmt("done", f"AL op; goals stay disabled{n.note}", now_ns)
+                self._update_recover_set()
 
     def _finish_nmt(self, outcome: str, reason: str, now_ns: int) -> None:
         n = self._nmt

@@ -5,13 +5,22 @@ deadline) + identity; ``start`` = PDO mapping override by SDO in PRE-OP through 
 ``config_func`` hook, config_map, SAFE-OP, then OP with process data flowing, each with a
 deadline; errors name the slave and decode the AL status code (register 0x0134, ETG.1000.6
 Table 11). Cycle-safe: ``exchange`` (LRW: send_processdata + receive_processdata), ``inputs`` /
-``set_outputs`` (preallocated records, one struct pack/unpack per slave), ``read_al_status``
-(one BRD, or one FPRD per slave when they differ), ``request_al_state`` and ``recover``
-(a few datagrams per call; a slave that was reset is reconfigured by ``reconfig``).
+``set_outputs`` (preallocated records, one struct pack/unpack per slave).
+
+Management (``read_al_status``, ``request_al_state``, ``recover``, SDO) is meant for the cycle's
+management thread, concurrently with ``exchange`` in the cycle thread: SOEM gives every
+datagram its own frame index and serialises the NIC with mutexes, so the two threads' frames
+do not mix. Each management call is a few single datagrams with a short timeout
+(:data:`MGMT_TIMEOUT_US`), never one long blocking SOEM call.
 
 GIL: pysoem holds the GIL in its calls unless asked; process-data calls, config_init and SDO
-transfers here release it (``release_gil=True``) so the gateway thread can run meanwhile.
-State checks are polled with short timeouts instead of one long blocking call.
+transfers here release it (``release_gil=True``). The datagram primitives (``_fprd`` /
+``_fpwr``), ``recover_slave`` and ``write_state`` cannot release it, so each is bounded by its
+timeout (at most :data:`MGMT_TIMEOUT_US` per datagram): the cycle thread waits for the GIL at
+most about that long. SOEM's ``reconfig_slave`` / ``statecheck`` / ``readstate`` are *not*
+used after start-up: they hold the GIL for up to 2 s per AL state (EC_TIMEOUTSTATE) with a
+slave that answers but does not change state; recovery re-does their steps one datagram at a
+time instead (SM and FMMU registers as read back from the slave in OP at start-up).
 """
 
 from __future__ import annotations
@@ -36,9 +45,20 @@ SAFEOP_DEADLINE_S = 5.0
 OP_DEADLINE_S = 5.0
 #: Short state_check polls (us) so the GIL is given up between them.
 STATE_POLL_US = 5000
-#: Single-datagram timeout (us) for recover steps; a missing slave costs at most this.
-RECOVER_TIMEOUT_US = 500
-_AL_STATUS_REG = 0x0130
+#: Single-datagram timeout (us) of management reads/writes; each holds the GIL at most this long.
+MGMT_TIMEOUT_US = 1000
+#: Kept for callers of the previous name.
+RECOVER_TIMEOUT_US = MGMT_TIMEOUT_US
+#: A management read that got no answer is tried this many times before the slave reads NONE
+#: (one dropped or late frame must not make a healthy slave look lost).
+MGMT_TRIES = 2
+# ESC registers (ETG.1000.4 Table 31 ff.)
+_REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
+_REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
+_REG_FMMU0 = 0x0600          # 16 bytes per FMMU
+_REG_SM0 = 0x0800            # 8 bytes per SyncManager
+_AL_CONTROL_REG = 0x0120
+_AL_STATUS_REG = 0x0130      # 0x0130 AL status, 0x0134 AL status code
 
 
 def _al_state(value: int) -> ALState:
@@ -69,7 +89,10 @@ class PysoemBus:
         self._overrides: dict[int, Any] = {}
         self._opened = False
         self._closed = False
+        #: Per slave: the recovery step under way ("to_init", "to_preop", "to_safeop", "to_op").
         self._recover_step: dict[int, str] = {}
+        #: Per slave: SM and FMMU register blocks read back in OP at start-up (for reconfiguration).
+        self._esc_config: dict[int, tuple[bytes, bytes]] = {}
 
     # ---- start-up ------------------------------------------------------------------------------
 
@@ -114,8 +137,12 @@ class PysoemBus:
         self._master = None
 
     def _config_func(self, position: int) -> None:
-        """pysoem PO2SO hook, in PRE-OP: write the PDO mapping override by SDO (0x1C12/0x1C13,
-        0x16xx/0x1Axx: sub 0 = 0, entries, sub 0 = n; assignment the same)."""
+        """pysoem PO2SO hook, in PRE-OP (inside config_map): the PDO mapping override."""
+        self._write_mapping(position)
+
+    def _write_mapping(self, position: int) -> None:
+        """In PRE-OP: write the PDO mapping override by SDO (0x1C12/0x1C13, 0x16xx/0x1Axx:
+        sub 0 = 0, entries, sub 0 = n; assignment the same). The GIL is released meanwhile."""
         ov = self._overrides.get(position)
         if ov is None:
             return
@@ -123,7 +150,7 @@ class PysoemBus:
 
         def w(index: int, sub: int, fmt: str, value: int) -> None:
             try:
-                s.sdo_write(index, sub, struct.pack(fmt, value))
+                s.sdo_write(index, sub, struct.pack(fmt, value), release_gil=True)
             except self._pysoem.SdoError as e:
                 raise BusError(f"slave {position} ({s.name!r}): PDO mapping override: SDO write "
                                f"0x{index:04X}:{sub} aborted 0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
@@ -178,9 +205,22 @@ class PysoemBus:
         m.state = pysoem.OP_STATE
         m.write_state()
         self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
+        self._read_esc_config()
         log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
                  self._expected_wkc)
         return self._expected_wkc
+
+    def _read_esc_config(self) -> None:
+        """Read back each slave's SM (0x0800) and FMMU (0x0600) registers as SOEM programmed
+        them, so recover() can program a reset slave again without SOEM's reconfig_slave."""
+        for pos, s in enumerate(self._slaves):
+            try:
+                n_fmmu, n_sm = struct.unpack("<BB", s._fprd(_REG_FMMU_COUNT, 2, 2000))
+                sm = bytes(s._fprd(_REG_SM0, 8 * n_sm, 2000)) if n_sm else b""
+                fmmu = bytes(s._fprd(_REG_FMMU0, 16 * n_fmmu, 2000)) if n_fmmu else b""
+            except Exception as e:
+                raise BusError(f"slave {pos} ({s.name!r}): reading back its SM/FMMU registers failed: {e}") from None
+            self._esc_config[pos] = (sm, fmmu)
 
     def _wait_state(self, state: ALState, deadline_s: float, exchange: bool) -> None:
         m = self._master
@@ -229,55 +269,121 @@ class PysoemBus:
             outputs.controlword, outputs.target_position, outputs.target_velocity,
             outputs.target_torque, outputs.modes_of_operation)
 
+    # ---- management (management thread; bounded datagrams) -----------------------------------
+
+    def _read_al(self, position: int) -> SlaveALStatus | None:
+        """FPRD 0x0130..0x0135 (AL status, AL status code); None when the slave does not answer."""
+        s = self._slaves[position]
+        for _ in range(MGMT_TRIES):
+            try:
+                raw = s._fprd(_AL_STATUS_REG, 6, MGMT_TIMEOUT_US)
+            except Exception:
+                continue
+            st, _r, code = struct.unpack("<HHH", raw)
+            return SlaveALStatus(_al_state(st), bool(st & STATE_ACK), code)
+        return None
+
+    def _write_al_control(self, position: int, value: int) -> bool:
+        """FPWR 0x0120 (AL control); False when the slave did not take it."""
+        s = self._slaves[position]
+        for _ in range(MGMT_TRIES):
+            try:
+                s._fpwr(_AL_CONTROL_REG, struct.pack("<H", value), MGMT_TIMEOUT_US)
+                return True
+            except Exception:
+                continue
+        return False
+
     def read_al_status(self) -> Sequence[SlaveALStatus]:
-        """AL status (0x0130) and status code (0x0134) of every slave; NONE for one not answering."""
-        self._master.read_state()
-        return [SlaveALStatus(_al_state(s.state), bool(s.state & STATE_ACK), s.al_status) for s in self._slaves]
+        """AL status (0x0130) and status code (0x0134) of every slave, one FPRD each (bounded,
+        retried once); a slave that does not answer reads NONE. Management thread."""
+        none = SlaveALStatus(ALState.NONE, False, 0)
+        return [self._read_al(pos) or none for pos in range(len(self._slaves))]
 
     def request_al_state(self, position: int | None, state: ALState) -> None:
-        """Write AL control (0x0120) for one slave or all, with the error acknowledge. No wait."""
+        """Write AL control (0x0120) for one slave (FPWR, bounded) or all (broadcast), with the
+        error acknowledge. No wait."""
         value = int(state) | STATE_ACK
         if position is None:
             self._master.state = value  # slave 0 of SOEM's list = broadcast (BWR 0x0120)
             self._master.write_state()
-        else:
-            s = self._slaves[position]
-            s.state = value
-            s.write_state()
+        elif not self._write_al_control(position, value):
+            log.debug("slave %d: AL control %s not taken", position, state.wire_name)
 
     def recover(self, position: int) -> bool:
-        """One step towards OP for a lost or fallen slave (a few datagrams; call again until True):
-        no answer -> re-address it if it came back (SOEM recover_slave); INIT/PRE-OP (reset) ->
-        reconfig (SMs, PDO mapping hook, FMMUs, up to SAFE-OP); SAFE-OP+error -> ack;
-        SAFE-OP -> request OP. True once it reports OP without error."""
+        """One step towards OP for a lost or fallen slave; call again (every few ms) until True.
+
+        Each step is a few datagrams of at most :data:`MGMT_TIMEOUT_US` (plus, once, the SDOs of
+        a PDO mapping override, GIL released). Steps, from the AL status (0x0130) read first:
+        no answer -> SOEM ``recover_slave`` (re-address a slave that came back reset);
+        error flag -> acknowledge; INIT -> SMs (as read back at start-up), EEPROM to PDI, request
+        PRE-OP; PRE-OP reached from there -> PDO mapping override, FMMUs, request SAFE-OP; any
+        other PRE-OP/BOOT -> request INIT first; SAFE-OP -> request OP. True once it reports OP
+        without error. Nothing here waits for a state: the next call looks again."""
         s = self._slaves[position]
-        try:
-            raw = s._fprd(_AL_STATUS_REG, 2, RECOVER_TIMEOUT_US)
-            st = struct.unpack("<H", raw)[0]
-        except Exception:
-            # Not answering at its address: if it came back reset, give it its address again.
-            try:
-                if s.recover(RECOVER_TIMEOUT_US) > 0:
+        step = self._recover_step.get(position)
+        st = self._read_al(position)
+        if st is None:
+            self._recover_step.pop(position, None)
+            try:  # not answering at its address: if it came back reset, give it its address again
+                if s.recover(MGMT_TIMEOUT_US) > 0:
                     log.info("slave %d: answers again at its station address", position)
             except Exception as e:
-                log.debug("slave %d recover: %s", position, e)
+                log.debug("slave %d recover_slave: %s", position, e)
             return False
-        state, error = _al_state(st), bool(st & STATE_ACK)
-        if state == ALState.OP and not error:
+        state = st.state
+        if state == ALState.OP and not st.error:
+            self._recover_step.pop(position, None)
             s.is_lost = False
             return True
-        if error:
-            s.state = int(state) | STATE_ACK
-            s.write_state()
-            return False
-        if state in (ALState.INIT, ALState.PREOP, ALState.NONE):
-            # Reset or power-cycled: SMs, the PDO mapping hook and FMMUs again (ends in SAFE-OP).
-            log.info("slave %d in %s: reconfiguring", position, state.wire_name)
-            s.reconfig(RECOVER_TIMEOUT_US)
+        if st.error:
+            log.info("slave %d in %s with error 0x%04X %s: acknowledging", position, state.wire_name,
+                     st.status_code, al_status_text(st.status_code))
+            self._write_al_control(position, int(state) | STATE_ACK)
+            if state != ALState.SAFEOP:
+                self._recover_step.pop(position, None)  # start again from INIT
             return False
         if state == ALState.SAFEOP:
-            s.state = int(ALState.OP)
-            s.write_state()
+            self._write_al_control(position, int(ALState.OP))
+            self._recover_step[position] = "to_op"
+            return False
+        if state == ALState.INIT:
+            cfg = self._esc_config.get(position)
+            if cfg is None:
+                raise BusError(f"slave {position}: no SM/FMMU configuration to restore (start() not done)")
+            sm, _fmmu = cfg
+            if step != "to_preop":
+                log.info("slave %d in init: reconfiguring", position)
+            try:
+                if sm:
+                    s._fpwr(_REG_SM0, sm, MGMT_TIMEOUT_US)
+                s._fpwr(_REG_EEP_CONFIG, b"\x01\x00", MGMT_TIMEOUT_US)
+            except Exception as e:
+                log.debug("slave %d: SM configuration not taken: %s", position, e)
+                return False
+            self._write_al_control(position, int(ALState.PREOP))
+            self._recover_step[position] = "to_preop"
+            return False
+        if state == ALState.PREOP and step in ("to_preop", "to_safeop"):
+            if step == "to_preop":
+                _sm, fmmu = self._esc_config[position]
+                try:
+                    self._write_mapping(position)
+                    if fmmu:
+                        s._fpwr(_REG_FMMU0, fmmu, MGMT_TIMEOUT_US)
+                except BusError as e:
+                    log.warning("%s", e)
+                    self._recover_step.pop(position, None)
+                    return False
+                except Exception as e:
+                    log.debug("slave %d: FMMU configuration not taken: %s", position, e)
+                    return False
+            self._write_al_control(position, int(ALState.SAFEOP))
+            self._recover_step[position] = "to_safeop"
+            return False
+        # PRE-OP/BOOT not reached through this sequence (NMT, a reset): from INIT, fully.
+        self._write_al_control(position, int(ALState.INIT))
+        self._recover_step[position] = "to_init"
         return False
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
