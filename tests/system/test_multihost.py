@@ -13,15 +13,20 @@ The tests run in file order on one bed; each states what it needs from the previ
 from __future__ import annotations
 
 import shutil
+import socket
+import subprocess
+import sys
 import time
 
 import pytest
+import zenoh
 
-from bus_agent.zenoh_config import DEFAULT_LINK_LEASE_MS
+from bus_agent.sim.netns import NetnsError, multihost_plan
+from bus_agent.zenoh_config import DEFAULT_LINK_LEASE_MS, make_zenoh_config
 from tests.conftest import require, require_root
-from tests.system.multihost import MultiHostRun, SupervisorProc, wait_for
+from tests.system.multihost import ROOT, MultiHostRun, Proc, SupervisorProc, wait_for
 
-pytestmark = [pytest.mark.root, pytest.mark.slow, pytest.mark.timeout(150)]
+pytestmark = [pytest.mark.timeout(150)]
 
 DRIVES = 3
 GROUP = ["h1/axis0", "h2/axis0"]
@@ -49,6 +54,8 @@ def sup(run: MultiHostRun) -> SupervisorProc:
     return run.start_supervisor("sup", "h1", "sup1")
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_discovery_of_both_agents_and_all_drives_across_hosts(run, sup):
     got = sup.call("wait_agents", hosts=["h1", "h2"], drives=2 * DRIVES, timeout_s=15.0)
     assert got["ok"], got
@@ -61,6 +68,8 @@ def test_discovery_of_both_agents_and_all_drives_across_hosts(run, sup):
         assert OPERATION_ENABLED not in [s["drive_state"] for s in slaves]
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_drivectl_two_phase_enable_of_every_drive_reaches_operation_enabled(run, sup):
     proc = run.drivectl("sup", "h1", "enable", "*/*")
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -70,6 +79,8 @@ def test_drivectl_two_phase_enable_of_every_drive_reaches_operation_enabled(run,
                  f"every drive of {h} in operation_enabled (drive side)")
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_cross_host_group_reflex_without_supervisor(run, sup):
     assert run.controls["h2"].drive_states()[0] == OPERATION_ENABLED, "needs the enable test before"
     reply = run.controls["h1"].request("fault", slave=0, error_code=0x7305)
@@ -84,6 +95,8 @@ def test_cross_host_group_reflex_without_supervisor(run, sup):
     assert run.controls["h2"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1)
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_killed_agent_is_gone_within_1s_and_the_sm_watchdog_stops_its_drives(run, sup):
     agent = run.agents["h2"]
     killed_at = time.monotonic()
@@ -100,6 +113,8 @@ def test_killed_agent_is_gone_within_1s_and_the_sm_watchdog_stops_its_drives(run
     assert run.controls["h1"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1)
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_cut_link_ends_in_a_defined_stop_of_leased_drives(run, sup):
     leased = [f"h1/axis{i}" for i in range(1, DRIVES)]
     assert run.controls["h1"].drive_states()[1:] == [OPERATION_ENABLED] * (DRIVES - 1), "needs the tests before"
@@ -123,3 +138,70 @@ def test_cut_link_ends_in_a_defined_stop_of_leased_drives(run, sup):
         wait_for(lambda: all(sup.call("drives")[d]["lease_holder"] == "" for d in leased), 2.0, "lease ended")
     finally:
         run.link("h2", up=True)
+
+
+# ---- pieces that need no root: the bed's plan and drives-router on loopback --------------------
+
+def test_multihost_plan_names_and_addresses():
+    bed = multihost_plan("mh", 2, extra=("sup",))
+    assert bed.switch_netns == "mhsw" and bed.cidr == "10.213.7.0/24"
+    assert [(h.name, h.netns, h.address, h.port, h.ecat_master, h.ecat_sim) for h in bed.hosts] == [
+        ("h1", "mhh1", "10.213.7.1", "ph1", "ecm0", "ecs0"),
+        ("h2", "mhh2", "10.213.7.2", "ph2", "ecm0", "ecs0"),
+        ("sup", "mhsup", "10.213.7.101", "psup", None, None)]
+    assert bed.host("h2").exec_argv("true") == ["ip", "netns", "exec", "mhh2", "true"]
+    with pytest.raises(NetnsError, match="no host 'h3'"):
+        bed.host("h3")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(prefix="1x"), "prefix"), (dict(prefix="toolongprefix"), "prefix"),
+    (dict(subnet="192.168.1"), "subnet"), (dict(subnet="10.300.1"), "subnet"),
+    (dict(hosts=0), "hosts"), (dict(extra=("h1",)), "extra"), (dict(extra=("sw",)), "extra"),
+])
+def test_multihost_plan_rejects_bad_input(kwargs, match):
+    args = dict(prefix="mh", hosts=2, subnet="10.213.7", extra=())
+    args.update(kwargs)
+    with pytest.raises(NetnsError, match=match):
+        multihost_plan(args.pop("prefix"), args.pop("hosts"), **args)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_drives_router_relays_between_clients_and_stops_cleanly_on_sigterm(tmp_path):
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    router = Proc("drives-router", [sys.executable, "-m", "bus_agent.router", "--config",
+                                    str(ROOT / "deploy" / "router.json5"), "--listen", ep], ready="drives-router ready")
+    try:
+        router.wait_ready(20)
+        assert f"listen={ep}" in router.lines[0]
+        # Two clients meet only through the router.
+        a = zenoh.open(make_zenoh_config("client", (), (ep,)))
+        b = zenoh.open(make_zenoh_config("client", (), (ep,)))
+        try:
+            got: list[bytes] = []
+            sub = b.declare_subscriber("drives/@test/x", lambda s: got.append(s.payload.to_bytes()))
+            wait_for(lambda: (a.put("drives/@test/x", b"hi"), got)[1], 5.0, "a sample through the router")
+            sub.undeclare()
+        finally:
+            a.close()
+            b.close()
+        assert router.stop() == 0
+    finally:
+        router.kill()
+
+
+@pytest.mark.parametrize("argv, code, match", [
+    (["--listen", "nonsense"], 2, "not a zenoh locator"),
+    (["--config", "/nonexistent/router.json5"], 2, "router config"),
+    (["--listen", "tcp/192.0.2.254:7447"], 3, "cannot open"),  # TEST-NET address: not on this host
+])
+def test_drives_router_bad_input_is_a_clear_error(argv, code, match):
+    proc = subprocess.run([sys.executable, "-m", "bus_agent.router", *argv], capture_output=True, text=True,
+                          timeout=30, cwd=ROOT)
+    assert proc.returncode == code, proc.stderr
+    assert match in proc.stderr
