@@ -266,9 +266,20 @@ class GatewayProcess:
             raise BridgeError("gateway", f"cannot start the gateway process: {exc}") from None
         finally:
             theirs.close()  # the child's end lives in the child only: its death is our EOF
-        self._conn = Connection(ours.detach())
+        self.attach(Connection(ours.detach()), timeout_s)
+
+    def attach(self, conn: Connection, timeout_s: float = READY_TIMEOUT_S) -> None:
+        """Serve the gateway process at the other end of ``conn``: send it INIT, wait for READY
+        (raises BridgeError on FAILED, on its exit or after ``timeout_s``), then forward.
+        :meth:`start` calls it with its child; tests call it with one end of a socketpair."""
+        self._conn = conn
         sim = (self.host, self.n_slaves, tuple(self.sim_handlers)) if self.sim_handlers else None
-        self._send(dumps((Msg.INIT.value, self.settings, self.zenoh, sim)))
+        try:
+            self._send(dumps((Msg.INIT.value, self.settings, self.zenoh, sim)))
+        except OSError as exc:
+            self._closing.set()
+            self._kill()
+            raise BridgeError("gateway", f"the gateway process is gone at start-up: {exc}") from None
         self._threads = [threading.Thread(target=self._in_loop, name="bridge-in", daemon=True)]
         self._threads[0].start()
         if not self._ready.wait(timeout_s) or self._failed is not None:
@@ -283,7 +294,7 @@ class GatewayProcess:
         self._running = True
         if not self._threads[0].is_alive():  # died between READY and now
             self._lost("its connection closed")
-        log.info("gateway %s: running in process %d", self.host, self.proc.pid)
+        log.info("gateway %s: running in process %s", self.host, self.pid)
 
     def stop_commands(self) -> None:
         """The child stops taking commands and reports agent state ``stopping``."""
@@ -394,7 +405,7 @@ class GatewayProcess:
                 log.exception("gateway %s: bridge message %s failed", self.host, msg[0].name)
         if not self._ready.is_set():
             code = self.proc.wait(5) if self.proc is not None else None
-            self._failed = ("gateway", f"the gateway process exited during start-up ({_exit_text(code)})")
+            self._failed = ("gateway", f"the gateway process ended during start-up ({_exit_text(code)})")
             self._ready.set()
         elif self._running:
             self._lost("its connection closed")
@@ -445,7 +456,7 @@ class GatewayProcess:
 
 def _exit_text(code: int | None) -> str:
     if code is None:
-        return "still running"
+        return "exit status unknown"
     if code < 0:
         try:
             return f"killed by {signal.Signals(-code).name}"
