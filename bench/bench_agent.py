@@ -1,6 +1,7 @@
 """Benchmark: the agent cycle vs a bare pysoem loop, 16 drives at 1 kHz on the virtual segment.
 
-    python -m bench.bench_agent [--drives 16] [--seconds 60] [--cycle-us 1000] [--no-gateway] [--out FILE]
+    python -m bench.bench_agent [--drives 16] [--seconds 60] [--rounds 6] [--rt-priority 10]
+                                [--gateway-modes thread,process] [--no-gateway] [--out FILE]
 
 One veth pair and one ``ecat-sim`` serve every phase; the phases alternate in ``--rounds``
 rounds (N/rounds seconds each), each run in its own process (so process CPU is its own), and
@@ -10,8 +11,14 @@ the periods of all rounds of a phase are merged:
    like the cycle), the same GC and switch-interval settings, outputs packed every cycle;
 2. ``agent``: ``bus_agent.cycle.Cycle`` over ``PysoemBus``, every drive enabled (controllers
    stepping, snapshots built and handed to a sink every cycle);
-3. ``gateway``: the full ``bus_agent.agent.Agent`` (cycle + Zenoh gateway) while a separate
-   process sends 200 queries/s (gets on drive status keys) and subscribes to all status.
+3. ``gateway_thread`` / ``gateway_process``: the real ``bus_agent.agent.Agent`` composition
+   with the Zenoh gateway as threads of the agent process (``gateway = "thread"``) or in its
+   own child process behind ``bus_agent.bridge`` (``gateway = "process"``, the default), while
+   a separate process sends 200 queries/s (gets on drive status keys) and subscribes to all
+   status. The process phase also reports the gateway process's CPU and the bridge's rate.
+
+The JSON also holds ``bridge_encoding``: bytes and encode/decode time of one bridge snapshot
+message, pickle vs msgpack, and the cost of the per-cycle forward check.
 
 Per phase: period p50/p99/max, jitter |period - cycle| p50/p99/max, overruns, WKC errors and the
 phase process's CPU. Ratios: agent p99 jitter / bare p99 jitter. JSON is printed and written to
@@ -218,32 +225,41 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def phase_gateway(args) -> dict:
+def _proc_cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _phase_gateway(args, mode: str) -> dict:
+    """The real agent composition (``bus_agent.agent.Agent``) with its gateway in ``mode``
+    ("process": a child process, the default; "thread": threads of this process, as before)."""
     from bus_agent.agent import Agent
     from bus_agent.bus.pysoem_bus import PysoemBus
     from bus_agent.config import AgentConfig, ZenohConfig
 
     port = _free_port()
     ep = f"tcp/127.0.0.1:{port}"
-    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us,
-                      zenoh=ZenohConfig(mode="peer", listen=(ep,), scouting=False))
+    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us, gateway=mode,
+                      rt_priority=args.rt_priority, zenoh=ZenohConfig(mode="peer", listen=(ep,), scouting=False))
     agent = Agent(cfg, bus=PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us))
     agent.start()
     load = None
     try:
-        if args.rt_priority:  # the Agent built the Cycle; set its running thread's policy by tid
-            try:
-                os.sched_setscheduler(agent.cycle._thread.native_id, os.SCHED_FIFO,
-                                      os.sched_param(args.rt_priority))
-            except OSError as e:
-                print(f"SCHED_FIFO refused: {e}", file=sys.stderr)
         _enable_all(agent.cycle)
         load = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "load", "--connect", ep,
                                  "--host", "bench", "--drives", str(args.drives), "--rate", str(args.query_rate),
                                  "--seconds", str(args.seconds + 5)],
                                 cwd=ROOT, stdout=subprocess.PIPE, text=True)
         time.sleep(2.0)  # load warm-up: subscription and queries flowing
+        bridge = agent.bridge
+        child = bridge.pid if bridge is not None else None
+        fwd0, gcpu0, t0 = (bridge.forwarded if bridge else 0), (_proc_cpu_s(child) if child else 0.0), time.monotonic()
         res = _measure(agent.cycle, args)
+        if bridge is not None and child:
+            el = time.monotonic() - t0
+            res["gateway_process_cpu_pct"] = round(100 * (_proc_cpu_s(child) - gcpu0) / el, 1)
+            res["bridge_snapshots_per_s"] = round((bridge.forwarded - fwd0) / el, 1)
         out, _ = load.communicate(timeout=args.seconds + 30)
         res["load"] = json.loads(out.strip().splitlines()[-1])
         return res
@@ -252,6 +268,46 @@ def phase_gateway(args) -> dict:
             load.kill()
             load.wait()
         agent.stop()
+
+
+def phase_gateway_thread(args) -> dict:
+    return _phase_gateway(args, "thread")
+
+
+def phase_gateway_process(args) -> dict:
+    return _phase_gateway(args, "process")
+
+
+def encoding_figures(drives: int, n: int = 2000) -> dict:
+    """Bridge message size and encode+decode cost for one snapshot of ``drives`` drives:
+    pickle (what the bridge uses) vs msgpack of the same tuples."""
+    import msgpack
+
+    from bus_agent import bridge, runtime as rt
+
+    snap = rt.CycleSnapshot(
+        cycle=123456, time_ns=time.time_ns(), events=(), stats=rt.CycleStats(cycles=123456, period_p99_us=1001.2),
+        drives=tuple(rt.DriveSnapshot(f"axis{i}", i, "operation_enabled", 0x1237, 0x000F, "enabled", False, 8, 8,
+                                      1_000_000 + i, -300, 12, 0, "", "op", False) for i in range(drives)))
+    out = {}
+    for name, enc, dec in (("pickle", bridge.dumps, bridge.loads),
+                           ("msgpack", lambda m: msgpack.packb(m), lambda b: msgpack.unpackb(b, use_list=False))):
+        msg = (bridge.Msg.UPDATE.value, bridge.encode_snapshot(snap), (), ())
+        t0 = time.perf_counter()
+        for _ in range(n):
+            data = enc(msg)
+        t1 = time.perf_counter()
+        for _ in range(n):
+            bridge.decode_snapshot(dec(data)[1])
+        t2 = time.perf_counter()
+        out[name] = {"bytes": len(data), "encode_us": round((t1 - t0) / n * 1e6, 1),
+                     "decode_us": round((t2 - t1) / n * 1e6, 1)}
+    f = bridge.ForwardFilter()
+    t0 = time.perf_counter()
+    for i in range(n):
+        f.due(snap, 0.0)   # the per-cycle check of bridge-out (nothing changed, not due)
+    out["filter_check_us"] = round((time.perf_counter() - t0) / n * 1e6, 2)
+    return out
 
 
 def phase_load(args) -> dict:
@@ -297,7 +353,8 @@ def phase_load(args) -> dict:
             "status_samples_received": received[0]}
 
 
-PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway": phase_gateway, "load": phase_load}
+PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway_thread": phase_gateway_thread,
+          "gateway_process": phase_gateway_process, "load": phase_load}
 
 
 # ---- orchestration ---------------------------------------------------------------------------
@@ -328,6 +385,10 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
            "cpu_pct": round(100 * cpu / seconds, 1) if seconds else None,
            "overruns_per_round": [p["overruns"] for p in parts],
            "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **_figures(periods, cycle_ns)}
+    for key in ("gateway_process_cpu_pct", "bridge_snapshots_per_s"):
+        vals = [p[key] for p in parts if key in p]
+        if vals:
+            out[key] = round(sum(vals) / len(vals), 1)
     loads = [p["load"] for p in parts if "load" in p]
     if loads:
         out["load"] = {"queries": sum(x["queries"] for x in loads), "errors": sum(x["errors"] for x in loads),
@@ -352,7 +413,7 @@ def run(args) -> dict:
         ready, _, _ = select.select([sim.stdout], [], [], 20)
         if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
             raise RuntimeError("ecat-sim did not start")
-        phases = ["bare", "agent"] + ([] if args.no_gateway else ["gateway"])
+        phases = ["bare", "agent"] + ([] if args.no_gateway else [f"gateway_{m}" for m in args.gateway_modes])
         # Phases alternate in rounds, so a burst of load from other work on the host lands on
         # all of them alike rather than on whichever phase happened to run then.
         per_round = args.seconds / args.rounds
@@ -372,7 +433,8 @@ def run(args) -> dict:
         return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds_per_phase": args.seconds,
                 "rounds": args.rounds, "rt_priority": args.rt_priority, "sim_rt_priority": args.sim_rt_priority,
                 "receive_timeout_us": args.receive_timeout_us, "query_rate": args.query_rate,
-                "gateway_phase": not args.no_gateway, "phases": results, "ratios": ratios,
+                "gateway_modes": [] if args.no_gateway else args.gateway_modes, "phases": results, "ratios": ratios,
+                "bridge_encoding": encoding_figures(args.drives),
                 "loadavg_1m": os.getloadavg()[0], "cpus": os.cpu_count()}
     finally:
         sim.terminate()
@@ -394,7 +456,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--receive-timeout-us", type=int, default=1000)
     p.add_argument("--query-rate", "--rate", dest="query_rate", type=float, default=200.0)
     p.add_argument("--rounds", type=int, default=6, help="phases alternate in this many rounds (default 6)")
-    p.add_argument("--no-gateway", action="store_true", help="skip the agent+gateway+load phase")
+    p.add_argument("--no-gateway", action="store_true", help="skip the agent+gateway+load phases")
+    p.add_argument("--gateway-modes", type=lambda v: [m for m in v.split(",") if m], default=["thread", "process"],
+                   help="gateway phases to run: thread, process or both (default thread,process)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     # internal: one phase in this process
     p.add_argument("--phase", choices=sorted(PHASES), help=argparse.SUPPRESS)

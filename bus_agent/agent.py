@@ -15,7 +15,8 @@ Two compositions (``AgentConfig.gateway``, docs/agent-gateway.md "Process model"
 
 Start: open the bus and bring it to OP (identity checked, AL errors named) -> open the Zenoh
 session -> declare the gateway (publishers, queryables, liveliness) -> start the cycle thread
--> with a simulated bus, serve fault injection on ``drives/@sim/<host>/*/*``.
+-> with a simulated bus, serve fault injection on ``drives/@sim/<host>/*/*``. (Process mode
+starts the cycle thread first, then the gateway process, which opens the session and declares.)
 Stop (SIGINT/SIGTERM in the CLI): refuse new commands -> ordered shutdown of every drive
 (disable operation, shutdown, disable voltage) while the gateway still publishes it -> AL
 INIT, close the bus -> publish the last status -> undeclare everything -> close the session.
@@ -110,8 +111,11 @@ class Agent:
         self.bridge = GatewayProcess(self.cycle, self._gateway_settings(), self.config.zenoh, sim_handlers=sim,
                                      n_slaves=len(self.cycle.slaves), on_lost=self._gateway_lost)
         try:
-            self.bridge.start()
+            # The cycle first: the child needs a second or so to import and open its session, far
+            # beyond a slave's SM watchdog (~100 ms) without process data. Drives stay disabled
+            # until a command comes, and commands come only through the gateway.
             self.cycle.start()
+            self.bridge.start()
         except BridgeError as exc:
             self._abort()
             if exc.what == "zenoh":
