@@ -49,9 +49,10 @@ STATE_POLL_US = 5000
 MGMT_TIMEOUT_US = 1000
 #: Kept for callers of the previous name.
 RECOVER_TIMEOUT_US = MGMT_TIMEOUT_US
-#: A management read that got no answer is tried this many times before the slave reads NONE
-#: (one dropped or late frame must not make a healthy slave look lost).
-MGMT_TRIES = 2
+#: A slave whose AL status reads get no frame back (lost/late frames: the link, not the slave)
+#: keeps its last known status for this long before it reads NONE. A frame that comes back
+#: without the slave's working counter (the slave is silent) reads NONE at once.
+NO_FRAME_GRACE_S = 0.05
 # ESC registers (ETG.1000.4 Table 31 ff.)
 _REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
 _REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
@@ -93,6 +94,11 @@ class PysoemBus:
         self._recover_step: dict[int, str] = {}
         #: Per slave: SM and FMMU register blocks read back in OP at start-up (for reconfiguration).
         self._esc_config: dict[int, tuple[bytes, bytes]] = {}
+        self._al_last: dict[int, SlaveALStatus] = {}
+        self._no_frame_since: float | None = None
+        self._frames_back = 0
+        self._frames_back_at = 0
+        self._poll_first = -1
 
     # ---- start-up ------------------------------------------------------------------------------
 
@@ -254,7 +260,10 @@ class PysoemBus:
         m = self._master
         rg = self.release_gil
         m.send_processdata(release_gil=rg)
-        return m.receive_processdata(self.receive_timeout_us, release_gil=rg)
+        wkc = m.receive_processdata(self.receive_timeout_us, release_gil=rg)
+        if wkc >= 0:
+            self._frames_back += 1  # the link carries frames (read by the management thread)
+        return wkc
 
     def inputs(self, position: int) -> DriveInputs:
         """The TxPDO of the slave, decoded into a preallocated record (valid until the next call)."""
@@ -271,34 +280,72 @@ class PysoemBus:
 
     # ---- management (management thread; bounded datagrams) -----------------------------------
 
+    def _fprd(self, position: int, register: int, size: int) -> tuple[bytes | None, bool]:
+        """One FPRD of at most MGMT_TIMEOUT_US: (data, False); (None, False) when the frame came
+        back without this slave's working counter; (None, True) when no frame came back (SOEM
+        waits for it at least one scheduler tick: its 1 us SO_RCVTIMEO rounds up to a jiffy)."""
+        t0 = time.perf_counter_ns()
+        try:
+            return bytes(self._slaves[position]._fprd(register, size, MGMT_TIMEOUT_US)), False
+        except Exception as e:
+            dt = time.perf_counter_ns() - t0
+            log.debug("slave %d: FPRD 0x%04X failed after %d us: %r", position, register, dt // 1000, e)
+            return None, dt >= MGMT_TIMEOUT_US * 1000
+
     def _read_al(self, position: int) -> SlaveALStatus | None:
-        """FPRD 0x0130..0x0135 (AL status, AL status code); None when the slave does not answer."""
-        s = self._slaves[position]
-        for _ in range(MGMT_TRIES):
-            try:
-                raw = s._fprd(_AL_STATUS_REG, 6, MGMT_TIMEOUT_US)
-            except Exception:
-                continue
-            st, _r, code = struct.unpack("<HHH", raw)
-            return SlaveALStatus(_al_state(st), bool(st & STATE_ACK), code)
-        return None
+        """FPRD 0x0130..0x0135 (AL status, AL status code); None when there is no answer."""
+        raw, _no_frame = self._fprd(position, _AL_STATUS_REG, 6)
+        if raw is None:
+            return None
+        st, _r, code = struct.unpack("<HHH", raw)
+        return SlaveALStatus(_al_state(st), bool(st & STATE_ACK), code)
 
     def _write_al_control(self, position: int, value: int) -> bool:
-        """FPWR 0x0120 (AL control); False when the slave did not take it."""
-        s = self._slaves[position]
-        for _ in range(MGMT_TRIES):
-            try:
-                s._fpwr(_AL_CONTROL_REG, struct.pack("<H", value), MGMT_TIMEOUT_US)
-                return True
-            except Exception:
-                continue
-        return False
+        """FPWR 0x0120 (AL control), one datagram; False when the slave did not take it."""
+        try:
+            self._slaves[position]._fpwr(_AL_CONTROL_REG, struct.pack("<H", value), MGMT_TIMEOUT_US)
+            return True
+        except Exception:
+            return False
 
     def read_al_status(self) -> Sequence[SlaveALStatus]:
-        """AL status (0x0130) and status code (0x0134) of every slave, one FPRD each (bounded,
-        retried once); a slave that does not answer reads NONE. Management thread."""
+        """AL status (0x0130) and status code (0x0134) of every slave, one FPRD each (management
+        thread). A silent slave (its FPRD comes back without working counter) reads NONE. When a
+        frame does not come back at all, the rest of this read is skipped (each such wait holds
+        the GIL for a scheduler tick) and the slaves not read keep their last status until no
+        frame (management or process data) has come back for :data:`NO_FRAME_GRACE_S`, then
+        read NONE: lost frames are the
+        link's, not a slave's. The first slave read rotates, so each gets its turn."""
         none = SlaveALStatus(ALState.NONE, False, 0)
-        return [self._read_al(pos) or none for pos in range(len(self._slaves))]
+        n = len(self._slaves)
+        now = time.monotonic()
+        first = self._poll_first = (self._poll_first + 1) % n if n else 0
+        out: list[SlaveALStatus | None] = [None] * n
+        link_lost = False
+        for k in range(n):
+            pos = (first + k) % n
+            if link_lost:
+                continue
+            raw, no_frame = self._fprd(pos, _AL_STATUS_REG, 6)
+            if raw is None and no_frame:
+                link_lost = True
+                if self._no_frame_since is None or self._frames_back != self._frames_back_at:
+                    # no frame since now (process-data frames came back before this one)
+                    self._no_frame_since, self._frames_back_at = now, self._frames_back
+                continue
+            self._no_frame_since = None
+            if raw is None:
+                out[pos] = none
+            else:
+                w, _r, code = struct.unpack("<HHH", raw)
+                out[pos] = SlaveALStatus(_al_state(w), bool(w & STATE_ACK), code)
+        if link_lost:
+            stale = self._no_frame_since is not None and now - self._no_frame_since >= NO_FRAME_GRACE_S
+            out = [st if st is not None else (none if stale else self._al_last.get(pos, none))
+                   for pos, st in enumerate(out)]
+        for pos, st in enumerate(out):
+            self._al_last[pos] = st  # type: ignore[assignment]
+        return out  # type: ignore[return-value]
 
     def request_al_state(self, position: int | None, state: ALState) -> None:
         """Write AL control (0x0120) for one slave (FPWR, bounded) or all (broadcast), with the

@@ -225,3 +225,83 @@ def test_nmt_commands_over_pysoem(ecat_segment):
         assert [o.outcome for o in agent.wait_outcomes(rid, 2)] == ["done", "done"]
     finally:
         agent.cycle.stop()
+
+
+def _slave_status(control) -> list[dict]:
+    reply = control.request("status")
+    assert reply["ok"], reply
+    return reply["slaves"]
+
+
+def _assert_running(status: list[dict], slaves) -> None:
+    """These slaves are in OP without an AL error (no SM watchdog 0x001B) and their drives are
+    still in operation enabled (a watchdog trip would have faulted them: 0x8130)."""
+    for i in slaves:
+        s = status[i]
+        assert s["al_state"] == "op" and not s["al_error"] and s["al_status_code"] != 0x001B, s
+        assert s["drive_state"] == "operation_enabled", s
+
+
+def test_unplugged_slave_never_stalls_the_others(ecat_segment):
+    ifname, control = ecat_segment(4, "generic")
+    agent = Agent(ifname, 4, groups={"arm": ("h1/axis2", "h1/axis3")})
+    agent.cycle.start()
+    try:
+        rid = agent.cmd("enable", "axis0", "axis1", "axis2", "axis3")
+        assert all(o.outcome == "done" for o in agent.wait_outcomes(rid, 4))
+        assert control.request("unplug", slave=2)["ok"]
+        _wait(lambda: agent.has_event("lost", "axis2"), 5, "lost event")
+        _wait(lambda: agent.has_event("reflex", "axis3"), 1, "group reflex on axis3")
+        assert next(d for d in agent.cycle.latest.drives if d.axis == "axis2").lost
+        # Away for a while (the management thread keeps trying to recover it meanwhile): the
+        # others get process data every cycle the whole time.
+        c0 = agent.cycle.latest.cycle
+        away_until = time.monotonic() + 1.0
+        while time.monotonic() < away_until:
+            st = _slave_status(control)
+            _assert_running(st, (0, 1))
+            assert st[3]["al_state"] == "op" and not st[3]["al_error"], st[3]  # stopped by its group, in OP
+            time.sleep(0.02)
+        assert agent.cycle.latest.cycle > c0 + 500
+        assert _drive_states(control)[3] in ("quick_stop_active", "switch_on_disabled")
+        assert control.request("plug", slave=2)["ok"]
+        _wait(lambda: agent.has_event("found", "axis2"), 10, "found event")
+        st = _slave_status(control)
+        assert st[2]["al_state"] == "op" and not st[2]["al_error"], st[2]
+        assert st[2]["drive_state"] != "operation_enabled"  # not re-enabled
+        d2 = next(d for d in agent.cycle.latest.drives if d.axis == "axis2")
+        assert not d2.lost and d2.goal == "disabled" and d2.al_state == "op"
+        _assert_running(st, (0, 1))
+        assert not any(agent.has_event(k, a) for k in ("lost", "reflex", "al_state") for a in ("axis0", "axis1"))
+        r2 = agent.cmd("enable", "axis2")
+        assert agent.wait_outcomes(r2, 1)[0].outcome == "done"
+    finally:
+        agent.cycle.stop()
+
+
+def test_dropped_and_late_frames_neither_stall_nor_lose_slaves(ecat_segment):
+    ifname, control = ecat_segment(3, "generic")
+    agent = Agent(ifname, 3)
+    agent.cycle.start()
+    try:
+        rid = agent.cmd("enable", "axis0", "axis1", "axis2")
+        assert all(o.outcome == "done" for o in agent.wait_outcomes(rid, 3))
+
+        def counter(name: str) -> int:
+            return control.request("status")["counters"][name]
+
+        dropped, delayed = counter("dropped"), counter("delayed")
+        assert control.request("drop_frames", count=5)["ok"]
+        _wait(lambda: counter("dropped") >= dropped + 5, 5, "5 frames dropped")
+        assert control.request("delay_frames", count=5, delay_ms=3)["ok"]
+        _wait(lambda: counter("delayed") >= delayed + 5, 5, "5 frames delayed")
+        assert control.request("drop_frames", count=3)["ok"]
+        assert control.request("delay_frames", count=3, delay_ms=2)["ok"]
+        c1 = agent.cycle.latest.cycle
+        _wait(lambda: agent.cycle.latest.cycle > c1 + 200, 5, "200 more cycles")
+        _assert_running(_slave_status(control), (0, 1, 2))
+        assert agent.cycle.wkc_errors > 0  # the faults were seen
+        assert not agent.has_event("lost")
+        assert all(d.state == "operation_enabled" and not d.lost for d in agent.cycle.latest.drives)
+    finally:
+        agent.cycle.stop()

@@ -6,7 +6,9 @@ from __future__ import annotations
 import gc
 import queue
 import threading
+import time
 
+from bus_agent.bus.base import ALState
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.cia402.states import State
 from bus_agent.config import AgentConfig
@@ -43,3 +45,70 @@ def test_threaded_enable_snapshots_and_ordered_stop():
     assert cyc.state == "stopped"
     assert all(bus.model(i).state == State.SWITCH_ON_DISABLED for i in range(4))
     cyc.stop()  # idempotent
+
+
+class SlowRecoverBus(SimBus):
+    """recover() blocks like a slave that does not respond to AL state changes (SOEM's
+    statecheck waits up to 2 s per state): here 0.3 s per call, outside the bus lock."""
+
+    def __init__(self, *a, **kw) -> None:
+        super().__init__(*a, **kw)
+        self.recover_calls = 0
+        self.recover_thread: set[str] = set()
+
+    def recover(self, position: int) -> bool:
+        self.recover_calls += 1
+        self.recover_thread.add(threading.current_thread().name)
+        time.sleep(0.3)
+        return super().recover(position)
+
+
+def test_blocking_recovery_does_not_stall_the_other_drives():
+    bus = SlowRecoverBus(3)
+    cyc = Cycle(bus, AgentConfig(host="h1", sim_drives=3, groups={"g": ("h1/axis1", "h1/axis2")}))
+    events: list = []
+    lock = threading.Lock()
+
+    def sink(snap) -> None:
+        if snap.events:
+            with lock:
+                events.extend(snap.events)
+
+    def seen(kind: str, axis: str) -> bool:
+        with lock:
+            return any(e.kind == kind and e.axis == axis for e in events)
+
+    def wait(pred, timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            time.sleep(0.005)
+
+    cyc.snapshot_sink = sink
+    cyc.start()
+    try:
+        outcomes: queue.SimpleQueue = queue.SimpleQueue()
+        assert cyc.submit(DriveCommand(request_id="e1", op="enable", axes=("axis0", "axis1", "axis2"),
+                                       on_outcome=outcomes.put))
+        assert all(outcomes.get(timeout=10).outcome == "done" for _ in range(3))
+        bus.unplug(2)
+        wait(lambda: seen("lost", "axis2"), 5, "axis2 lost")
+        wait(lambda: seen("reflex", "axis1"), 1, "group reflex on axis1")
+        # several blocking recover calls while the slave is away: the cycle keeps exchanging
+        wait(lambda: bus.recover_calls >= 3, 5, "3 recover calls")
+        assert "cycle-h1" not in bus.recover_thread  # never on the cycle thread
+        c0 = cyc.latest.cycle
+        wait(lambda: cyc.latest.cycle > c0 + 100, 2, "100 more cycles")
+        st = bus.read_al_status()
+        assert st[0].state == ALState.OP and not st[0].error, st[0]  # no SM watchdog (0x001B)
+        assert bus.model(0).state == State.OPERATION_ENABLED
+        assert not seen("lost", "axis0") and not seen("reflex", "axis0")
+        bus.plug(2)
+        wait(lambda: seen("found", "axis2"), 5, "axis2 found")
+        d2 = next(d for d in cyc.latest.drives if d.axis == "axis2")
+        assert d2.goal == "disabled" and bus.model(2).state != State.OPERATION_ENABLED
+        assert bus.model(0).state == State.OPERATION_ENABLED
+        assert bus.read_al_status()[0].state == ALState.OP
+    finally:
+        cyc.stop()
+    assert cyc.state == "stopped"
