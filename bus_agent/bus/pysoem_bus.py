@@ -292,14 +292,6 @@ class PysoemBus:
             log.debug("slave %d: FPRD 0x%04X failed after %d us: %r", position, register, dt // 1000, e)
             return None, dt >= MGMT_TIMEOUT_US * 1000
 
-    def _read_al(self, position: int) -> SlaveALStatus | None:
-        """FPRD 0x0130..0x0135 (AL status, AL status code); None when there is no answer."""
-        raw, _no_frame = self._fprd(position, _AL_STATUS_REG, 6)
-        if raw is None:
-            return None
-        st, _r, code = struct.unpack("<HHH", raw)
-        return SlaveALStatus(_al_state(st), bool(st & STATE_ACK), code)
-
     def _write_al_control(self, position: int, value: int) -> bool:
         """FPWR 0x0120 (AL control), one datagram; False when the slave did not take it."""
         try:
@@ -369,7 +361,13 @@ class PysoemBus:
         without error. Nothing here waits for a state: the next call looks again."""
         s = self._slaves[position]
         step = self._recover_step.get(position)
-        st = self._read_al(position)
+        raw, no_frame = self._fprd(position, _AL_STATUS_REG, 6)
+        if raw is None and no_frame:
+            return False  # the frame was lost (the link, not the slave): look again next call
+        st = None
+        if raw is not None:
+            w, _r, code = struct.unpack("<HHH", raw)
+            st = SlaveALStatus(_al_state(w), bool(w & STATE_ACK), code)
         if st is None:
             self._recover_step.pop(position, None)
             try:  # not answering at its address: if it came back reset, give it its address again
