@@ -2,8 +2,11 @@
 
 Two backends implement it: ``bus_agent.bus.pysoem_bus.PysoemBus`` (a NIC or a veth end facing
 ``ecat-sim``) and ``bus_agent.bus.sim_bus.SimBus`` (in-process drive models, no root).
-Only the cycle thread calls these methods. ``exchange`` is the hot path: it must not allocate
-more than it must and never blocks longer than one receive timeout.
+The cycle thread calls ``exchange``, ``inputs`` and ``set_outputs`` (the hot path: no allocation
+beyond what it must, never blocking longer than one receive timeout); the cycle's management
+thread calls ``read_al_status``, ``request_al_state`` and ``recover`` concurrently (SOEM's frame
+indices make concurrent datagrams safe), each bounded to a few milliseconds. ``open``, ``start``,
+the SDO calls and ``close`` run before or after the loop.
 """
 
 from __future__ import annotations
