@@ -25,8 +25,8 @@ cycle's state), so "inbox full" and "agent stopping" reach the gateway exactly a
 
 Loss: if the child dies, ``GatewayProcess`` calls ``on_lost`` (the agent runs the ordered
 shutdown of every drive and exits non-zero: nobody can command or watch the drives any more)
-and from then on logs the cycle's events. If the cycle process dies, the child reads EOF,
-closes its session (the liveliness token goes) and exits.
+and from then on logs the cycle's events. If the cycle process dies, the child reads EOF and
+exits at once (its links close, so peers drop the agent's liveliness token).
 """
 
 from __future__ import annotations
@@ -280,17 +280,18 @@ class GatewayProcess:
             self._closing.set()
             self._kill()
             raise BridgeError("gateway", f"the gateway process is gone at start-up: {exc}") from None
-        self._threads = [threading.Thread(target=self._in_loop, name="bridge-in", daemon=True)]
-        self._threads[0].start()
+        # Snapshots flow from now on, so the gateway has one before it declares anything.
+        self.cycle.snapshot_sink = self.on_snapshot
+        self._threads = [threading.Thread(target=self._in_loop, name="bridge-in", daemon=True),
+                         threading.Thread(target=self._out_loop, name="bridge-out", daemon=True)]
+        for t in self._threads:
+            t.start()
         if not self._ready.wait(timeout_s) or self._failed is not None:
+            self.cycle.snapshot_sink = None
             self._closing.set()
             self._kill()
             raise BridgeError(*(self._failed or ("gateway", f"the gateway process did not get ready within "
                                                             f"{timeout_s:g} s")))
-        self.cycle.snapshot_sink = self.on_snapshot
-        out = threading.Thread(target=self._out_loop, name="bridge-out", daemon=True)
-        self._threads.append(out)
-        out.start()
         self._running = True
         if not self._threads[0].is_alive():  # died between READY and now
             self._lost("its connection closed")
@@ -611,19 +612,11 @@ def child_main(argv: Sequence[str] | None = None) -> int:
             pass
         return 3
 
-    import zenoh
-
-    from bus_agent.gateway import Gateway, GatewaySettings
-    from bus_agent.zenoh_config import ZenohConfigError, from_settings
-
-    try:
-        session = zenoh.open(from_settings(zcfg))
-    except (ZenohConfigError, zenoh.ZError) as exc:
-        return fail("zenoh", str(exc))
     host = settings["host"]
     proxy = CycleProxy(conn, settings["axes"])
     done = threading.Event()
     ending: list[str] = []
+    gws: list[Any] = []   # the gateway, once declared
 
     def reader() -> None:
         while True:
@@ -639,8 +632,9 @@ def child_main(argv: Sequence[str] | None = None) -> int:
                 ending.append("close")
                 break
             if msg[0] is Msg.STOPPING:
-                gw.stop_commands()
-                gw.agent_state_override = "stopping"
+                for gw in gws:
+                    gw.stop_commands()
+                    gw.agent_state_override = "stopping"
                 continue
             try:
                 proxy.dispatch(msg)
@@ -648,11 +642,23 @@ def child_main(argv: Sequence[str] | None = None) -> int:
                 log.exception("gateway %s: bridge message %s failed", host, msg[0].name)
         done.set()
 
+    # Reading starts now: snapshots sent while the session opens are taken (the latest is kept).
+    threading.Thread(target=reader, name="bridge-reader", daemon=True).start()
+
+    import zenoh
+
+    from bus_agent.gateway import Gateway, GatewaySettings
+    from bus_agent.zenoh_config import ZenohConfigError, from_settings
+
+    try:
+        session = zenoh.open(from_settings(zcfg))
+    except (ZenohConfigError, zenoh.ZError) as exc:
+        return fail("zenoh", str(exc))
     sim_control = None
     try:
         gw = Gateway(session, proxy, GatewaySettings(**settings))
-        threading.Thread(target=reader, name="bridge-reader", daemon=True).start()
         gw.start()
+        gws.append(gw)
         if sim is not None:
             from bus_agent.sim.control import SimControl
 
@@ -665,17 +671,14 @@ def child_main(argv: Sequence[str] | None = None) -> int:
         return fail("gateway", str(exc))
     conn.send_bytes(dumps((Msg.READY.value,)))
     done.wait()
-    if ending and ending[0] == "close":
-        code = 0
-        gw.close()
-    else:
-        # The cycle process is gone (its drives stop by their SM watchdog): drop the liveliness
-        # token so the other agents see it, and go.
-        log.error("gateway %s: the cycle process is gone: closing the session", host)
-        code = 1
-        guard = threading.Timer(5.0, os._exit, (code,))  # a hung close must not keep us alive
-        guard.daemon = True
-        guard.start()
+    if not (ending and ending[0] == "close"):
+        # The cycle process is gone (its drives stop through their SM watchdog). Exit at once:
+        # the kernel closes our links, so every peer drops this agent's liveliness token now,
+        # as if the whole agent had crashed; a Python-level session close only adds delay.
+        log.error("gateway %s: the cycle process is gone: exiting", host)
+        logging.shutdown()
+        os._exit(1)
+    gw.close()
     if sim_control is not None:
         sim_control.close()
     try:
@@ -683,7 +686,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:
         log.warning("gateway %s: zenoh session close: %s", host, exc)
     log.info("gateway %s: closed", host)
-    return code
+    return 0
 
 
 def _sim_handler(proxy: CycleProxy, action: str, position: int, args: dict) -> str:

@@ -336,6 +336,9 @@ class Gateway:
                          threading.Thread(target=self._command_loop, name="gw-command", daemon=True)]
         for t in self._threads:
             t.start()
+        # A cycle already running (behind the process bridge) has a snapshot: status goes out with
+        # the first publish pass, before anyone can read the agent status without drive status.
+        self._latest = self._latest or getattr(self.cycle, "latest", None)
         if hasattr(self.cycle, "event_sink"):  # a cycle behind the process bridge forwards events apart
             self.cycle.event_sink = self.on_events
         self.cycle.snapshot_sink = self.on_snapshot
