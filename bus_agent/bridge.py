@@ -649,11 +649,20 @@ def child_main(argv: Sequence[str] | None = None) -> int:
 
     from bus_agent.gateway import Gateway, GatewaySettings
     from bus_agent.zenoh_config import ZenohConfigError, from_settings
+    from schemas import keys
 
     try:
         session = zenoh.open(from_settings(zcfg))
     except (ZenohConfigError, zenoh.ZError) as exc:
         return fail("zenoh", str(exc))
+    # One round trip to the peers/routers before the first publication: it returns after the
+    # declarations they sent on connecting (their subscribers), so the first status (published
+    # in the gateway's first pass) is not dropped for want of a known subscriber.
+    try:
+        for _ in session.liveliness().get(keys.ALL_ALIVE, timeout=1.0):
+            pass
+    except Exception as exc:
+        log.debug("gateway %s: liveliness get: %s", host, exc)
     sim_control = None
     try:
         gw = Gateway(session, proxy, GatewaySettings(**settings))
