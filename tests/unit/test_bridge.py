@@ -261,3 +261,27 @@ def test_lost_gateway_is_reported_once_and_events_are_logged(pair, caplog):
         wait_for(lambda: "no gateway" in caplog.text, what="event logged")
     assert "a1" in caplog.text and "switched_on" in caplog.text
     assert len(pair.lost) == 1
+
+
+# ---- configuration: gateway mode and cycle priority ------------------------------------------------
+
+
+def test_gateway_mode_and_rt_priority_from_toml_and_flags():
+    from bus_agent.cli import _parser, build_config
+    from bus_agent.config import ConfigError, config_from_dict
+
+    cfg = config_from_dict({"host": "h1", "sim_drives": 2})
+    assert (cfg.gateway, cfg.rt_priority) == ("process", 0)
+    cfg = config_from_dict({"host": "h1", "sim_drives": 2, "gateway": "thread", "cycle": {"rt_priority": 10}})
+    assert (cfg.gateway, cfg.rt_priority) == ("thread", 10)
+    with pytest.raises(ConfigError, match="gateway"):
+        config_from_dict({"host": "h1", "sim_drives": 2, "gateway": "fork"})
+    with pytest.raises(ConfigError, match="cycle.rt_priority"):
+        config_from_dict({"host": "h1", "sim_drives": 2, "cycle": {"rt_priority": 100}})
+    with pytest.raises(ConfigError, match="cycle.period"):
+        config_from_dict({"host": "h1", "sim_drives": 2, "cycle": {"period": 1}})
+    args = _parser().parse_args(["--sim", "2", "--host", "h1", "--rt-priority", "20", "--gateway-thread"])
+    cfg = build_config(args)
+    assert (cfg.gateway, cfg.rt_priority) == ("thread", 20)
+    cfg = build_config(_parser().parse_args(["--sim", "2", "--host", "h1"]))
+    assert (cfg.gateway, cfg.rt_priority) == ("process", 0)
