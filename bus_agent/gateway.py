@@ -310,6 +310,9 @@ class Gateway:
 
     def start(self) -> None:
         s = self.session
+        # A cycle already running (behind the process bridge) has a snapshot: drive status goes
+        # out in the first publish pass, before the agent status that lists the axes.
+        self._latest = self._latest or getattr(self.cycle, "latest", None)
         for axis in self.axes:
             # BLOCK: a watcher must see every publication (seq without gaps); a slow subscriber
             # slows only this publishing thread, which coalesces to the latest snapshot, never the cycle.
@@ -336,9 +339,6 @@ class Gateway:
                          threading.Thread(target=self._command_loop, name="gw-command", daemon=True)]
         for t in self._threads:
             t.start()
-        # A cycle already running (behind the process bridge) has a snapshot: status goes out with
-        # the first publish pass, before anyone can read the agent status without drive status.
-        self._latest = self._latest or getattr(self.cycle, "latest", None)
         if hasattr(self.cycle, "event_sink"):  # a cycle behind the process bridge forwards events apart
             self.cycle.event_sink = self.on_events
         self.cycle.snapshot_sink = self.on_snapshot
