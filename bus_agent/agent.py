@@ -33,6 +33,7 @@ from bus_agent.bridge import BridgeError, GatewayProcess
 from bus_agent.bus.base import Bus, BusError
 from bus_agent.config import AgentConfig, ConfigError
 from bus_agent.cycle import Cycle
+from bus_agent.realtime import helper_priority
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +110,8 @@ class Agent:
         sim = self.bus.control_handlers() if self.bus.backend == "sim" and hasattr(self.bus, "control_handlers") \
             else None
         self.bridge = GatewayProcess(self.cycle, self._gateway_settings(), self.config.zenoh, sim_handlers=sim,
-                                     n_slaves=len(self.cycle.slaves), on_lost=self._gateway_lost)
+                                     n_slaves=len(self.cycle.slaves), on_lost=self._gateway_lost,
+                                     rt_priority=helper_priority(self.cycle.rt_priority))
         try:
             # The cycle first: the child needs a second or so to import and open its session, far
             # beyond a slave's SM watchdog (~100 ms) without process data. Drives stay disabled

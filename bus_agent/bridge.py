@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from bus_agent import runtime as rt
+from bus_agent.realtime import set_thread_fifo
 
 log = logging.getLogger(__name__)
 
@@ -206,8 +207,10 @@ class GatewayProcess:
     def __init__(self, cycle: Any, settings: Mapping[str, Any], zenoh: Any, *,
                  sim_handlers: Mapping[str, Callable[[int, dict], str]] | None = None, n_slaves: int = 0,
                  on_lost: Callable[[str], None] | None = None, forward_period_s: float = FORWARD_PERIOD_S,
-                 log_level: int | None = None) -> None:
+                 log_level: int | None = None, rt_priority: int = 0) -> None:
         self.cycle = cycle
+        #: SCHED_FIFO of the bridge threads: they take the GIL, so one below a real-time cycle.
+        self.rt_priority = rt_priority
         self.settings = dict(settings)
         self.zenoh = zenoh
         self.host = self.settings["host"]
@@ -348,6 +351,7 @@ class GatewayProcess:
     # -- bridge-out: snapshots, events, outcomes
 
     def _out_loop(self) -> None:
+        set_thread_fifo(self.rt_priority, f"bridge-out of {self.host}")
         while True:
             closing = self._closing.is_set()
             if not closing:
@@ -390,6 +394,7 @@ class GatewayProcess:
     # -- bridge-in: commands, triggers, sim control, start-up answer
 
     def _in_loop(self) -> None:
+        set_thread_fifo(self.rt_priority, f"bridge-in of {self.host}")
         assert self._conn is not None
         conn = self._conn
         while True:

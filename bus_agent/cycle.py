@@ -42,6 +42,7 @@ from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
 from bus_agent.groups import Groups
 from bus_agent.pdo import DriveInputs, DriveOutputs
+from bus_agent.realtime import helper_priority, set_thread_fifo
 from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand,
                                DriveSnapshot, Outcome)
 
@@ -55,9 +56,11 @@ INBOX_MAX = 256
 #: Periods kept for p50/p99/max (one statistics window), and how often they are recomputed.
 STATS_WINDOW = 1000
 STATS_EVERY = 250
-#: Read every slave's AL status at least this often (cycles), and on a working counter error.
-AL_POLL_CYCLES = 100
-#: While something is wrong (working counter, a lost slave, an NMT command), poll this often.
+#: While something is wrong (working counter, a lost slave, an NMT command), read every slave's
+#: AL status this often (cycles). While the working counter is right, nothing is read: an LRW
+#: counts 3 per slave only from slaves in OP (ETG.1000.4: +1 read in SAFE-OP/OP, +2 write in OP),
+#: so the counter already proves every slave in OP, and a management datagram would hold the GIL
+#: (pysoem's primitives do not release it) in the cycle thread's way.
 AL_POLL_MIN_CYCLES = 10
 #: Call bus.recover() for a lost slave every this many cycles (each call is a few round trips).
 RECOVER_EVERY_CYCLES = 10
@@ -101,9 +104,9 @@ class _Management:
 
     def __init__(self, bus: Bus, clock_ns: Callable[[], int], period_ns: int, host: str) -> None:
         self.bus = bus
+        self.rt_priority = 0  # SCHED_FIFO of this thread: set by the cycle (one below its own)
         self.clock_ns = clock_ns
         self.host = host
-        self.slow_ns = AL_POLL_CYCLES * period_ns
         self.fast_ns = AL_POLL_MIN_CYCLES * period_ns
         self.recover_ns = RECOVER_EVERY_CYCLES * period_ns
         # cycle -> management (written by the cycle thread only)
@@ -158,6 +161,7 @@ class _Management:
         return self._thread is not None
 
     def _run(self) -> None:
+        set_thread_fifo(self.rt_priority, f"the management thread of {self.host}")
         while not self._stop.is_set():
             self._wake.clear()
             try:
@@ -165,7 +169,8 @@ class _Management:
             except Exception:  # keep managing: one failed step must not end recovery for good
                 log.exception("host %s: management step failed", self.host)
             now = self.clock_ns()
-            due = (self._last_poll_ns or now) + (self.fast_ns if self.fast else self.slow_ns)
+            # Steady state (working counter right): no poll due; a kick or wake starts one.
+            due = (self._last_poll_ns or now) + self.fast_ns if self.fast else now + 100_000_000
             for _slave, _epoch in self.recover_set:
                 due = min(due, self._next_recover.get(_slave, now))
             self._wake.wait(min(max(due - now, 200_000), 100_000_000) / 1e9)
@@ -181,8 +186,8 @@ class _Management:
                 log.warning("host %s: AL %s request for %s failed: %s", self.host, state.wire_name,
                             "all slaves" if slave is None else f"slave {slave}", e)
             self._done_ticket = ticket
-        interval = self.fast_ns if self.fast else self.slow_ns
-        if self._poll_asap or self._last_poll_ns is None or now_ns - self._last_poll_ns >= interval:
+        if (self._poll_asap or self._last_poll_ns is None
+                or (self.fast and now_ns - self._last_poll_ns >= self.fast_ns)):
             self._poll_asap = False
             self._last_poll_ns = now_ns
             ticket = self._done_ticket
@@ -321,7 +326,7 @@ class Cycle:
         self._period_max_ns = 0
         self._last_start_ns = 0
         self._stats = CycleStats(cycle_us=config.cycle_us)
-        self._last_al_poll = -AL_POLL_CYCLES
+        self._last_al_poll = -AL_POLL_MIN_CYCLES
         self._al_poll_ok = True
         self._al_ticket = 0
         self._wkc_was_bad = False
@@ -416,6 +421,7 @@ class Cycle:
             return
         self.open()
         self._prepare_process()
+        self._mgmt.rt_priority = helper_priority(self.rt_priority)
         self._mgmt.start()
         self._thread = threading.Thread(target=self._run, name=f"cycle-{self.config.host}", daemon=True)
         self._thread.start()
@@ -529,12 +535,7 @@ class Cycle:
     def _run(self) -> None:
         if not hasattr(self, "_old_switch"):
             self._prepare_process()
-        if self.rt_priority:
-            try:  # pid 0 = the calling thread on Linux
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
-            except (OSError, AttributeError) as e:
-                log.warning("host %s: SCHED_FIFO %d for the cycle thread refused: %s",
-                            self.config.host, self.rt_priority, e)
+        set_thread_fifo(self.rt_priority, f"the cycle thread of {self.config.host}")
         try:
             period = self.period_ns
             t0 = self.clock_ns()

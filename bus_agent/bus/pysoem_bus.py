@@ -43,6 +43,8 @@ CONFIG_INIT_DEADLINE_S = 10.0
 #: Deadlines of the AL transitions in start().
 SAFEOP_DEADLINE_S = 5.0
 OP_DEADLINE_S = 5.0
+#: While waiting for an AL state, request it again this often (s).
+STATE_REWRITE_S = 0.25
 #: Short state_check polls (us) so the GIL is given up between them.
 STATE_POLL_US = 5000
 #: Single-datagram timeout (us) of management reads/writes; each holds the GIL at most this long.
@@ -231,13 +233,21 @@ class PysoemBus:
     def _wait_state(self, state: ALState, deadline_s: float, exchange: bool) -> None:
         m = self._master
         deadline = time.monotonic() + deadline_s
+        rewrite_at = time.monotonic() + STATE_REWRITE_S
         while True:
             if exchange:
                 self.exchange()
             if m.state_check(int(state), STATE_POLL_US) == int(state):
                 return
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if now >= deadline:
                 break
+            if now >= rewrite_at:
+                # An AL control write lost on the wire (SOEM gives up after its retries) must not
+                # fail start-up: writing the same request again is idempotent (ETG.1000.6 0x0120).
+                rewrite_at = now + STATE_REWRITE_S
+                m.state = int(state)
+                m.write_state()
         m.read_state()
         bad = []
         for pos, s in enumerate(self._slaves):

@@ -226,6 +226,8 @@ def test_sm_watchdog_trips(ecat_segment):
               "EMCY 0x8130 from both drives", poll=lambda: [s.mbx_receive() for s in m.slaves])
         status = control.request("status")["slaves"]
         assert [x["al_status_code"] for x in status] == [0x001B, 0x001B]
+        # in SAFE-OP the inputs still flow (+1 each) but the outputs are not taken (no +2)
+        assert _cycle(m) == 2
     finally:
         m.close()
 
@@ -295,9 +297,11 @@ def test_unplug_plug_wkc_fault_and_frame_faults(ecat_segment):
               "slave 1 back in OP")
         assert control.request("drop_frames", count=2)["ok"]
         assert [_cycle(m) for _ in range(3)] == [-1, -1, 9]
-        assert control.request("delay_frames", count=1, delay_ms=200)["ok"]
+        # 50 ms: long after SOEM gave up (2 ms), short of the 100 ms SM watchdog (which would
+        # take the slaves to SAFE-OP, where outputs no longer count in the working counter)
+        assert control.request("delay_frames", count=1, delay_ms=50)["ok"]
         assert _cycle(m) == -1  # answered long after SOEM gave up: ignored
-        time.sleep(0.25)
+        time.sleep(0.06)
         _wait(lambda: _cycle(m) == 9, 1.0, "cycles after the late answer")
         assert not control.request("drop_frames", ratio=3)["ok"]
     finally:

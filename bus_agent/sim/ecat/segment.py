@@ -184,7 +184,9 @@ class Segment:
                     continue
                 frame_part = buf[data_off + a - laddr: data_off + b - laddr]
                 mem_part = esc.mv[p: p + (b - a)]
-                if ftype == 2 and cmd in (Cmd.LWR, Cmd.LRW):
+                # Outputs only in OP: in SAFE-OP the output SyncManager takes no data, so a slave
+                # that fell out of OP shows in the working counter (+1 instead of +3 for an LRW).
+                if ftype == 2 and cmd in (Cmd.LWR, Cmd.LRW) and esc.al_state == ALState.OP:
                     writes.append((mem_part, frame_part))
                     did_write = True
                 elif ftype == 1 and cmd in (Cmd.LRD, Cmd.LRW):
