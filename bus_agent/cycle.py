@@ -15,7 +15,7 @@ One cycle (``_cycle``): exchange -> working counter check -> management reports 
 lost/found) -> commands and remote triggers -> group reflexes -> step every controller -> write
 outputs -> pending-command deadlines -> snapshot. Everything that can block on a slave (AL status
 reads, AL state requests, recovery of a lost slave with its SDOs) runs in a separate management
-thread (:class:`_Management`) while the cycle keeps exchanging process data; the cycle only posts
+thread (:class:`bus_agent.management.Management`) while the cycle keeps exchanging process data; the cycle only posts
 requests to it and reads its reports. Timing: drift-free deadlines ``t0 + k * period`` from a
 monotonic clock; sleep coarse, spin the last :data:`SPIN_NS`; a cycle that starts more than one
 period late counts as an overrun and the schedule skips the missed slots (no burst of catch-up
@@ -27,7 +27,6 @@ from __future__ import annotations
 import collections
 import gc
 import logging
-import os
 import sys
 import threading
 import time
@@ -42,6 +41,7 @@ from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
 from bus_agent.groups import Groups
 from bus_agent.pdo import DriveInputs, DriveOutputs
+from bus_agent.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management
 from bus_agent.realtime import helper_priority, set_thread_fifo
 from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand,
                                DriveSnapshot, Outcome)
@@ -56,14 +56,6 @@ INBOX_MAX = 256
 #: Periods kept for p50/p99/max (one statistics window), and how often they are recomputed.
 STATS_WINDOW = 1000
 STATS_EVERY = 250
-#: While something is wrong (working counter, a lost slave, an NMT command), read every slave's
-#: AL status this often (cycles). While the working counter is right, nothing is read: an LRW
-#: counts 3 per slave only from slaves in OP (ETG.1000.4: +1 read in SAFE-OP/OP, +2 write in OP),
-#: so the counter already proves every slave in OP, and a management datagram would hold the GIL
-#: (pysoem's primitives do not release it) in the cycle thread's way.
-AL_POLL_MIN_CYCLES = 10
-#: Call bus.recover() for a lost slave every this many cycles (each call is a few round trips).
-RECOVER_EVERY_CYCLES = 10
 #: A slave that does not answer the AL status read is lost only when it still does not answer
 #: this many cycles later (a later poll): a few dropped or late frames are not a lost slave.
 NO_ANSWER_CONFIRM_CYCLES = 8
@@ -89,131 +81,6 @@ SUPPORTED_DRIVE_MODES = 0x6502
 def decode_supported_modes(bits: int) -> frozenset[int]:
     """The modes of operation set in a 0x6502 (supported drive modes) value."""
     return frozenset(int(m) for m in Mode if bits >> m.supported_bit & 1)
-
-
-class _Management:
-    """AL status reads, AL state requests and lost-slave recovery, off the cycle thread.
-
-    Runs in its own thread while the cycle thread runs (:meth:`start`), or inline from
-    :meth:`Cycle.tick` (:meth:`run_once`, tests and tools). The cycle posts requests (plain
-    attributes and a deque; :meth:`kick` wakes the thread) and drains :attr:`reports` in order:
-    ``("al", statuses, ticket)`` -- the AL status of every slave, read after the AL requests up
-    to ``ticket`` were written -- and ``("returned", slave, epoch)`` -- a slave of the recover
-    set is back in OP. Nothing here touches drives, controllers or snapshots.
-    """
-
-    def __init__(self, bus: Bus, clock_ns: Callable[[], int], period_ns: int, host: str) -> None:
-        self.bus = bus
-        self.rt_priority = 0  # SCHED_FIFO of this thread: set by the cycle (one below its own)
-        self.clock_ns = clock_ns
-        self.host = host
-        self.fast_ns = AL_POLL_MIN_CYCLES * period_ns
-        self.recover_ns = RECOVER_EVERY_CYCLES * period_ns
-        # cycle -> management (written by the cycle thread only)
-        self.fast = False
-        self.recover_set: frozenset[tuple[int, int]] = frozenset()  # (slave, epoch)
-        self.requests: collections.deque[tuple[int, int | None, ALState]] = collections.deque()
-        self.tickets = 0
-        self._poll_asap = True
-        # management -> cycle
-        self.reports: collections.deque[tuple] = collections.deque()
-        self._done_ticket = 0
-        self._last_poll_ns: int | None = None
-        self._next_recover: dict[int, int] = {}
-        self._reported: set[tuple[int, int]] = set()
-        self._wake = threading.Event()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    # cycle side
-    def kick(self) -> None:
-        """Read the AL status as soon as possible."""
-        self._poll_asap = True
-        self._wake.set()
-
-    def wake(self) -> None:
-        self._wake.set()
-
-    def request_state(self, slave: int | None, state: ALState) -> int:
-        """Queue an AL control write (one slave or all); returns its ticket."""
-        self.tickets += 1
-        self.requests.append((self.tickets, slave, state))
-        self.kick()
-        return self.tickets
-
-    # management side
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name=f"cycle-mgmt-{self.host}", daemon=True)
-        self._thread.start()
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop the thread (idempotent); the bus is the cycle's again afterwards."""
-        self._stop.set()
-        self._wake.set()
-        t = self._thread
-        if t is not None and t is not threading.current_thread():
-            t.join(timeout_s)
-            if t.is_alive():
-                log.error("host %s: management thread did not stop", self.host)
-
-    @property
-    def threaded(self) -> bool:
-        return self._thread is not None
-
-    def _run(self) -> None:
-        set_thread_fifo(self.rt_priority, f"the management thread of {self.host}")
-        while not self._stop.is_set():
-            self._wake.clear()
-            try:
-                self.run_once(self.clock_ns())
-            except Exception:  # keep managing: one failed step must not end recovery for good
-                log.exception("host %s: management step failed", self.host)
-            now = self.clock_ns()
-            # Steady state (working counter right): no poll due; a kick or wake starts one.
-            due = (self._last_poll_ns or now) + self.fast_ns if self.fast else now + 100_000_000
-            for _slave, _epoch in self.recover_set:
-                due = min(due, self._next_recover.get(_slave, now))
-            self._wake.wait(min(max(due - now, 200_000), 100_000_000) / 1e9)
-
-    def run_once(self, now_ns: int) -> None:
-        """Due work: queued AL requests, then an AL status read, then recover steps."""
-        bus = self.bus
-        while self.requests:
-            ticket, slave, state = self.requests.popleft()
-            try:
-                bus.request_al_state(slave, state)
-            except Exception as e:
-                log.warning("host %s: AL %s request for %s failed: %s", self.host, state.wire_name,
-                            "all slaves" if slave is None else f"slave {slave}", e)
-            self._done_ticket = ticket
-        if (self._poll_asap or self._last_poll_ns is None
-                or (self.fast and now_ns - self._last_poll_ns >= self.fast_ns)):
-            self._poll_asap = False
-            self._last_poll_ns = now_ns
-            ticket = self._done_ticket
-            try:
-                statuses: tuple[SlaveALStatus, ...] | None = tuple(bus.read_al_status())
-            except Exception as e:
-                log.warning("host %s: AL status read failed: %s", self.host, e)
-                statuses = None
-            self.reports.append(("al", statuses, ticket))
-        keys = self.recover_set
-        self._reported &= keys
-        for key in sorted(keys):
-            if key in self._reported or self._stop.is_set():
-                continue
-            slave = key[0]
-            if now_ns < self._next_recover.get(slave, 0):
-                continue
-            self._next_recover[slave] = now_ns + self.recover_ns
-            try:
-                back = bus.recover(slave)
-            except Exception as e:
-                log.debug("host %s: slave %d recover: %s", self.host, slave, e)
-                back = False
-            if back:
-                self._reported.add(key)
-                self.reports.append(("returned", slave, key[1]))
 
 
 class IdentityMismatch(BusError):
@@ -332,7 +199,7 @@ class Cycle:
         self._wkc_was_bad = False
         self._no_answer_since: dict[int, int] = {}
         self._epoch: dict[int, int] = {}
-        self._mgmt = _Management(bus, clock_ns, self.period_ns, config.host)
+        self._mgmt = Management(bus, clock_ns, self.period_ns, config.host)
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.
         self.period_log = array("q", bytes(8 * record_periods)) if record_periods else None
         self.period_log_len = 0

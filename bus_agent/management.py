@@ -1,0 +1,153 @@
+"""The cycle's management thread: what may wait on a slave, off the cycle thread.
+
+AL status reads, AL control writes (NMT) and step-wise recovery of lost slaves run here while
+the cycle thread keeps exchanging process data, so a slave that does not answer never stalls the
+others (their SM watchdogs would trip). SOEM makes the two threads' datagrams safe: each has its
+own frame index. Used only by :class:`bus_agent.cycle.Cycle`.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from typing import Callable
+
+from bus_agent.bus.base import ALState, Bus, SlaveALStatus
+from bus_agent.realtime import set_thread_fifo
+
+log = logging.getLogger(__name__)
+
+#: While something is wrong (working counter, a lost slave, an NMT command), read every slave's
+#: AL status this often (cycles). While the working counter is right, nothing is read: an LRW
+#: counts 3 per slave only from slaves in OP (ETG.1000.4: +1 read in SAFE-OP/OP, +2 write in OP),
+#: so the counter already proves every slave in OP, and a management datagram would hold the GIL
+#: (pysoem's primitives do not release it) in the cycle thread's way.
+AL_POLL_MIN_CYCLES = 10
+#: Call bus.recover() for a lost slave every this many cycles (each call is a few round trips).
+RECOVER_EVERY_CYCLES = 10
+
+
+class Management:
+    """AL status reads, AL state requests and lost-slave recovery, off the cycle thread.
+
+    Runs in its own thread while the cycle thread runs (:meth:`start`), or inline from
+    :meth:`Cycle.tick` (:meth:`run_once`, tests and tools). The cycle posts requests (plain
+    attributes and a deque; :meth:`kick` wakes the thread) and drains :attr:`reports` in order:
+    ``("al", statuses, ticket)`` -- the AL status of every slave, read after the AL requests up
+    to ``ticket`` were written -- and ``("returned", slave, epoch)`` -- a slave of the recover
+    set is back in OP. Nothing here touches drives, controllers or snapshots.
+    """
+
+    def __init__(self, bus: Bus, clock_ns: Callable[[], int], period_ns: int, host: str) -> None:
+        self.bus = bus
+        self.rt_priority = 0  # SCHED_FIFO of this thread: set by the cycle (one below its own)
+        self.clock_ns = clock_ns
+        self.host = host
+        self.fast_ns = AL_POLL_MIN_CYCLES * period_ns
+        self.recover_ns = RECOVER_EVERY_CYCLES * period_ns
+        # cycle -> management (written by the cycle thread only)
+        self.fast = False
+        self.recover_set: frozenset[tuple[int, int]] = frozenset()  # (slave, epoch)
+        self.requests: collections.deque[tuple[int, int | None, ALState]] = collections.deque()
+        self.tickets = 0
+        self._poll_asap = True
+        # management -> cycle
+        self.reports: collections.deque[tuple] = collections.deque()
+        self._done_ticket = 0
+        self._last_poll_ns: int | None = None
+        self._next_recover: dict[int, int] = {}
+        self._reported: set[tuple[int, int]] = set()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # cycle side
+    def kick(self) -> None:
+        """Read the AL status as soon as possible."""
+        self._poll_asap = True
+        self._wake.set()
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def request_state(self, slave: int | None, state: ALState) -> int:
+        """Queue an AL control write (one slave or all); returns its ticket."""
+        self.tickets += 1
+        self.requests.append((self.tickets, slave, state))
+        self.kick()
+        return self.tickets
+
+    # management side
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"cycle-mgmt-{self.host}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the thread (idempotent); the bus is the cycle's again afterwards."""
+        self._stop.set()
+        self._wake.set()
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout_s)
+            if t.is_alive():
+                log.error("host %s: management thread did not stop", self.host)
+
+    @property
+    def threaded(self) -> bool:
+        return self._thread is not None
+
+    def _run(self) -> None:
+        set_thread_fifo(self.rt_priority, f"the management thread of {self.host}")
+        while not self._stop.is_set():
+            self._wake.clear()
+            try:
+                self.run_once(self.clock_ns())
+            except Exception:  # keep managing: one failed step must not end recovery for good
+                log.exception("host %s: management step failed", self.host)
+            now = self.clock_ns()
+            # Steady state (working counter right): no poll due; a kick or wake starts one.
+            due = (self._last_poll_ns or now) + self.fast_ns if self.fast else now + 100_000_000
+            for _slave, _epoch in self.recover_set:
+                due = min(due, self._next_recover.get(_slave, now))
+            self._wake.wait(min(max(due - now, 200_000), 100_000_000) / 1e9)
+
+    def run_once(self, now_ns: int) -> None:
+        """Due work: queued AL requests, then an AL status read, then recover steps."""
+        bus = self.bus
+        while self.requests:
+            ticket, slave, state = self.requests.popleft()
+            try:
+                bus.request_al_state(slave, state)
+            except Exception as e:
+                log.warning("host %s: AL %s request for %s failed: %s", self.host, state.wire_name,
+                            "all slaves" if slave is None else f"slave {slave}", e)
+            self._done_ticket = ticket
+        if (self._poll_asap or self._last_poll_ns is None
+                or (self.fast and now_ns - self._last_poll_ns >= self.fast_ns)):
+            self._poll_asap = False
+            self._last_poll_ns = now_ns
+            ticket = self._done_ticket
+            try:
+                statuses: tuple[SlaveALStatus, ...] | None = tuple(bus.read_al_status())
+            except Exception as e:
+                log.warning("host %s: AL status read failed: %s", self.host, e)
+                statuses = None
+            self.reports.append(("al", statuses, ticket))
+        keys = self.recover_set
+        self._reported &= keys
+        for key in sorted(keys):
+            if key in self._reported or self._stop.is_set():
+                continue
+            slave = key[0]
+            if now_ns < self._next_recover.get(slave, 0):
+                continue
+            self._next_recover[slave] = now_ns + self.recover_ns
+            try:
+                back = bus.recover(slave)
+            except Exception as e:
+                log.debug("host %s: slave %d recover: %s", self.host, slave, e)
+                back = False
+            if back:
+                self._reported.add(key)
+                self.reports.append(("returned", slave, key[1]))
