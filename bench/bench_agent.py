@@ -33,19 +33,18 @@ import json
 import os
 import resource
 import select
-import shutil
-import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from array import array
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = ROOT / "bench" / "results" / "bench_agent.json"
+from bench.common import RESULTS, ROOT, free_port, percentile, proc_cpu_s, segment, set_rt_priority, summary_ms
+
+DEFAULT_OUT = RESULTS / "bench_agent.json"
 SPIN_NS = 150_000
+ECHO_KEY = "bench/echo"
 
 
 def _cpu_s() -> float:
@@ -58,12 +57,11 @@ def _figures(periods: list[int], cycle_ns: int) -> dict:
         return {}
     ps = sorted(periods)
     js = sorted(abs(p - cycle_ns) for p in periods)
-    n = len(ps)
 
     def q(v: list[int], f: float) -> float:
-        return round(v[min(n - 1, int(f * n))] / 1000, 1)
+        return round(percentile(v, f) / 1000, 1)
 
-    return {"samples": n,
+    return {"samples": len(ps),
             "period_us": {"p50": q(ps, 0.5), "p99": q(ps, 0.99), "p999": q(ps, 0.999), "max": round(ps[-1] / 1000, 1)},
             "jitter_us": {"p50": q(js, 0.5), "p99": q(js, 0.99), "p999": q(js, 0.999), "max": round(js[-1] / 1000, 1)}}
 
@@ -72,14 +70,6 @@ def _dump(args, periods) -> None:
     if getattr(args, "log_file", None):
         with open(args.log_file, "wb") as f:
             array("q", periods).tofile(f)
-
-
-def _rt(prio: int) -> None:
-    if prio:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-        except OSError as e:
-            print(f"SCHED_FIFO {prio} refused: {e}", file=sys.stderr)
 
 
 # ---- phases (each in its own process) ---------------------------------------------------------
@@ -120,7 +110,7 @@ def phase_bare(args) -> dict:
     gc.collect()
     gc.freeze()
     gc.disable()
-    _rt(args.rt_priority)
+    set_rt_priority(args.rt_priority)
     cpu0 = _cpu_s()
     t0 = clock()
     last = 0
@@ -219,18 +209,6 @@ def phase_agent(args) -> dict:
         cyc.stop()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _proc_cpu_s(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def _phase_gateway(args, mode: str) -> dict:
     """The real agent composition (``bus_agent.agent.Agent``) with its gateway in ``mode``
     ("process": a child process, the default; "thread": threads of this process, as before)."""
@@ -238,7 +216,7 @@ def _phase_gateway(args, mode: str) -> dict:
     from bus_agent.bus.pysoem_bus import PysoemBus
     from bus_agent.config import AgentConfig, ZenohConfig
 
-    port = _free_port()
+    port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us, gateway=mode,
                       rt_priority=args.rt_priority, zenoh=ZenohConfig(mode="peer", listen=(ep,), scouting=False))
@@ -254,11 +232,11 @@ def _phase_gateway(args, mode: str) -> dict:
         time.sleep(2.0)  # load warm-up: subscription and queries flowing
         bridge = agent.bridge
         child = bridge.pid if bridge is not None else None
-        fwd0, gcpu0, t0 = (bridge.forwarded if bridge else 0), (_proc_cpu_s(child) if child else 0.0), time.monotonic()
+        fwd0, gcpu0, t0 = (bridge.forwarded if bridge else 0), (proc_cpu_s(child) if child else 0.0), time.monotonic()
         res = _measure(agent.cycle, args)
         if bridge is not None and child:
             el = time.monotonic() - t0
-            res["gateway_process_cpu_pct"] = round(100 * (_proc_cpu_s(child) - gcpu0) / el, 1)
+            res["gateway_process_cpu_pct"] = round(100 * (proc_cpu_s(child) - gcpu0) / el, 1)
             res["bridge_snapshots_per_s"] = round((bridge.forwarded - fwd0) / el, 1)
         out, _ = load.communicate(timeout=args.seconds + 30)
         res["load"] = json.loads(out.strip().splitlines()[-1])
@@ -353,19 +331,175 @@ def phase_load(args) -> dict:
             "status_samples_received": received[0]}
 
 
+def _echo_config(ep: str, listen: bool):
+    from bus_agent.zenoh_config import make_zenoh_config
+
+    return make_zenoh_config("peer", listen=[ep] if listen else [], connect=[] if listen else [ep])
+
+
+def phase_echo(args) -> dict:
+    """A trivial queryable in its own process (the bare get's far end): replies b"pong"."""
+    import signal
+
+    import zenoh
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    def on_query(q):
+        with q:
+            q.reply(q.key_expr, b"pong")
+
+    with zenoh.open(_echo_config(args.listen, listen=True)) as s:
+        qb = s.declare_queryable(ECHO_KEY, on_query)
+        print("echo ready", flush=True)
+        stop.wait()
+        qb.undeclare()
+    return {}
+
+
+def _fanout(session, key: str, req, expected: int, timeout_s: float) -> tuple[float | None, list]:
+    """One command query to every drive (QueryTarget.ALL, ConsolidationMode.NONE): seconds from
+    the query sent to the ``expected``-th reply (None if fewer came), and the decoded replies."""
+    import zenoh
+
+    from schemas.messages import CommandReply, decode, encode
+
+    payload = encode(req)
+    replies, last = [], None
+    t0 = time.perf_counter()
+    for r in session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                         payload=payload, timeout=timeout_s):
+        if r.ok is None:
+            continue
+        replies.append(decode(r.ok.payload.to_bytes(), CommandReply))
+        if len(replies) == expected:
+            last = time.perf_counter() - t0  # the rest of the loop only waits for the query's end
+    return last, replies
+
+
+def phase_enable_client(args) -> dict:
+    """The commanding side: ``--enable-rounds`` rounds of [bare gets to the echo queryable,
+    enable of every drive timed to the last reply, disable (not timed)]."""
+    import zenoh
+
+    from bus_agent.zenoh_config import make_zenoh_config
+    from schemas import keys
+    from schemas.messages import CommandRequest
+
+    session = zenoh.open(make_zenoh_config("peer", connect=[args.connect, args.echo]))
+    cycle_s = args.cycle_us / 1e6
+    en_key, dis_key = keys.drive_cmd(args.host, "*", "enable"), keys.drive_cmd(args.host, "*", "disable")
+    status_key = keys.drive_status(args.host, "*")
+    deadline = time.monotonic() + 30
+    while True:  # routes in place: every drive's status queryable and the echo answer
+        n = sum(1 for r in session.get(status_key, target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE, timeout=2.0) if r.ok is not None)
+        echo = [r for r in session.get(ECHO_KEY, timeout=2.0) if r.ok is not None]
+        if n >= args.drives and echo:
+            break
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"agent or echo not reachable ({n} drive status, echo {bool(echo)})")
+        time.sleep(0.2)
+    latency, beyond, beyond_elapsed, cycles, bare, failures = [], [], [], [], [], []
+    for i in range(-1, args.enable_rounds):  # round -1: warm-up, not counted
+        for _ in range(args.gets_per_round):
+            t0 = time.perf_counter()
+            ok = [r for r in session.get(ECHO_KEY, timeout=2.0) if r.ok is not None]
+            if ok and i >= 0:
+                bare.append(time.perf_counter() - t0)
+        rid = f"bench-{os.getpid()}-{i}"
+        lat, replies = _fanout(session, en_key, CommandRequest(request_id=f"{rid}-en", op="enable", timeout_s=5.0),
+                               args.drives, 10.0)
+        bad = [f"{r.axis}:{r.outcome}:{r.reason}" for r in replies if r.outcome != "done"]
+        if lat is None or bad:
+            failures.append({"round": i, "replies": len(replies), "not_done": bad[:4]})
+        elif i >= 0:
+            c = max(r.cycles for r in replies)
+            latency.append(lat)
+            cycles.append(c)
+            beyond.append(lat - c * cycle_s)
+            beyond_elapsed.append(lat - max(r.elapsed_s for r in replies))
+        _, replies = _fanout(session, dis_key, CommandRequest(request_id=f"{rid}-dis", op="disable", timeout_s=5.0),
+                             args.drives, 10.0)
+        if len(replies) < args.drives or any(r.outcome != "done" for r in replies):
+            failures.append({"round": i, "op": "disable", "replies": len(replies)})
+        time.sleep(0.02)  # let the disable's status publications pass before the next round
+    session.close()
+    out = {"rounds": args.enable_rounds, "drives": args.drives, "timed": len(latency), "failures": failures[:10],
+           "n_failures": len(failures),
+           "latency": summary_ms(latency), "beyond_cycles": summary_ms(beyond),
+           "beyond_elapsed": summary_ms(beyond_elapsed), "bare_get": summary_ms(bare),
+           "transition_cycles": {"p50": percentile(sorted(cycles), 0.5), "max": max(cycles)} if cycles else {}}
+    b = out["bare_get"]
+    if b and latency:
+        out["ratios"] = {"latency_p50_over_bare_get_p50": round(out["latency"]["p50_ms"] / b["p50_ms"], 2),
+                         "beyond_cycles_p50_over_bare_get_p50": round(out["beyond_cycles"]["p50_ms"] / b["p50_ms"], 2),
+                         "beyond_cycles_p99_over_bare_get_p99": round(out["beyond_cycles"]["p99_ms"] / b["p99_ms"], 2)}
+    return out
+
+
+def phase_enable_latency(args) -> dict:
+    """The real agent (gateway process) with every drive disabled; the client and the echo
+    queryable in their own processes, each a direct peer link over loopback TCP."""
+    from bus_agent.agent import Agent
+    from bus_agent.bus.pysoem_bus import PysoemBus
+    from bus_agent.config import AgentConfig, ZenohConfig
+
+    ep, echo_ep = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us, gateway="process",
+                      rt_priority=args.rt_priority, zenoh=ZenohConfig(mode="peer", listen=(ep,), scouting=False))
+    agent = Agent(cfg, bus=PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us))
+    procs: list[subprocess.Popen] = []
+    agent.start()
+    try:
+        echo = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "echo", "--listen", echo_ep],
+                                cwd=ROOT, stdout=subprocess.PIPE, text=True)
+        procs.append(echo)
+        ready, _, _ = select.select([echo.stdout], [], [], 20)
+        if not ready or echo.stdout.readline().strip() != "echo ready":
+            raise RuntimeError("echo queryable did not start")
+        cyc = agent.cycle
+        ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
+        client = subprocess.Popen(
+            [sys.executable, "-m", "bench.bench_agent", "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
+             "--host", "bench", "--drives", str(args.drives), "--cycle-us", str(args.cycle_us),
+             "--enable-rounds", str(args.enable_rounds), "--gets-per-round", str(args.gets_per_round)],
+            cwd=ROOT, stdout=subprocess.PIPE, text=True)
+        procs.append(client)
+        out, _ = client.communicate(timeout=60 + args.enable_rounds * 25)
+        if client.returncode != 0:
+            raise RuntimeError(f"enable client failed ({client.returncode})")
+        res = json.loads(out.strip().splitlines()[-1])
+        res["cycle"] = {"cycles": cyc.cycles - c0, "overruns": cyc.overruns - ov0, "wkc_errors": cyc.wkc_errors - wk0}
+        return res
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+        agent.stop()
+
+
 PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway_thread": phase_gateway_thread,
-          "gateway_process": phase_gateway_process, "load": phase_load}
+          "gateway_process": phase_gateway_process, "load": phase_load, "enable_latency": phase_enable_latency,
+          "enable_client": phase_enable_client, "echo": phase_echo}
 
 
 # ---- orchestration ---------------------------------------------------------------------------
 
 
-def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str) -> dict:
+def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, timeout_s: float | None = None) -> dict:
     cmd = [sys.executable, "-m", "bench.bench_agent", "--phase", name, "--ifname", ifname,
            "--drives", str(args.drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us),
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
-           "--rate", str(args.query_rate), "--log-file", log_file]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds * 4 + 120)
+           "--rate", str(args.query_rate), "--log-file", log_file, "--enable-rounds", str(args.enable_rounds),
+           "--gets-per-round", str(args.gets_per_round)]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s or seconds * 4 + 120)
     if p.returncode != 0:
         raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
@@ -400,19 +534,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
 
 
 def run(args) -> dict:
-    from bus_agent.sim.netns import pair_names, veth_down, veth_up
-
-    master_if, sim_if = pair_names(f"bag{os.getpid() % 100000:05d}", 0)
-    workdir = tempfile.mkdtemp(prefix="bench-agent-")
-    veth_up(master_if, sim_if)
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim_if, "--drives", str(args.drives),
-         "--control", os.path.join(workdir, "ctl.sock"), "--rt-priority", str(args.sim_rt_priority)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=open(os.path.join(workdir, "sim.log"), "w"), text=True)
-    try:
-        ready, _, _ = select.select([sim.stdout], [], [], 20)
-        if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
-            raise RuntimeError("ecat-sim did not start")
+    with segment("bag", args.drives, args.sim_rt_priority) as seg:
         phases = ["bare", "agent"] + ([] if args.no_gateway else [f"gateway_{m}" for m in args.gateway_modes])
         # Phases alternate in rounds, so a burst of load from other work on the host lands on
         # all of them alike rather than on whichever phase happened to run then.
@@ -423,27 +545,27 @@ def run(args) -> dict:
             for name in phases:
                 print(f"bench_agent: round {r + 1}/{args.rounds} phase {name} ({per_round:g} s)...",
                       file=sys.stderr, flush=True)
-                log_file = os.path.join(workdir, f"{name}-{r}.periods")
-                parts[name].append(_run_phase(name, master_if, args, per_round, log_file))
+                log_file = os.path.join(seg.workdir, f"{name}-{r}.periods")
+                parts[name].append(_run_phase(name, seg.master_if, args, per_round, log_file))
                 logs[name].append(log_file)
         results = {name: _merge(parts[name], logs[name], args.cycle_us * 1000) for name in phases}
         bare_j = results["bare"]["jitter_us"]["p99"] or 0.1
         ratios = {f"{k}_p99_jitter_over_bare": round(results[k]["jitter_us"]["p99"] / bare_j, 2)
                   for k in results if k != "bare"}
+        enable = None
+        if args.enable_rounds > 0:
+            print(f"bench_agent: phase enable_latency ({args.enable_rounds} enable/disable rounds)...",
+                  file=sys.stderr, flush=True)
+            enable = _run_phase("enable_latency", seg.master_if, args, 0, os.path.join(seg.workdir, "enable"),
+                                timeout_s=180 + args.enable_rounds * 30)
         return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds_per_phase": args.seconds,
                 "rounds": args.rounds, "rt_priority": args.rt_priority, "sim_rt_priority": args.sim_rt_priority,
                 "receive_timeout_us": args.receive_timeout_us, "query_rate": args.query_rate,
                 "gateway_modes": [] if args.no_gateway else args.gateway_modes, "phases": results, "ratios": ratios,
+                "enable_latency": enable,
                 "bridge_encoding": encoding_figures(args.drives),
-                "loadavg_1m": os.getloadavg()[0], "cpus": os.cpu_count()}
-    finally:
-        sim.terminate()
-        try:
-            sim.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-        veth_down(master_if)
-        shutil.rmtree(workdir, ignore_errors=True)
+                "loadavg_1m": os.getloadavg()[0], "loadavg": list(os.getloadavg()), "cpus": os.cpu_count(),
+                "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -459,16 +581,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-gateway", action="store_true", help="skip the agent+gateway+load phases")
     p.add_argument("--gateway-modes", type=lambda v: [m for m in v.split(",") if m], default=["thread", "process"],
                    help="gateway phases to run: thread, process or both (default thread,process)")
+    p.add_argument("--enable-rounds", type=int, default=50,
+                   help="enable_latency phase: enable/disable rounds of every drive (default 50, 0: skip)")
+    p.add_argument("--gets-per-round", type=int, default=5,
+                   help="enable_latency phase: bare zenoh gets per round (default 5)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     # internal: one phase in this process
     p.add_argument("--phase", choices=sorted(PHASES), help=argparse.SUPPRESS)
     p.add_argument("--ifname", help=argparse.SUPPRESS)
     p.add_argument("--connect", help=argparse.SUPPRESS)
+    p.add_argument("--echo", help=argparse.SUPPRESS)
+    p.add_argument("--listen", help=argparse.SUPPRESS)
     p.add_argument("--host", default="bench", help=argparse.SUPPRESS)
     p.add_argument("--log-file", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.phase:
-        print(json.dumps(PHASES[args.phase](args)), flush=True)
+        out = PHASES[args.phase](args)
+        if args.phase != "echo":
+            print(json.dumps(out), flush=True)
         return 0
     if os.geteuid() != 0:
         print("bench_agent: needs root (veth pairs, raw sockets)", file=sys.stderr)

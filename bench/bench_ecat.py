@@ -15,131 +15,102 @@ import argparse
 import gc
 import json
 import os
-import select
-import shutil
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = ROOT / "bench" / "results" / "bench_ecat.json"
+from bench.common import RESULTS, percentile, proc_cpu_s, segment, set_rt_priority
 
-
-def _cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
-
-
-def _percentile(sorted_values: list[float], q: float) -> float:
-    if not sorted_values:
-        return float("nan")
-    return sorted_values[min(len(sorted_values) - 1, int(q * len(sorted_values)))]
+DEFAULT_OUT = RESULTS / "bench_ecat.json"
 
 
 def run(args) -> dict:
     import pysoem
 
     from bus_agent.sim.ecat.control import ControlClient
-    from bus_agent.sim.netns import pair_names, veth_down, veth_up
 
-    master_if, sim_if = pair_names(f"ecb{os.getpid() % 100000:05d}", 0)
-    workdir = tempfile.mkdtemp(prefix="bench-ecat-")
-    ctl_path = os.path.join(workdir, "ctl.sock")
-    veth_up(master_if, sim_if)
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim_if, "--drives", str(args.drives),
-         "--control", ctl_path, "--rt-priority", str(args.sim_rt_priority)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=open(os.path.join(workdir, "sim.log"), "w"), text=True)
-    control = ControlClient(ctl_path)
-    m = pysoem.Master()
-    try:
-        ready, _, _ = select.select([sim.stdout], [], [], 20)
-        if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
-            raise RuntimeError("ecat-sim did not start")
-        if args.master_rt_priority:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.master_rt_priority))
-        m.open(master_if)
-        if m.config_init() != args.drives:
-            raise RuntimeError("config_init did not find every drive")
-        m.config_map()
-        expected = m.expected_wkc
-        if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
-            raise RuntimeError("SAFE-OP not reached")
+    with segment("ecb", args.drives, args.sim_rt_priority) as seg:
+        control = ControlClient(seg.control_path)
+        m = pysoem.Master()
+        try:
+            set_rt_priority(args.master_rt_priority, required=True)
+            return _measure(m, seg, control, args, pysoem)
+        finally:
+            try:
+                m.state = pysoem.INIT_STATE
+                m.write_state()
+                m.close()
+            except Exception:
+                pass
+            control.close()
+
+
+def _measure(m, seg, control, args, pysoem) -> dict:
+    m.open(seg.master_if)
+    if m.config_init() != args.drives:
+        raise RuntimeError("config_init did not find every drive")
+    m.config_map()
+    expected = m.expected_wkc
+    if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
+        raise RuntimeError("SAFE-OP not reached")
+    m.send_processdata()
+    m.receive_processdata(args.timeout_us)
+    m.state = pysoem.OP_STATE
+    m.write_state()
+    deadline = time.monotonic() + 5
+    while m.state_check(pysoem.OP_STATE, 5000) != pysoem.OP_STATE:
+        if time.monotonic() > deadline:
+            raise RuntimeError("OP not reached")
         m.send_processdata()
         m.receive_processdata(args.timeout_us)
-        m.state = pysoem.OP_STATE
-        m.write_state()
-        deadline = time.monotonic() + 5
-        while m.state_check(pysoem.OP_STATE, 5000) != pysoem.OP_STATE:
-            if time.monotonic() > deadline:
-                raise RuntimeError("OP not reached")
-            m.send_processdata()
-            m.receive_processdata(args.timeout_us)
 
-        cycles = int(args.seconds * 1e6 / args.cycle_us)
-        cycle_s = args.cycle_us / 1e6
-        rtts: list[float] = [0.0] * cycles
-        missed = wkc_errors = overruns = 0
-        send, receive, timeout_us = m.send_processdata, m.receive_processdata, args.timeout_us
-        perf, sleep = time.perf_counter, time.sleep
-        counters0 = control.request("status")["counters"]
-        cpu0 = _cpu_seconds(sim.pid)
-        gc.collect()
-        gc.disable()
-        t0 = perf()
-        for k in range(cycles):
-            start = perf()
-            send()
-            wkc = receive(timeout_us)
-            end = perf()
-            rtts[k] = (end - start) * 1e6
-            if wkc <= 0:
-                missed += 1
-            elif wkc != expected:
-                wkc_errors += 1
-            next_t = t0 + (k + 1) * cycle_s
-            delay = next_t - perf()
-            if delay > 0:
-                sleep(delay)
-            else:
-                overruns += 1
-        elapsed = perf() - t0
-        gc.enable()
-        cpu1 = _cpu_seconds(sim.pid)
-        counters1 = control.request("status")["counters"]
-        frames = counters1["frames"] - counters0["frames"]
-        rtts.sort()
-        return {
-            "drives": args.drives, "cycle_us": args.cycle_us, "seconds": round(elapsed, 3), "cycles": cycles,
-            "frames": frames, "frames_per_cycle": round(frames / cycles, 2) if cycles else 0,
-            "expected_wkc": expected,
-            "rtt_us": {"p50": round(_percentile(rtts, 0.5), 1), "p99": round(_percentile(rtts, 0.99), 1),
-                       "p999": round(_percentile(rtts, 0.999), 1), "max": round(rtts[-1], 1) if rtts else None},
-            "missed": missed, "missed_pct": round(100.0 * missed / cycles, 4) if cycles else 0,
-            "wkc_errors": wkc_errors, "overruns": overruns,
-            "sim_cpu_pct": round(100.0 * (cpu1 - cpu0) / elapsed, 1),
-            "sim_cpu_us_per_frame": round((cpu1 - cpu0) / frames * 1e6, 1) if frames else None,
-            "sim_counters": {k: counters1[k] - counters0[k] for k in counters1},
-            "sim_rt_priority": args.sim_rt_priority, "master_rt_priority": args.master_rt_priority,
-            "loadavg_1m": os.getloadavg()[0], "cpus": os.cpu_count(),
-        }
-    finally:
-        try:
-            m.state = pysoem.INIT_STATE
-            m.write_state()
-            m.close()
-        except Exception:
-            pass
-        control.close()
-        sim.terminate()
-        try:
-            sim.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-        veth_down(master_if)
-        shutil.rmtree(workdir, ignore_errors=True)
+    cycles = int(args.seconds * 1e6 / args.cycle_us)
+    cycle_s = args.cycle_us / 1e6
+    rtts: list[float] = [0.0] * cycles
+    missed = wkc_errors = overruns = 0
+    send, receive, timeout_us = m.send_processdata, m.receive_processdata, args.timeout_us
+    perf, sleep = time.perf_counter, time.sleep
+    counters0 = control.request("status")["counters"]
+    cpu0 = proc_cpu_s(seg.sim.pid)
+    gc.collect()
+    gc.disable()
+    t0 = perf()
+    for k in range(cycles):
+        start = perf()
+        send()
+        wkc = receive(timeout_us)
+        end = perf()
+        rtts[k] = (end - start) * 1e6
+        if wkc <= 0:
+            missed += 1
+        elif wkc != expected:
+            wkc_errors += 1
+        next_t = t0 + (k + 1) * cycle_s
+        delay = next_t - perf()
+        if delay > 0:
+            sleep(delay)
+        else:
+            overruns += 1
+    elapsed = perf() - t0
+    gc.enable()
+    cpu1 = proc_cpu_s(seg.sim.pid)
+    counters1 = control.request("status")["counters"]
+    frames = counters1["frames"] - counters0["frames"]
+    rtts.sort()
+    return {
+        "drives": args.drives, "cycle_us": args.cycle_us, "seconds": round(elapsed, 3), "cycles": cycles,
+        "frames": frames, "frames_per_cycle": round(frames / cycles, 2) if cycles else 0,
+        "expected_wkc": expected,
+        "rtt_us": {"p50": round(percentile(rtts, 0.5), 1), "p99": round(percentile(rtts, 0.99), 1),
+                   "p999": round(percentile(rtts, 0.999), 1), "max": round(rtts[-1], 1) if rtts else None},
+        "missed": missed, "missed_pct": round(100.0 * missed / cycles, 4) if cycles else 0,
+        "wkc_errors": wkc_errors, "overruns": overruns,
+        "sim_cpu_pct": round(100.0 * (cpu1 - cpu0) / elapsed, 1),
+        "sim_cpu_us_per_frame": round((cpu1 - cpu0) / frames * 1e6, 1) if frames else None,
+        "sim_counters": {k: counters1[k] - counters0[k] for k in counters1},
+        "sim_rt_priority": args.sim_rt_priority, "master_rt_priority": args.master_rt_priority,
+        "loadavg_1m": os.getloadavg()[0], "cpus": os.cpu_count(),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

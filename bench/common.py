@@ -1,0 +1,120 @@
+"""What the benchmarks share: the virtual segment (veth pair + ``ecat-sim``), real-time
+priority, process CPU time and percentiles.
+
+A benchmark that needs a segment writes::
+
+    with segment("ecb", drives=16, sim_rt_priority=20) as seg:
+        master = pysoem.Master(); master.open(seg.master_if) ...
+
+The pair is named ``<prefix><pid % 100000>`` so parallel runs do not collide, and it is
+removed (with the emulator stopped and its work directory deleted) however the block ends.
+Needs root (veth pairs, raw sockets).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import select
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+#: How long ecat-sim may take to print its ready line.
+SIM_READY_TIMEOUT_S = 20.0
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A running virtual EtherCAT segment: give ``master_if`` to pysoem."""
+
+    master_if: str
+    sim_if: str
+    workdir: str
+    control_path: str
+    sim: subprocess.Popen
+
+
+@contextlib.contextmanager
+def segment(prefix: str, drives: int, sim_rt_priority: int = 20) -> Iterator[Segment]:
+    """veth pair up, ``ecat-sim`` with ``drives`` drives on its far end (SCHED_FIFO
+    ``sim_rt_priority``, 0: off), ready to be scanned; everything torn down on exit."""
+    from bus_agent.sim.netns import pair_names, veth_down, veth_up
+
+    master_if, sim_if = pair_names(f"{prefix}{os.getpid() % 100000:05d}", 0)
+    workdir = tempfile.mkdtemp(prefix=f"bench-{prefix}-")
+    ctl = os.path.join(workdir, "ctl.sock")
+    veth_up(master_if, sim_if)
+    sim = None
+    try:
+        with open(os.path.join(workdir, "sim.log"), "w") as sim_log:
+            sim = subprocess.Popen(
+                [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim_if, "--drives", str(drives),
+                 "--control", ctl, "--rt-priority", str(sim_rt_priority)],
+                cwd=ROOT, stdout=subprocess.PIPE, stderr=sim_log, text=True)
+        ready, _, _ = select.select([sim.stdout], [], [], SIM_READY_TIMEOUT_S)
+        if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
+            raise RuntimeError("ecat-sim did not start")
+        yield Segment(master_if, sim_if, workdir, ctl, sim)
+    finally:
+        if sim is not None:
+            sim.terminate()
+            try:
+                sim.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+                sim.wait()
+        veth_down(master_if)
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def set_rt_priority(prio: int, *, required: bool = False) -> None:
+    """SCHED_FIFO ``prio`` for the calling thread (0: leave the policy alone). A refusal raises
+    if ``required``, else it is said on stderr and the run goes on at normal priority."""
+    if not prio:
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except OSError as e:
+        if required:
+            raise
+        print(f"SCHED_FIFO {prio} refused: {e}", file=sys.stderr)
+
+
+def proc_cpu_s(pid: int) -> float:
+    """utime + stime of process ``pid`` in seconds (/proc/<pid>/stat fields 14 and 15)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def percentile(sorted_values: Sequence[float], q: float) -> float:
+    """The value at rank ``int(q * n)`` of an ascending sequence (nan if empty)."""
+    if not sorted_values:
+        return float("nan")
+    return sorted_values[min(len(sorted_values) - 1, int(q * len(sorted_values)))]
+
+
+def summary_ms(values_s: Sequence[float]) -> dict:
+    """p50 / p99 / max in ms of a list of durations in seconds ({} if empty)."""
+    if not values_s:
+        return {}
+    v = sorted(values_s)
+    return {"n": len(v), "p50_ms": round(percentile(v, 0.5) * 1e3, 3), "p99_ms": round(percentile(v, 0.99) * 1e3, 3),
+            "max_ms": round(v[-1] * 1e3, 3)}
+
+
+def free_port() -> int:
+    """A TCP port free on loopback right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
