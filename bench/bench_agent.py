@@ -1,7 +1,8 @@
 """Benchmark: the agent cycle vs a bare pysoem loop, 16 drives at 1 kHz on the virtual segment.
 
     python -m bench.bench_agent [--drives 16] [--seconds 60] [--rounds 6] [--rt-priority 10]
-                                [--gateway-modes thread,process] [--no-gateway] [--out FILE]
+                                [--gateway-modes thread,process] [--no-gateway]
+                                [--enable-rounds 50] [--gets-per-round 5] [--out FILE]
 
 One veth pair and one ``ecat-sim`` serve every phase; the phases alternate in ``--rounds``
 rounds (N/rounds seconds each), each run in its own process (so process CPU is its own), and
@@ -16,6 +17,16 @@ the periods of all rounds of a phase are merged:
    own child process behind ``bus_agent.bridge`` (``gateway = "process"``, the default), while
    a separate process sends 200 queries/s (gets on drive status keys) and subscribes to all
    status. The process phase also reports the gateway process's CPU and the bridge's rate.
+
+After the rounds, ``enable_latency`` (``--enable-rounds`` rounds, 0: skip): the real agent with
+its gateway process and every drive disabled; a client process sends a ``CommandRequest`` enable
+to ``drives/@v1/bench/drive/*/cmd/enable`` (QueryTarget.ALL, ConsolidationMode.NONE) and times
+query sent -> last drive's reply, then disables every drive (not timed). Each ``CommandReply``
+carries ``cycles`` (agent cycles from receipt to outcome) and ``elapsed_s``; reported: p50/p99 of
+the latency, of latency - max(cycles) * cycle (the time beyond the drives' own transition
+cycles) and of latency - max(elapsed_s), next to a bare zenoh get round trip measured in the same
+rounds (``--gets-per-round`` per round) to a trivial queryable in its own process, reached the
+same way (one direct peer link over loopback TCP), and their ratios.
 
 The JSON also holds ``bridge_encoding``: bytes and encode/decode time of one bridge snapshot
 message, pickle vs msgpack, and the cost of the per-cycle forward check.
@@ -40,7 +51,8 @@ import time
 from array import array
 from pathlib import Path
 
-from bench.common import RESULTS, ROOT, free_port, percentile, proc_cpu_s, segment, set_rt_priority, summary_ms
+from bench.common import (RESULTS, ROOT, free_port, main_result, percentile, pysoem_to_op, proc_cpu_s, segment, set_rt_priority,
+                          stop_process, summary_ms)
 
 DEFAULT_OUT = RESULTS / "bench_agent.json"
 SPIN_NS = 150_000
@@ -82,23 +94,7 @@ def phase_bare(args) -> dict:
     from bus_agent.pdo import RX_STRUCT
 
     m = pysoem.Master()
-    m.open(args.ifname)
-    if m.config_init() != args.drives:
-        raise RuntimeError("config_init did not find every drive")
-    m.config_map()
-    if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
-        raise RuntimeError("SAFE-OP not reached")
-    m.send_processdata()
-    m.receive_processdata(2000)
-    m.state = pysoem.OP_STATE
-    m.write_state()
-    deadline = time.monotonic() + 5
-    while m.state_check(pysoem.OP_STATE, 5000) != pysoem.OP_STATE:
-        if time.monotonic() > deadline:
-            raise RuntimeError("OP not reached")
-        m.send_processdata()
-        m.receive_processdata(2000)
-    expected = m.expected_wkc
+    expected = pysoem_to_op(m, args.ifname, args.drives)
     slaves = list(m.slaves)
     period = args.cycle_us * 1000
     n = int(args.seconds * 1e9 / period)
@@ -475,13 +471,7 @@ def phase_enable_latency(args) -> dict:
         return res
     finally:
         for p in procs:
-            if p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(timeout=5)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_process(p)
         agent.stop()
 
 
@@ -600,15 +590,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.phase != "echo":
             print(json.dumps(out), flush=True)
         return 0
-    if os.geteuid() != 0:
-        print("bench_agent: needs root (veth pairs, raw sockets)", file=sys.stderr)
-        return 1
-    result = run(args)
-    text = json.dumps(result, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
-    return 0
+    return main_result("bench_agent", lambda: run(args), args.out)
 
 
 if __name__ == "__main__":

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
 import sys
 import time
 from pathlib import Path
 
-from bench.common import RESULTS, percentile, proc_cpu_s, segment, set_rt_priority
+from bench.common import RESULTS, main_result, percentile, pysoem_to_op, proc_cpu_s, segment, set_rt_priority
 
 DEFAULT_OUT = RESULTS / "bench_ecat.json"
 
@@ -46,23 +45,7 @@ def run(args) -> dict:
 
 
 def _measure(m, seg, control, args, pysoem) -> dict:
-    m.open(seg.master_if)
-    if m.config_init() != args.drives:
-        raise RuntimeError("config_init did not find every drive")
-    m.config_map()
-    expected = m.expected_wkc
-    if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
-        raise RuntimeError("SAFE-OP not reached")
-    m.send_processdata()
-    m.receive_processdata(args.timeout_us)
-    m.state = pysoem.OP_STATE
-    m.write_state()
-    deadline = time.monotonic() + 5
-    while m.state_check(pysoem.OP_STATE, 5000) != pysoem.OP_STATE:
-        if time.monotonic() > deadline:
-            raise RuntimeError("OP not reached")
-        m.send_processdata()
-        m.receive_processdata(args.timeout_us)
+    expected = pysoem_to_op(m, seg.master_if, args.drives, args.timeout_us)
 
     cycles = int(args.seconds * 1e6 / args.cycle_us)
     cycle_s = args.cycle_us / 1e6
@@ -123,15 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--master-rt-priority", type=int, default=10, help="SCHED_FIFO priority of this master (0: off)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
-    if os.geteuid() != 0:
-        print("bench_ecat: needs root (veth pairs, raw sockets)", file=sys.stderr)
-        return 1
-    result = run(args)
-    text = json.dumps(result, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
-    return 0
+    return main_result("bench_ecat", lambda: run(args), args.out)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ Needs root (veth pairs, raw sockets).
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import select
@@ -24,7 +25,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -68,14 +69,60 @@ def segment(prefix: str, drives: int, sim_rt_priority: int = 20) -> Iterator[Seg
         yield Segment(master_if, sim_if, workdir, ctl, sim)
     finally:
         if sim is not None:
-            sim.terminate()
-            try:
-                sim.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                sim.kill()
-                sim.wait()
+            stop_process(sim)
         veth_down(master_if)
         shutil.rmtree(workdir, ignore_errors=True)
+
+
+def pysoem_to_op(m, ifname: str, drives: int, receive_timeout_us: int = 2000) -> int:
+    """Open ``ifname`` with pysoem master ``m``, scan and map ``drives`` slaves, bring them to
+    SAFE-OP, then OP (process data flowing meanwhile); returns the expected working counter."""
+    import time
+
+    import pysoem
+
+    m.open(ifname)
+    if m.config_init() != drives:
+        raise RuntimeError("config_init did not find every drive")
+    m.config_map()
+    if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
+        raise RuntimeError("SAFE-OP not reached")
+    m.send_processdata()
+    m.receive_processdata(receive_timeout_us)
+    m.state = pysoem.OP_STATE
+    m.write_state()
+    deadline = time.monotonic() + 5
+    while m.state_check(pysoem.OP_STATE, 5000) != pysoem.OP_STATE:
+        if time.monotonic() > deadline:
+            raise RuntimeError("OP not reached")
+        m.send_processdata()
+        m.receive_processdata(receive_timeout_us)
+    return m.expected_wkc
+
+
+def stop_process(p: subprocess.Popen, timeout_s: float = 5.0) -> None:
+    """SIGTERM, then SIGKILL after ``timeout_s``; reaped either way."""
+    if p.poll() is not None:
+        return
+    p.terminate()
+    try:
+        p.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
+
+
+def main_result(name: str, run: Callable[[], dict], out: Path) -> int:
+    """The shell of a root benchmark: refuse without root, else ``run()``, print the JSON and
+    write it to ``out``."""
+    if os.geteuid() != 0:
+        print(f"{name}: needs root (veth pairs, raw sockets)", file=sys.stderr)
+        return 1
+    text = json.dumps(run(), indent=2)
+    print(text)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text + "\n")
+    return 0
 
 
 def set_rt_priority(prio: int, *, required: bool = False) -> None:

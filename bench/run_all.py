@@ -42,29 +42,27 @@ ECAT_MISSED_PCT_MAX = 0.1
 AGENT_JITTER_RATIO_MAX = 1.25
 
 
+#: Per mode: (ecat 16 s, ecat 64 s, agent flags, supervisor flags).
+SETTINGS = {
+    "full": ("60", "60", ["--seconds", "60", "--rounds", "1", "--rt-priority", "10"], []),
+    "quick": ("5", "3", ["--seconds", "4", "--rounds", "1", "--rt-priority", "10", "--enable-rounds", "10"],
+              ["--sizes", "4x16", "--rounds", "1", "--gets", "50"]),
+}
+
+
 def plan(quick: bool, out: Path) -> list[tuple[str, list[str], Path, bool]]:
     """(name, argv after ``python -m``, JSON file, needs root) of every run, in order."""
-    py = "bench.bench_ecat"
-    if quick:
-        return [
-            ("ecat_16", [py, "--drives", "16", "--seconds", "5", "--out", str(out / "bench_ecat.json")],
-             out / "bench_ecat.json", True),
-            ("ecat_64", [py, "--drives", "64", "--seconds", "3", "--out", str(out / "bench_ecat_64.json")],
-             out / "bench_ecat_64.json", True),
-            ("agent", ["bench.bench_agent", "--seconds", "4", "--rounds", "1", "--rt-priority", "10",
-                       "--enable-rounds", "10", "--out", str(out / "bench_agent.json")], out / "bench_agent.json", True),
-            ("supervisor", ["bench.bench_supervisor", "--sizes", "4x16", "--rounds", "1", "--gets", "50",
-                            "--output", str(out / "bench_supervisor.json")], out / "bench_supervisor.json", False),
-        ]
+    ecat16_s, ecat64_s, agent, sup = SETTINGS["quick" if quick else "full"]
+    files = {n: out / f for n, f in (("ecat_16", "bench_ecat.json"), ("ecat_64", "bench_ecat_64.json"),
+                                     ("agent", "bench_agent.json"), ("supervisor", "bench_supervisor.json"))}
     return [
-        ("ecat_16", [py, "--drives", "16", "--seconds", "60", "--out", str(out / "bench_ecat.json")],
-         out / "bench_ecat.json", True),
-        ("ecat_64", [py, "--drives", "64", "--seconds", "60", "--out", str(out / "bench_ecat_64.json")],
-         out / "bench_ecat_64.json", True),
-        ("agent", ["bench.bench_agent", "--seconds", "60", "--rounds", "1", "--rt-priority", "10",
-                   "--out", str(out / "bench_agent.json")], out / "bench_agent.json", True),
-        ("supervisor", ["bench.bench_supervisor", "--output", str(out / "bench_supervisor.json")],
-         out / "bench_supervisor.json", False),
+        ("ecat_16", ["bench.bench_ecat", "--drives", "16", "--seconds", ecat16_s, "--out", str(files["ecat_16"])],
+         files["ecat_16"], True),
+        ("ecat_64", ["bench.bench_ecat", "--drives", "64", "--seconds", ecat64_s, "--out", str(files["ecat_64"])],
+         files["ecat_64"], True),
+        ("agent", ["bench.bench_agent", *agent, "--out", str(files["agent"])], files["agent"], True),
+        ("supervisor", ["bench.bench_supervisor", *sup, "--output", str(files["supervisor"])], files["supervisor"],
+         False),
     ]
 
 
