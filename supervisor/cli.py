@@ -17,7 +17,7 @@ import argparse
 import json
 import logging
 import sys
-from typing import Any, Sequence
+from typing import Sequence
 
 from rich.console import Console
 

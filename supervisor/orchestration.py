@@ -134,7 +134,7 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
         before_phase("enable")
     for i, sel in enumerate(stage_sels):
         res = fleet.command("enable", sel, timeout_s=timeout_s)
-        steps.append((f"enable" if len(stage_sels) == 1 else f"enable:stage{i + 1}", res))
+        steps.append(("enable" if len(stage_sels) == 1 else f"enable:stage{i + 1}", res))
         failures.extend(res.failures)
         if not res.ok:
             break  # later stages depend on earlier ones: do not enable them

@@ -13,84 +13,22 @@ Not for production: it picks free loopback ports and turns multicast scouting of
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
 import sys
 import threading
-import time
-from dataclasses import dataclass, field
-from typing import IO, Any, Sequence
+from typing import Sequence
+
+from bus_agent.sim.child import ChildProcess, child_env, free_port
 
 
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 now (the OS picks it)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.setdefault("PYTHONUNBUFFERED", "1")
-    return env
-
-
-@dataclass
-class Proc:
-    """A child process with its output collected (for failure messages)."""
-
-    name: str
-    popen: subprocess.Popen
-    lines: list[str] = field(default_factory=list)
-    _ready: threading.Event = field(default_factory=threading.Event)
-    ready_marker: str = ""
-
-    def start_reader(self) -> None:
-        def pump(stream: IO[str]) -> None:
-            for line in stream:
-                self.lines.append(line.rstrip("\n"))
-                if self.ready_marker and self.ready_marker in line.lower():
-                    self._ready.set()
-            self._ready.set()  # EOF: stop anyone waiting
-        threading.Thread(target=pump, args=(self.popen.stdout,), daemon=True).start()
-
-    def wait_ready(self, timeout_s: float) -> bool:
-        return self._ready.wait(timeout_s) and self.popen.poll() is None
-
-    def output(self, last: int = 40) -> str:
-        return "\n".join(self.lines[-last:])
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def kill(self) -> None:
-        """SIGKILL: a crash, no clean-up in the child."""
-        if self.popen.poll() is None:
-            self.popen.kill()
-        self.popen.wait(timeout=10)
-
-    def stop(self, timeout_s: float = 10.0) -> None:
-        """SIGTERM, then SIGKILL after ``timeout_s``."""
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGTERM)
-            try:
-                self.popen.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(timeout=10)
+# One child-process implementation for every test bed (output kept, own session).
+Proc = ChildProcess
+_env = child_env
 
 
 def spawn(name: str, argv: Sequence[str], ready_marker: str = "") -> Proc:
-    popen = subprocess.Popen(list(argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                             env=_env(), start_new_session=True)
-    p = Proc(name, popen, ready_marker=ready_marker.lower())
-    p.start_reader()
-    return p
+    """Start ``argv`` as a test-bed child; ready once a line contains ``ready_marker``."""
+    return ChildProcess(name, argv, ready_marker=ready_marker)
 
 
 def start_router(port: int | None = None) -> tuple[Proc, str]:

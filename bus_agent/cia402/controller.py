@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from enum import Enum
 
 from bus_agent.cia402.states import (
-    CONTROLWORD_FAULT_RESET_BIT,
     CONTROLWORD_HALT,
     DISABLE_OPERATION,
     TRANSITIONS,

@@ -27,95 +27,21 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence, TypeVar
+from typing import Any, Sequence
 
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:  # run as a script
     sys.path.insert(0, str(ROOT))
 
+from bus_agent.sim.child import ChildProcess, child_env  # noqa: E402
 from bus_agent.sim.netns import MultiHostBed, multihost_down, multihost_link, multihost_plan, multihost_up  # noqa: E402
 
 ROUTER_PORT = 7447
-T = TypeVar("T")
 
 
-def wait_for(pred: Callable[[], T], timeout_s: float, what: str, poll_s: float = 0.02) -> T:
-    """Poll ``pred`` until truthy (returned); AssertionError naming ``what`` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(poll_s)
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
-class Proc:
-    """A child process (own session) with its output collected line by line."""
-
-    def __init__(self, name: str, argv: Sequence[str], ready: str = "", stdin: bool = False) -> None:
-        self.name, self.argv, self.ready_marker = name, list(argv), ready
-        self.lines: list[str] = []
-        self._ready = threading.Event()
-        self.popen = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                      stdin=subprocess.PIPE if stdin else subprocess.DEVNULL, cwd=ROOT, env=_env(),
-                                      start_new_session=True)
-        self._reader = threading.Thread(target=self._pump, name=f"{name}-out", daemon=True)
-        self._reader.start()
-
-    def on_line(self, line: str) -> None:
-        """Hook for subclasses (reader thread)."""
-
-    def _pump(self) -> None:
-        assert self.popen.stdout is not None
-        for raw in self.popen.stdout:
-            line = raw.rstrip("\n")
-            self.lines.append(line)
-            self.on_line(line)
-            if self.ready_marker and line.startswith(self.ready_marker):
-                self._ready.set()
-        self._ready.set()  # EOF: wake anyone waiting
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def output(self, last: int = 40) -> str:
-        return "\n".join(self.lines[-last:])
-
-    def wait_ready(self, timeout_s: float) -> None:
-        if not self._ready.wait(timeout_s) or self.popen.poll() is not None:
-            raise AssertionError(f"{self.name} not ready (exit {self.popen.poll()}):\n{self.output()}")
-
-    def kill(self) -> None:
-        """SIGKILL this child's process group: a crash, no clean-up."""
-        if self.popen.poll() is None:
-            try:
-                os.killpg(self.popen.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        try:
-            self.popen.wait(10)
-        except subprocess.TimeoutExpired:
-            pass
-
-    def stop(self, timeout_s: float = 10.0) -> int | None:
-        """SIGTERM, then SIGKILL after ``timeout_s``; returns the exit code."""
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGTERM)
-            try:
-                self.popen.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.kill()
-        return self.popen.poll()
+# One child-process implementation for every test bed (bus_agent/sim/child.py).
+Proc = ChildProcess
+_env = child_env
 
 
 class PathControlClient:
@@ -167,7 +93,7 @@ class SupervisorProc(Proc):
         self.replies: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
         self.events: list[dict] = []
         self._ids = itertools.count(1)
-        super().__init__(name, argv, ready="supervisor ready", stdin=True)
+        super().__init__(name, argv, ready_marker="supervisor ready", stdin=True)
 
     def on_line(self, line: str) -> None:
         if not line.startswith("{"):
@@ -237,21 +163,21 @@ class MultiHostRun:
             sock = os.path.join(self.workdir, f"{h}.sock")
             self.sims[h] = self.spawn(Proc, f"ecat-sim {h}", h, [
                 py, "-m", "bus_agent.sim.cli", "--ifname", hb.ecat_sim, "--drives", str(self.drives),
-                "--name", h, "--control", sock, "--rt-priority", "20"], ready="ecat-sim ready")
+                "--name", h, "--control", sock, "--rt-priority", "20"], ready_marker="ecat-sim ready")
             connect: list[str] = []
             for other in hosts[:hosts.index(h)]:
                 connect += ["--connect", self.router_endpoint(other)]
             self.routers[h] = self.spawn(Proc, f"router {h}", h, [
                 py, "-m", "bus_agent.router", "--listen", self.router_endpoint(h), *connect],
-                ready="drives-router ready")
+                ready_marker="drives-router ready")
         for h in hosts:
-            self.sims[h].wait_ready(ready_timeout_s)
+            self.sims[h].expect_ready(ready_timeout_s)
             self.controls[h] = PathControlClient(os.path.join(self.workdir, f"{h}.sock"))
-            self.routers[h].wait_ready(ready_timeout_s)
+            self.routers[h].expect_ready(ready_timeout_s)
         for h in hosts:
             self.agents[h] = self.start_agent(h)
         for h in hosts:
-            self.agents[h].wait_ready(ready_timeout_s)
+            self.agents[h].expect_ready(ready_timeout_s)
 
     def start_agent(self, host: str) -> Proc:
         hb = self.bed.host(host)
@@ -262,13 +188,13 @@ class MultiHostRun:
         return self.spawn(Proc, f"bus-agent {host}", host, [
             sys.executable, "-m", "bus_agent.cli", "--config", str(cfg), "--ifname", hb.ecat_master or "",
             "--host", host, "--connect", self.router_endpoint(host), "--log-level", "WARNING"],
-            ready="bus-agent ready")
+            ready_marker="bus-agent ready")
 
     def start_supervisor(self, ns: str, connect_host: str, name: str, ready_timeout_s: float = 20.0) -> SupervisorProc:
         sup = self.spawn(SupervisorProc, f"supervisor {name}", ns, [
             sys.executable, str(Path(__file__).resolve()), "supervisor",
             "--connect", self.router_endpoint(connect_host), "--name", name])
-        sup.wait_ready(ready_timeout_s)
+        sup.expect_ready(ready_timeout_s)
         return sup
 
     def drivectl(self, ns: str, connect_host: str, *args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess:

@@ -13,7 +13,6 @@ The tests run in file order on one bed; each states what it needs from the previ
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -24,7 +23,8 @@ import zenoh
 from bus_agent.sim.netns import NetnsError, multihost_plan
 from bus_agent.zenoh_config import DEFAULT_LINK_LEASE_MS, make_zenoh_config
 from tests.conftest import require, require_root
-from tests.system.multihost import ROOT, MultiHostRun, Proc, SupervisorProc, wait_for
+from bus_agent.sim.child import free_port, wait_for
+from tests.system.multihost import ROOT, MultiHostRun, Proc, SupervisorProc
 
 pytestmark = [pytest.mark.timeout(150)]
 
@@ -166,18 +166,12 @@ def test_multihost_plan_rejects_bad_input(kwargs, match):
         multihost_plan(args.pop("prefix"), args.pop("hosts"), **args)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_drives_router_relays_between_clients_and_stops_cleanly_on_sigterm(tmp_path):
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     router = Proc("drives-router", [sys.executable, "-m", "bus_agent.router", "--config",
-                                    str(ROOT / "deploy" / "router.json5"), "--listen", ep], ready="drives-router ready")
+                                    str(ROOT / "deploy" / "router.json5"), "--listen", ep], ready_marker="drives-router ready")
     try:
-        router.wait_ready(20)
+        router.expect_ready(20)
         assert f"listen={ep}" in router.lines[0]
         # Two clients meet only through the router.
         a = zenoh.open(make_zenoh_config("client", (), (ep,)))
