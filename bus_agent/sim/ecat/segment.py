@@ -298,4 +298,5 @@ class Segment:
         return [{"slave": e.position, "present": e.present, "al_state": e.al_state.wire_name,
                  "al_error": e.al_error, "al_status_code": e.al_code, "station_address": e.station_address,
                  "drive_state": e.model.state.value, "statusword": e.model.statusword,
+                 "controlword": e.model.read(0x6040, 0), "mode_display": e.model.read(0x6061, 0),
                  "error_code": e.model.error_code, "wkc_fault": e.wkc_fault} for e in self.escs]
