@@ -60,6 +60,18 @@ STATS_EVERY = 250
 #: this many cycles later (a later poll): a few dropped or late frames are not a lost slave.
 NO_ANSWER_CONFIRM_CYCLES = 8
 
+#: (pending command kind, controller event) -> (terminal outcome, reason when the event has none).
+OUTCOME_OF_EVENT: dict[tuple[str, EventKind], tuple[str, str]] = {
+    ("goal", EventKind.GOAL_REACHED): ("done", ""),
+    ("goal", EventKind.GOAL_FAILED): ("failed", "goal failed"),
+    ("goal", EventKind.GOAL_TIMEOUT): ("timeout", "transition deadline passed"),
+    ("mode", EventKind.MODE_CONFIRMED): ("done", ""),
+    ("mode", EventKind.MODE_REJECTED): ("rejected", "mode not supported (0x6502)"),
+    ("mode", EventKind.MODE_TIMEOUT): ("timeout", "0x6061 did not echo the mode"),
+    ("fault_reset", EventKind.FAULT_RESET_DONE): ("done", ""),
+    ("fault_reset", EventKind.FAULT_RESET_FAILED): ("failed", "fault reset retries exhausted"),
+}
+
 GOAL_OF_OP = {
     "enable": Goal.ENABLED,
     "switch_on": Goal.SWITCHED_ON,
@@ -840,25 +852,10 @@ class Cycle:
                             error_code=d.inputs.error_code)
             if p is None or d.pending is not p:
                 continue
-            if p.kind == "goal":
-                if k == EventKind.GOAL_REACHED:
-                    self._resolve(d, "done", "", now_ns)
-                elif k == EventKind.GOAL_FAILED:
-                    self._resolve(d, "failed", ev.reason or "goal failed", now_ns)
-                elif k == EventKind.GOAL_TIMEOUT:
-                    self._resolve(d, "timeout", ev.reason or "transition deadline passed", now_ns)
-            elif p.kind == "mode":
-                if k == EventKind.MODE_CONFIRMED:
-                    self._resolve(d, "done", "", now_ns)
-                elif k == EventKind.MODE_REJECTED:
-                    self._resolve(d, "rejected", ev.reason or "mode not supported (0x6502)", now_ns)
-                elif k == EventKind.MODE_TIMEOUT:
-                    self._resolve(d, "timeout", ev.reason or "0x6061 did not echo the mode", now_ns)
-            elif p.kind == "fault_reset":
-                if k == EventKind.FAULT_RESET_DONE:
-                    self._resolve(d, "done", "", now_ns)
-                elif k == EventKind.FAULT_RESET_FAILED:
-                    self._resolve(d, "failed", ev.reason or "fault reset retries exhausted", now_ns)
+            terminal = OUTCOME_OF_EVENT.get((p.kind, k))
+            if terminal is not None:
+                outcome, default_reason = terminal
+                self._resolve(d, outcome, "" if outcome == "done" else ev.reason or default_reason, now_ns)
 
     def _auto_reset(self, d: _Drive, now_ns: int) -> None:
         a = d.cfg.policy.auto_reset
