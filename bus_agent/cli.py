@@ -111,6 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"bus-agent: {exc}", file=sys.stderr)
         return EXIT_STARTUP
     z = config.zenoh
+    assert agent.bus is not None  # started
     print(f"bus-agent ready host={config.host} drives={','.join(agent.axes)} backend={agent.bus.backend} "
           f"listen={','.join(z.listen) or '-'} connect={','.join(z.connect) or '-'}", flush=True)
     code = EXIT_OK

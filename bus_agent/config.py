@@ -155,7 +155,8 @@ class AgentConfig:
             t.setdefault("sim_drives", 0)
         elif t.get("sim_drives"):
             t.setdefault("ifname", None)
-        return dataclasses.replace(self, zenoh=dataclasses.replace(self.zenoh, **z), **t)
+        zenoh: ZenohConfig = dataclasses.replace(self.zenoh, **z)  # type: ignore[arg-type]  # keys checked above
+        return dataclasses.replace(self, zenoh=zenoh, **t)
 
 
 # ---- validation -----------------------------------------------------------------------------

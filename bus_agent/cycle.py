@@ -232,32 +232,31 @@ class Cycle:
         try:
             self.slaves = list(self.bus.open())
             configs = self.config.drive_configs(len(self.slaves))
-            for d in configs:
-                info = self.slaves[d.slave]
+            for dc in configs:
+                info = self.slaves[dc.slave]
                 ident = info.identity
-                if d.identity is not None and not d.identity.matches(ident.vendor_id, ident.product_code,
+                if dc.identity is not None and not dc.identity.matches(ident.vendor_id, ident.product_code,
                                                                      ident.revision):
                     raise IdentityMismatch(
-                        f"slave {d.slave} ({info.name!r}, axis {d.axis!r}): identity vendor 0x{ident.vendor_id:08X} "
+                        f"slave {dc.slave} ({info.name!r}, axis {dc.axis!r}): identity vendor 0x{ident.vendor_id:08X} "
                         f"product 0x{ident.product_code:08X} revision 0x{ident.revision:08X} does not match the "
-                        f"configured {d.identity}")
-                if d.identity is None:
+                        f"configured {dc.identity}")
+                if dc.identity is None:
                     log.info("slave %d (%s) axis %s: identity not configured, accepting vendor 0x%08X product 0x%08X",
-                             d.slave, info.name, d.axis, ident.vendor_id, ident.product_code)
-            overrides = {d.slave: d.pdo for d in configs if d.pdo is not None}
+                             dc.slave, info.name, dc.axis, ident.vendor_id, ident.product_code)
+            overrides = {dc.slave: dc.pdo for dc in configs if dc.pdo is not None}
             self.bus.start(overrides or None)
-            supported = {d.slave: self._read_supported_modes(d) for d in configs}
+            supported = {dc.slave: self._read_supported_modes(dc) for dc in configs}
         except BaseException:
             self.state = "error"
             self._close_bus()
             raise
-        for d in configs:
-            p = d.policy
-            cc = ControllerConfig(transition_timeout_s=p.transition_timeout_s, fault_reset_retries=p.fault_reset_retries,
-                                  mode_timeout_s=p.transition_timeout_s)
-            drv = _Drive(cfg=d, axis=d.axis, slave=d.slave,
-                         ctrl=DriveController(cc, mode=d.mode, supported_modes=supported[d.slave]))
-            self.drives.append(drv)
+        for dc in configs:
+            pol = dc.policy
+            cc = ControllerConfig(transition_timeout_s=pol.transition_timeout_s,
+                                  fault_reset_retries=pol.fault_reset_retries, mode_timeout_s=pol.transition_timeout_s)
+            self.drives.append(_Drive(cfg=dc, axis=dc.axis, slave=dc.slave,
+                                      ctrl=DriveController(cc, mode=dc.mode, supported_modes=supported[dc.slave])))
         self._by_axis = {d.axis: d for d in self.drives}
         self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
         self._al_status = [SlaveALStatus(ALState.OP, False, 0)] * len(self.slaves)
@@ -578,12 +577,12 @@ class Cycle:
                 self._controller_events(d, out.events, prev, now_ns)
 
         for d in self.drives:
-            p = d.pending
-            if p is not None and now_ns >= p.deadline_ns:
-                if p.kind == "goal" and d.ctrl.goal in _UPWARD_GOALS:
+            pend = d.pending
+            if pend is not None and now_ns >= pend.deadline_ns:
+                if pend.kind == "goal" and d.ctrl.goal in _UPWARD_GOALS:
                     # Nobody waits for this goal any more: do not pursue it.
                     d.ctrl.set_goal(Goal.DISABLED, now_s)
-                self._resolve(d, "timeout", f"{p.cmd.op} not done within {p.cmd.timeout_s:g} s", now_ns)
+                self._resolve(d, "timeout", f"{pend.cmd.op} not done within {pend.cmd.timeout_s:g} s", now_ns)
         if self._nmt is not None:
             self._step_nmt(now_ns)
         if cycle % RECOVER_EVERY_CYCLES == 0:

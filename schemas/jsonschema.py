@@ -115,7 +115,7 @@ def _op_rules() -> list[dict]:
     return rules
 
 
-def message_schema(cls: type) -> dict:
+def message_schema(cls: type[Any]) -> dict:
     """The JSON Schema of message class ``cls`` (one of :data:`schemas.messages.MESSAGE_TYPES`)."""
     props: dict[str, Any] = {
         "v": {"description": "schema version", "type": "integer", "const": SCHEMA_VERSION},

@@ -11,6 +11,8 @@ codec, the JSON Schema export and the README are generated from one definition.
 
 from __future__ import annotations
 
+import copy
+import functools
 import dataclasses
 import types
 import typing
@@ -84,7 +86,7 @@ def _f(default: Any = dataclasses.MISSING, **meta: Any) -> Any:
     if default is dataclasses.MISSING:
         return field(metadata=meta)
     if isinstance(default, (dict, list)):
-        return field(default_factory=lambda d=default: type(d)(d), metadata=meta)
+        return field(default_factory=functools.partial(copy.copy, default), metadata=meta)
     return field(default=default, metadata=meta)
 
 
@@ -226,7 +228,7 @@ class CommandReply:
     lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="holder of the lease (busy), '' if none")
 
 
-MESSAGE_TYPES: tuple[type, ...] = (DriveStatus, AgentStatus, Event, CommandRequest, CommandReply)
+MESSAGE_TYPES: tuple[type[Any], ...] = (DriveStatus, AgentStatus, Event, CommandRequest, CommandReply)
 _BY_TYPE = {cls.TYPE: cls for cls in MESSAGE_TYPES}
 
 
@@ -309,7 +311,7 @@ def validate_args(op: str, args: dict) -> dict:
 _HINTS: dict[type, dict[str, type]] = {}
 
 
-def _field_types(cls: type) -> dict[str, type]:
+def _field_types(cls: type[Any]) -> dict[str, type]:
     """Base runtime type of every field (``list`` for ``list[str]``, ``X`` for ``X | None``)."""
     hints = _HINTS.get(cls)
     if hints is None:
@@ -322,7 +324,7 @@ def _field_types(cls: type) -> dict[str, type]:
     return hints
 
 
-def _base_type(cls: type, name: str) -> type:
+def _base_type(cls: type[Any], name: str) -> type:
     return _field_types(cls)[name]
 
 
@@ -421,7 +423,7 @@ def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) 
     return value
 
 
-def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
+def _check_field(cls: type[Any], f: dataclasses.Field, value: Any) -> Any:
     return _check_value(f"{cls.TYPE}.{f.name}", _base_type(cls, f.name), f.metadata, value,
                         allow_empty=f.default == "")
 
@@ -429,7 +431,7 @@ def _check_field(cls: type, f: dataclasses.Field, value: Any) -> Any:
 _PLANS: dict[type, tuple[frozenset, tuple]] = {}
 
 
-def _plan(cls: type) -> tuple[frozenset, tuple]:
+def _plan(cls: type[Any]) -> tuple[frozenset, tuple]:
     """Per class, once: known field names and (name, where, type, meta, allow_empty, required)."""
     plan = _PLANS.get(cls)
     if plan is None:
@@ -443,7 +445,7 @@ def _plan(cls: type) -> tuple[frozenset, tuple]:
     return plan
 
 
-def _validated(cls: type, body: dict) -> dict:
+def _validated(cls: type[Any], body: dict) -> dict:
     """Field values of ``cls`` taken from ``body``, checked and normalised."""
     known, rows = _plan(cls)
     if not known.issuperset(body):
@@ -492,7 +494,7 @@ def encode(msg: Any) -> bytes:
         raise SchemaError(f"cannot encode {msg.TYPE}: {exc}") from None
 
 
-def decode(data: bytes, expected: type | None = None) -> Any:
+def decode(data: bytes, expected: type[Any] | None = None) -> Any:
     """Decode and validate ``data``; raise :class:`SchemaError` (and nothing else) if invalid.
 
     ``data`` is bytes-like (or has ``to_bytes()``, as a zenoh ``ZBytes``). ``expected``
@@ -515,7 +517,7 @@ def decode(data: bytes, expected: type | None = None) -> Any:
         raise SchemaError(f"internal error while validating payload: {type(exc).__name__}: {exc}") from None
 
 
-def from_dict(body: Any, expected: type | None = None) -> Any:
+def from_dict(body: Any, expected: type[Any] | None = None) -> Any:
     """Validate a decoded map (see :func:`decode`)."""
     if not isinstance(body, dict):
         raise SchemaError(f"payload is not a map (got {type(body).__name__})")

@@ -124,10 +124,10 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
                         reason += f"; rollback {op} incomplete: " + _describe(rb.failures)
             log.warning("enable: %s", reason)
             # The final per-drive view: phase-1 failures stay visible next to the rollbacks.
-            final = {DriveRef(r.host, r.axis): r for r in final_results(steps)}
+            last = {DriveRef(r.host, r.axis): r for r in final_results(steps)}
             for r in phase1.failures:
-                final[DriveRef(r.host, r.axis)] = r
-            return Report("enable", False, tuple(steps), reason, tuple(final[k] for k in sorted(final)))
+                last[DriveRef(r.host, r.axis)] = r
+            return Report("enable", False, tuple(steps), reason, tuple(last[k] for k in sorted(last)))
 
     failures = []
     if before_phase is not None:

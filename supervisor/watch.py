@@ -68,9 +68,8 @@ def status_rows(fleet: Fleet, selectors: Sequence[str] = ()) -> list[dict[str, A
 def status_table(rows: Iterable[dict[str, Any]], title: str = "drives") -> Table:
     """A table of status rows: host, axis, state, mode, position, error code and text, lease."""
     t = Table(title=title, expand=False)
-    for col, kw in (("host", {}), ("axis", {}), ("state", {}), ("mode", {}), ("position", {"justify": "right"}),
-                    ("error", {}), ("lease", {}), ("agent", {})):
-        t.add_column(col, **kw)
+    for col in ("host", "axis", "state", "mode", "position", "error", "lease", "agent"):
+        t.add_column(col, justify="right" if col == "position" else "left")
     for r in rows:
         state = r.get("state", "unknown")
         if r.get("lost"):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Protocol, Sequence
+from typing import Mapping, Protocol, Sequence
 
 from bus_agent.pdo import DriveInputs, DriveOutputs
 
@@ -95,7 +95,7 @@ class Bus(Protocol):
     def open(self) -> list[SlaveInfo]:
         """Find and identify the slaves (INIT -> PRE-OP). Raises BusError."""
 
-    def start(self, mapping_override: dict[int, object] | None = None) -> int:
+    def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
         """Map PDOs and bring every slave to OP (SAFE-OP then OP, each with a deadline).
         Returns the expected working counter. Raises BusError naming slave and AL code."""
 

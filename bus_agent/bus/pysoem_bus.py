@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import struct
 import time
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from bus_agent.bus.base import (ALState, BusError, SlaveALStatus, SlaveIdentity, SlaveInfo,
                                 al_status_text)
@@ -177,7 +177,7 @@ class PysoemBus:
         w(0x1C13, 0, "<B", 1)
         log.info("slave %d: PDO mapping override written (RxPDO 0x%04X, TxPDO 0x%04X)", position, rx, tx)
 
-    def start(self, mapping_override: dict[int, object] | None = None) -> int:
+    def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
         """Map PDOs and bring every slave SAFE-OP then OP, each with a deadline. Returns the
         expected working counter. Raises BusError naming the slave and the AL status code."""
         if not self._opened:

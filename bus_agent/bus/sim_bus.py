@@ -23,7 +23,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 from bus_agent.bus.base import (
     ALState,
@@ -193,7 +193,7 @@ class SimBus:
             log.info("segment %s: %d simulated slaves found", self.segment_name, len(infos))
             return infos
 
-    def start(self, mapping_override: dict[int, object] | None = None) -> int:
+    def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
         """Configure the default PDO mapping and bring every slave SAFE-OP -> OP.
         Returns the expected working counter (3 per slave). Raises BusError."""
         if mapping_override:

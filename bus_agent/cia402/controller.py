@@ -436,8 +436,9 @@ class DriveController:
                     return Controlword.FAULT_RESET
                 r.edges += 1  # the edge was held long enough and the drive is still in Fault
                 if r.edges >= cfg.fault_reset_retries:
-                    return self._finish_reset(events, ok=False, state=state,
-                                              reason=f"still in fault after {r.edges} reset edges")
+                    self._finish_reset(events, ok=False, state=state,
+                                       reason=f"still in fault after {r.edges} reset edges")
+                    return None
                 r.phase, r.phase_since_s = _ResetPhase.LOW, now_s
             # a rising edge needs bit 7 low in the previous cycle: a level would reset nothing
             if (now_s - r.phase_since_s >= cfg.fault_reset_low_s
@@ -450,14 +451,17 @@ class DriveController:
                 r.edges += 1  # left Fault for something that is not a reset: count the edge
             r.phase = _ResetPhase.WAIT
             if r.edges >= cfg.fault_reset_retries or now_s - r.requested_s >= cfg.transition_timeout_s:
-                return self._finish_reset(events, ok=False, state=state,
-                                          reason=f"still {state.value} after {r.edges} reset edges")
+                self._finish_reset(events, ok=False, state=state,
+                                   reason=f"still {state.value} after {r.edges} reset edges")
+                return None
             return Controlword.DISABLE_VOLTAGE
         # a known state outside the fault states: the fault is gone (or there was none)
         if not r.saw_fault:
-            return self._finish_reset(events, ok=True, state=state, reason="no fault to reset")
-        return self._finish_reset(events, ok=True, state=state, reason=f"transition 15 to {state.value}",
-                                  now_s=now_s)
+            self._finish_reset(events, ok=True, state=state, reason="no fault to reset")
+            return None
+        self._finish_reset(events, ok=True, state=state, reason=f"transition 15 to {state.value}",
+                           now_s=now_s)
+        return None
 
     def _finish_reset(self, events: list[ControllerEvent], *, ok: bool, state: State, reason: str,
                       now_s: float | None = None) -> None:
@@ -474,7 +478,6 @@ class DriveController:
             else:
                 self._phase = _GoalPhase.ACTIVE
                 self._goal_deadline_s = now_s + self.config.transition_timeout_s
-        return None
 
     def _step_goal(self, state: State, statusword: int, now_s: float, events: list[ControllerEvent]) -> None:
         targets = GOAL_TARGETS[self.goal]

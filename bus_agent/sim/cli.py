@@ -34,7 +34,7 @@ class QueuedControl:
         self._q: queue.Queue[tuple[dict, threading.Event, list]] = queue.Queue()
 
     def submit(self, req: dict, timeout: float = 2.0) -> dict:
-        done, out = threading.Event(), []
+        done, out = threading.Event(), list[dict]()
         self._q.put((req, done, out))
         if not done.wait(timeout):
             return {"ok": False, "error": "simulator busy: request not handled in time"}

@@ -143,7 +143,7 @@ class SimControl:
         if not isinstance(args, dict) or not all(isinstance(k, str) for k in args):
             self._refuse(query, f"{where}: arguments must be a msgpack map with string keys, got {args!r}")
             return
-        replies = []
+        replies: list[tuple[int, str]] = []
         for pos in positions:
             try:
                 detail = handler(pos, dict(args))
@@ -172,7 +172,7 @@ def sim_inject(session: zenoh.Session, segment: str, slave: int | str, action: s
         if reply.ok is not None:
             body = _decode(reply.ok.payload.to_bytes())
             details.append(str(body.get("detail", "")) if isinstance(body, dict) else str(body))
-        else:
+        elif reply.err is not None:
             body = _decode(reply.err.payload.to_bytes())
             errors.append(str(body.get("error", body)) if isinstance(body, dict) else str(body))
     if errors:

@@ -19,7 +19,7 @@ import json
 import logging
 import os
 import socket
-from typing import Callable
+from typing import BinaryIO, Callable
 
 from bus_agent.sim.ecat.frameloop import FrameLoop
 
@@ -185,7 +185,7 @@ class ControlClient:
         self.timeout = timeout
         self._tcp: socket.socket | None = None
         self._unix: socket.socket | None = None
-        self._rfile = None
+        self._rfile: BinaryIO | None = None
 
     def request(self, action: str, **args) -> dict:
         payload = json.dumps({"action": action, **args}).encode()
@@ -194,6 +194,7 @@ class ControlClient:
                 self._tcp = socket.create_connection(("127.0.0.1", int(self.where)), timeout=self.timeout)
                 self._rfile = self._tcp.makefile("rb")
             self._tcp.sendall(payload + b"\n")
+            assert self._rfile is not None
             line = self._rfile.readline()
             if not line:
                 raise ConnectionError("control connection closed")

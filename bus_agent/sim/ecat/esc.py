@@ -153,9 +153,11 @@ class Esc:
         self.mbx_in_full = False
         self.fmmus: list[tuple[int, int, int, int]] = []  # (logical start, length, physical, type)
         self.out_time = 0.0
+        self.last_step = 0.0  # when the segment last stepped this slave's drive model
         self.outputs_fresh = False
-        self.rx_codec = None
-        self.tx_codec = None
+        # (struct, field map) of a remapped PDO; None for the default mapping
+        self.rx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
+        self.tx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
         self.out_size = 0
         self.in_size = 0
         self.last_out = bytearray()
