@@ -248,8 +248,11 @@ class GatewayProcess:
         self._wake.set()
 
     def _on_outcome(self, cid: int, outcome: rt.Outcome) -> None:
+        # No wake here: the cycle calls this while it still resolves the other axes of the same
+        # cycle; its snapshot sink, right after, wakes bridge-out, so a cycle's outcomes cross
+        # in one message with that cycle's snapshot (not one message, decode and publish pass
+        # in the gateway process per early outcome).
         self._outcomes.append((cid, outcome))
-        self._wake.set()
 
     # -- life cycle
 
@@ -564,12 +567,15 @@ class CycleProxy:
                                        else tuple(e for e, _, _ in events))
                 self.latest = snap
                 self.state = snap.agent_state
+            # Outcomes first: the sinks wake the publish thread, whose pass (a status put per
+            # changed drive, an event put per event) would otherwise hold the GIL while the
+            # command thread waits to send the replies.
+            for cid, o in outcomes_t:
+                self._deliver(cid, decode_outcome(o))
             if events and self.event_sink is not None:
                 self.event_sink(events)
             if snap_t is not None and self.snapshot_sink is not None:
                 self.snapshot_sink(self.latest)
-            for cid, o in outcomes_t:
-                self._deliver(cid, decode_outcome(o))
         elif kind in (Msg.SUBMITTED, Msg.SIM_RESULT):
             with self._lock:
                 slot = self._answers.get(msg[1])

@@ -68,6 +68,9 @@ DEDUP_TTL_S = 300.0
 OUTCOME_GRACE_S = 2.0
 #: Identity of commands the agent issues itself (lease loss reactions).
 AGENT_SUPERVISOR = ""
+#: How long one publish pass may wait, in all, for the command thread to finish its work (see
+#: ``Gateway._commands_first``).
+COMMANDS_FIRST_MAX_S = 0.005
 
 
 class RequestError(ValueError):
@@ -290,6 +293,9 @@ class Gateway:
         self._accepting = False
         self._threads: list[threading.Thread] = []
         self._pub_lock = threading.Lock()  # publish_once from close() vs the thread
+        # Set while the command thread has nothing to do; the publish thread waits for it (bounded).
+        self._commands_idle = threading.Event()
+        self._commands_idle.set()
 
     # ---- called from the cycle thread: enqueue only --------------------------------------
 
@@ -408,18 +414,30 @@ class Gateway:
             except Exception:  # keep publishing; the log says what broke
                 log.exception("gateway %s: publish failed", self.host)
 
+    def _commands_first(self, until_s: float) -> None:
+        """Let the command thread finish what it is doing (replies, a query's validation) before
+        the next put, until ``until_s`` at most. Both threads need the GIL, and a put or a reply
+        gives it up while zenoh works: a publish pass (a put per changed drive and per event, all
+        16 drives in every cycle of an enable) took it back each time and held a 16-drive reply
+        batch up by milliseconds. Waiting on an event sleeps without the GIL."""
+        if not self._commands_idle.is_set() and not self._stop.is_set():
+            self._commands_idle.wait(max(0.0, until_s - time.monotonic()))
+
     def _publish_once(self, final: bool = False) -> None:
         with self._pub_lock:
             snap = self._latest
             now = time.monotonic()
+            until_s = now + (0.0 if final else COMMANDS_FIRST_MAX_S)
             heartbeat = final or now >= self._next_heartbeat_s
             if heartbeat:
                 self._next_heartbeat_s = now + self.s.heartbeat_s
             holders = self._lease_holders
             if snap is not None:
                 for d in snap.drives:
+                    self._commands_first(until_s)
                     self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, heartbeat)
             while self._events:
+                self._commands_first(until_s)
                 ev, cycle, time_ns = self._events.popleft()
                 self._publish_event(ev, cycle, time_ns)
             if final or now >= self._next_agent_s:
@@ -511,12 +529,16 @@ class Gateway:
                 fn, args = None, ()
             if self._stop.is_set():
                 break
+            if fn is not None:
+                self._commands_idle.clear()
             try:
                 if fn is not None:
                     fn(*args)
                 self._timers(time.monotonic())
             except Exception:
                 log.exception("gateway %s: command thread", self.host)
+            if self._inbox.empty():
+                self._commands_idle.set()
 
     def _next_timer_s(self) -> float:
         t = time.monotonic() + 0.2
