@@ -508,12 +508,13 @@ class CycleProxy:
             self._conn.send_bytes(data)
 
     def _round_trip(self, key: int, data: bytes, timeout_s: float) -> Any:
-        slot = [threading.Event(), None]
+        done = threading.Event()
+        slot: list[Any] = [done, None]
         with self._lock:
             self._answers[key] = slot
         try:
             self._send(data)
-            if not slot[0].wait(timeout_s):
+            if not done.wait(timeout_s):
                 return None
             return slot[1]
         except OSError:
@@ -574,7 +575,7 @@ class CycleProxy:
                 self._deliver(cid, decode_outcome(o))
             if events and self.event_sink is not None:
                 self.event_sink(events)
-            if snap_t is not None and self.snapshot_sink is not None:
+            if snap_t is not None and self.snapshot_sink is not None and self.latest is not None:
                 self.snapshot_sink(self.latest)
         elif kind in (Msg.SUBMITTED, Msg.SIM_RESULT):
             with self._lock:

@@ -799,7 +799,7 @@ class Gateway:
 
     def _on_remote_status(self, sample: zenoh.Sample) -> None:
         try:
-            st = m.decode(sample.payload, m.DriveStatus)
+            st = m.decode(sample.payload.to_bytes(), m.DriveStatus)
         except m.SchemaError as exc:
             log.warning("remote status on %s undecodable: %s", sample.key_expr, exc)
             return
