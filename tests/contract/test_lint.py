@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -16,6 +18,7 @@ def test_pyflakes_clean():
 
 
 def test_mypy_clean():
-    done = subprocess.run([sys.executable, "-m", "mypy", "--no-error-summary", "--cache-dir", "/tmp/zenoh-drives-mypy"],
+    cache = Path(tempfile.gettempdir()) / f"zenoh-drives-mypy-{os.getuid()}"  # outside the tree, per user
+    done = subprocess.run([sys.executable, "-m", "mypy", "--no-error-summary", "--cache-dir", str(cache)],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
