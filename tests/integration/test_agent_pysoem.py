@@ -7,12 +7,14 @@ ecat-sim's control socket (``status``) or by SDO.
 
 from __future__ import annotations
 
+import functools
 import struct
 import threading
 import time
 
 import pytest
 
+from bus_agent.sim import child
 from bus_agent.bus.base import ALState, BusError
 from bus_agent.bus.pysoem_bus import PysoemBus
 from bus_agent.config import AgentConfig, DriveConfig, Identity, PdoMapping
@@ -25,14 +27,7 @@ pytestmark = [pytest.mark.root, pytest.mark.timeout(120)]
 GENERIC = PROFILES["generic"]
 
 
-def _wait(pred, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.005)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = functools.partial(child.wait_for, poll_s=0.005)
 
 
 def _drive_states(control) -> list[str]:

@@ -9,7 +9,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 import uuid
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import msgpack
 import pytest
 import zenoh
 
+from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas import keys
 from schemas import messages as m
@@ -30,16 +30,6 @@ N = 3
 AXES = tuple(f"axis{i}" for i in range(N))
 OPS_TIMEOUT_S = 8.0
 
-
-def wait_for(pred, timeout_s=10.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
 
 
 def send(session, key, payload, timeout_s=OPS_TIMEOUT_S):

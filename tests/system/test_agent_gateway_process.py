@@ -11,25 +11,17 @@ import os
 import re
 import signal
 import threading
-import time
 import uuid
 
 import pytest
 import zenoh
 
+from bus_agent.sim.child import wait_for
 from schemas import keys
 from schemas import messages as m
 
 pytestmark = pytest.mark.timeout(120)
 
-
-def wait_for(pred, timeout_s=10.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while not (v := pred()):
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
-    return v
 
 
 def command(session, host, axis, op, timeout_s=8.0):

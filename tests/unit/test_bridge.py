@@ -3,15 +3,16 @@ bridge over a socketpair (a fake cycle on one side, a CycleProxy on the other; n
 
 from __future__ import annotations
 
+import functools
 import dataclasses
 import os
 import socket
 import threading
-import time
 from multiprocessing.connection import Connection
 
 import pytest
 
+from bus_agent.sim import child
 from bus_agent import runtime as rt
 from bus_agent.bridge import (FORWARD_NOW_FIELDS, CycleProxy, ForwardFilter, GatewayProcess, Msg,
                               decode_command, decode_event, decode_outcome, decode_snapshot, dumps,
@@ -37,15 +38,7 @@ def snapshot(cycle=1, drives=None, events=(), state="running") -> rt.CycleSnapsh
                             agent_state=state)
 
 
-def wait_for(pred, timeout_s=5.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.005)
+wait_for = functools.partial(child.wait_for, timeout_s=5.0, poll_s=0.005)
 
 
 # ---- pure encoding ----------------------------------------------------------------------------

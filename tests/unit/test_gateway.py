@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import socket
 import threading
 import time
@@ -12,6 +13,7 @@ import msgpack
 import pytest
 import zenoh
 
+from bus_agent.sim import child
 from bus_agent import runtime as rt
 from bus_agent.gateway import Gateway, GatewaySettings
 from bus_agent.zenoh_config import make_zenoh_config
@@ -28,14 +30,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_for(pred, timeout_s=5.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
+wait_for = functools.partial(child.wait_for, timeout_s=5.0, poll_s=0.01)
 
 
 class FakeCycle:
