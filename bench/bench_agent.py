@@ -10,11 +10,11 @@ the periods of all rounds of a phase are merged:
 
 1. ``bare``: pysoem send/receive on drift-free deadlines (sleep coarse, spin the last 150 us,
    like the cycle), the same GC and switch-interval settings, outputs packed every cycle;
-2. ``agent``: ``bus_agent.cycle.Cycle`` over ``PysoemBus``, every drive enabled (controllers
+2. ``agent``: ``bus_agent.cycle.cycle.Cycle`` over ``PysoemBus``, every drive enabled (controllers
    stepping, snapshots built and handed to a sink every cycle);
 3. ``gateway_thread`` / ``gateway_process``: the real ``bus_agent.agent.Agent`` composition
    with the Zenoh gateway as threads of the agent process (``gateway = "thread"``) or in its
-   own child process behind ``bus_agent.bridge`` (``gateway = "process"``, the default), while
+   own child process behind ``bus_agent.gateway.bridge`` (``gateway = "process"``, the default), while
    a separate process sends 200 queries/s (gets on drive status keys) and subscribes to all
    status. The process phase also reports the gateway process's CPU and the bridge's rate.
 
@@ -91,7 +91,7 @@ def phase_bare(args) -> dict:
     """Bare pysoem: the loop any pysoem program would write, with the cycle's timing method."""
     import pysoem
 
-    from bus_agent.pdo import RX_STRUCT
+    from bus_agent.bus.pdo import RX_STRUCT
 
     m = pysoem.Master()
     expected = pysoem_to_op(m, args.ifname, args.drives)
@@ -191,7 +191,7 @@ def phase_agent(args) -> dict:
 
     from bus_agent.bus.pysoem_bus import PysoemBus
     from bus_agent.config import AgentConfig
-    from bus_agent.cycle import Cycle
+    from bus_agent.cycle.cycle import Cycle
 
     cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us)
     cyc = Cycle(PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us), cfg, rt_priority=args.rt_priority)
@@ -288,7 +288,7 @@ def phase_load(args) -> dict:
     """Another process: 200 queries/s on drive status keys, subscribed to all drive status."""
     import zenoh
 
-    from bus_agent.zenoh_config import make_zenoh_config
+    from bus_agent.gateway.zenoh_config import make_zenoh_config
     from schemas import keys
 
     session = zenoh.open(make_zenoh_config("peer", connect=[args.connect]))
@@ -328,7 +328,7 @@ def phase_load(args) -> dict:
 
 
 def _echo_config(ep: str, listen: bool):
-    from bus_agent.zenoh_config import make_zenoh_config
+    from bus_agent.gateway.zenoh_config import make_zenoh_config
 
     return make_zenoh_config("peer", listen=[ep] if listen else [], connect=[] if listen else [ep])
 
@@ -379,7 +379,7 @@ def phase_enable_client(args) -> dict:
     enable of every drive timed to the last reply, disable (not timed)]."""
     import zenoh
 
-    from bus_agent.zenoh_config import make_zenoh_config
+    from bus_agent.gateway.zenoh_config import make_zenoh_config
     from schemas import keys
     from schemas.messages import CommandRequest
 

@@ -7,7 +7,7 @@ Life cycle (explicit, :class:`AgentState`)::
 
 Two compositions (``AgentConfig.gateway``, docs/agent-gateway.md "Process model"):
 
-- ``"process"`` (default): the gateway runs in a child process (``bus_agent.bridge``); this
+- ``"process"`` (default): the gateway runs in a child process (``bus_agent.gateway.bridge``); this
   process holds only the bus, the cycle thread and the bridge's two threads, and never opens
   a Zenoh session. If the child dies, :attr:`Agent.failure` says so, ``on_failure`` is called
   and the caller (the CLI) runs the ordered shutdown and exits non-zero.
@@ -29,11 +29,11 @@ import threading
 from enum import Enum
 from typing import Any, Callable
 
-from bus_agent.bridge import BridgeError, GatewayProcess
+from bus_agent.gateway.bridge import BridgeError, GatewayProcess
 from bus_agent.bus.base import Bus, BusError
 from bus_agent.config import AgentConfig, ConfigError
-from bus_agent.cycle import Cycle
-from bus_agent.realtime import helper_priority
+from bus_agent.cycle.cycle import Cycle
+from bus_agent.cycle.realtime import helper_priority
 
 log = logging.getLogger(__name__)
 
@@ -130,8 +130,8 @@ class Agent:
     def _start_thread_gateway(self) -> None:
         import zenoh
 
-        from bus_agent.gateway import Gateway, GatewaySettings
-        from bus_agent.zenoh_config import ZenohConfigError, from_settings
+        from bus_agent.gateway.gateway import Gateway, GatewaySettings
+        from bus_agent.gateway.zenoh_config import ZenohConfigError, from_settings
 
         assert self.cycle is not None and self.bus is not None
         cfg = self.config

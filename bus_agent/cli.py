@@ -8,7 +8,7 @@
 Flags override the configuration file. Once everything is up it prints one line,
 ``bus-agent ready host=<host> drives=<a,b,..> backend=<sim|pysoem> listen=<eps> connect=<eps>``.
 SIGINT/SIGTERM run the ordered shutdown of every drive, then AL INIT, and exit 0.
-The Zenoh gateway runs in a child process (``bus_agent.bridge``) unless ``--gateway-thread``
+The Zenoh gateway runs in a child process (``bus_agent.gateway.bridge``) unless ``--gateway-thread``
 (or ``gateway = "thread"`` in the file); if that child dies, the agent runs the same ordered
 shutdown and exits 1.
 

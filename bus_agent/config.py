@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bus_agent.cia402.states import Mode
-from bus_agent.pdo import RXPDO_INDEX, TXPDO_INDEX
+from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX
 from schemas.keys import InvalidKey, validate_name
 
 ZENOH_MODES = ("peer", "client", "router")
@@ -60,7 +60,7 @@ class Identity:
 class PdoMapping:
     """PDO mapping override, written by SDO in PRE-OP (0x1C12/0x1C13 assignment, 0x16xx/0x1Axx).
 
-    The mapped objects are always the project's default layout (``bus_agent.pdo``: the records
+    The mapped objects are always the project's default layout (``bus_agent.bus.pdo``: the records
     ``DriveOutputs``/``DriveInputs`` have a fixed layout); the override chooses which PDO objects
     carry it, for drives whose power-on mapping differs from it.
     """

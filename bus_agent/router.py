@@ -6,7 +6,7 @@
 
 One router per host: the host's bus agents and supervisors connect to it, and routers connect
 to each other with explicit ``--connect`` endpoints (see docs/deployment.md). The session is
-built by :func:`bus_agent.zenoh_config.make_zenoh_config` (multicast scouting off, 3 s link
+built by :func:`bus_agent.gateway.zenoh_config.make_zenoh_config` (multicast scouting off, 3 s link
 lease, background reconnection). ``--listen`` / ``--connect`` replace the file's endpoint
 lists when given. Once the session is open it prints one line,
 ``drives-router ready zid=<zid> listen=<eps> connect=<eps>``; SIGTERM or SIGINT closes the
@@ -28,7 +28,7 @@ from typing import Sequence
 
 import zenoh
 
-from bus_agent.zenoh_config import ZenohConfigError, make_zenoh_config
+from bus_agent.gateway.zenoh_config import ZenohConfigError, make_zenoh_config
 
 log = logging.getLogger("bus_agent.router")
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Mapping, Protocol, Sequence
 
-from bus_agent.pdo import DriveInputs, DriveOutputs
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 
 
 class ALState(IntEnum):

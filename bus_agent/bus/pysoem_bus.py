@@ -32,7 +32,7 @@ from typing import Any, Mapping, Sequence
 
 from bus_agent.bus.base import (ALState, BusError, SlaveALStatus, SlaveIdentity, SlaveInfo,
                                 al_status_text)
-from bus_agent.pdo import (RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveInputs, DriveOutputs,
+from bus_agent.bus.pdo import (RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveInputs, DriveOutputs,
                            mapping_entry)
 
 log = logging.getLogger(__name__)

@@ -34,7 +34,7 @@ from bus_agent.bus.base import (
     al_status_text,
 )
 from bus_agent.cia402.states import State
-from bus_agent.pdo import DriveInputs, DriveOutputs
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 
 log = logging.getLogger(__name__)
@@ -198,7 +198,7 @@ class SimBus:
         Returns the expected working counter (3 per slave). Raises BusError."""
         if mapping_override:
             raise BusError(f"segment {self.segment_name}: the sim bus exchanges only the default "
-                           "PDO mapping (bus_agent.pdo); mapping_override is not supported")
+                           "PDO mapping (bus_agent.bus.pdo); mapping_override is not supported")
         with self._lock:
             if not self._opened:
                 raise BusError(f"segment {self.segment_name}: start() before open()")

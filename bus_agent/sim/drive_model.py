@@ -37,7 +37,7 @@ from bus_agent.cia402.states import (
     State,
     StatuswordBit,
 )
-from bus_agent.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, DriveInputs, DriveOutputs, mapping_entry
+from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, DriveInputs, DriveOutputs, mapping_entry
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ import pytest
 import zenoh
 
 from bus_agent.sim.child import ChildProcess, free_port, wait_for
-from bus_agent.zenoh_config import make_zenoh_config
+from bus_agent.gateway.zenoh_config import make_zenoh_config
 from schemas import keys
 from schemas.messages import SCHEMA_VERSION, CommandReply, CommandRequest, decode, encode
 

@@ -18,7 +18,7 @@ from bus_agent.sim import child
 from bus_agent.bus.base import ALState, BusError
 from bus_agent.bus.pysoem_bus import PysoemBus
 from bus_agent.config import AgentConfig, DriveConfig, Identity, PdoMapping
-from bus_agent.cycle import Cycle, IdentityMismatch
+from bus_agent.cycle.cycle import Cycle, IdentityMismatch
 from bus_agent.runtime import DriveCommand, Outcome
 from bus_agent.sim.drive_model import PROFILES
 

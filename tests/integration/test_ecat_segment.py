@@ -12,7 +12,7 @@ import pytest
 
 pysoem = pytest.importorskip("pysoem")
 
-from bus_agent.pdo import RX_STRUCT, TX_STRUCT  # noqa: E402
+from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT  # noqa: E402
 from bus_agent.sim.drive_model import PROFILES  # noqa: E402
 
 pytestmark = [pytest.mark.root, pytest.mark.timeout(60)]

@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from bus_agent.sim.child import ChildProcess, free_port
-from bus_agent.zenoh_config import make_zenoh_config
+from bus_agent.gateway.zenoh_config import make_zenoh_config
 
 READY = "bus-agent ready"
 

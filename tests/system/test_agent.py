@@ -314,7 +314,7 @@ def test_lease_busy_takeover_release(clean):
 
 HOLDER_SCRIPT = textwrap.dedent("""
     import sys, time, zenoh
-    from bus_agent.zenoh_config import make_zenoh_config
+    from bus_agent.gateway.zenoh_config import make_zenoh_config
     from schemas import keys, messages as m
     ep, host, axis = sys.argv[1:4]
     s = zenoh.open(make_zenoh_config("peer", [], [ep]))

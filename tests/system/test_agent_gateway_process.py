@@ -41,12 +41,12 @@ def statuses(session, host):
 
 
 def gateway_child(pid: int) -> int:
-    """The agent's one child: ``python -m bus_agent.bridge``."""
+    """The agent's one child: ``python -m bus_agent.gateway.bridge``."""
     with open(f"/proc/{pid}/task/{pid}/children") as f:
         children = [int(c) for c in f.read().split()]
     assert len(children) == 1, children
     with open(f"/proc/{children[0]}/cmdline", "rb") as f:
-        assert b"bus_agent.bridge" in f.read()
+        assert b"bus_agent.gateway.bridge" in f.read()
     return children[0]
 
 

@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from bus_agent.sim.netns import NetnsError, multihost_plan
-from bus_agent.zenoh_config import DEFAULT_LINK_LEASE_MS, make_zenoh_config
+from bus_agent.gateway.zenoh_config import DEFAULT_LINK_LEASE_MS, make_zenoh_config
 from tests.conftest import require, require_root
 from bus_agent.sim.child import free_port, wait_for
 from tests.system.multihost import ROOT, MultiHostRun, Proc, SupervisorProc

@@ -14,7 +14,7 @@ import pytest
 
 from bus_agent.sim import child
 from bus_agent import runtime as rt
-from bus_agent.bridge import (FORWARD_NOW_FIELDS, CycleProxy, ForwardFilter, GatewayProcess, Msg,
+from bus_agent.gateway.bridge import (FORWARD_NOW_FIELDS, CycleProxy, ForwardFilter, GatewayProcess, Msg,
                               decode_command, decode_event, decode_outcome, decode_snapshot, dumps,
                               encode_command, encode_event, encode_snapshot, encode_update, loads)
 
@@ -77,7 +77,7 @@ def test_loads_refuses_what_is_not_a_tagged_tuple():
 
 
 def test_forward_now_fields_are_the_gateways_change_fields():
-    from bus_agent.gateway import CHANGE_FIELDS
+    from bus_agent.gateway.gateway import CHANGE_FIELDS
 
     assert FORWARD_NOW_FIELDS == CHANGE_FIELDS
 
@@ -249,7 +249,7 @@ def test_lost_gateway_is_reported_once_and_events_are_logged(pair, caplog):
         s.shutdown(socket.SHUT_RDWR)
     wait_for(lambda: pair.lost, what="on_lost")
     assert pair.gp.lost_reason and "lost" in pair.lost[0]
-    with caplog.at_level("WARNING", logger="bus_agent.bridge"):
+    with caplog.at_level("WARNING", logger="bus_agent.gateway.bridge"):
         pair.gp.on_snapshot(snapshot(10, events=(rt.CycleEvent("a1", "transition", to_state="switched_on"),)))
         wait_for(lambda: "no gateway" in caplog.text, what="event logged")
     assert "a1" in caplog.text and "switched_on" in caplog.text

@@ -578,7 +578,7 @@ def test_raising_transitions_are_the_upward_ones():
 
 @pytest.mark.parametrize("profile", ["generic", "indy7"])
 def test_closed_loop_with_drive_model(profile):
-    from bus_agent.pdo import DriveOutputs
+    from bus_agent.bus.pdo import DriveOutputs
     from bus_agent.sim.drive_model import PROFILES, DriveModel
 
     drive = DriveModel(PROFILES[profile])

@@ -9,7 +9,7 @@ from bus_agent.bus.base import ALState
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.cia402.states import State
 from bus_agent.config import AgentConfig, DriveConfig, DrivePolicy, Identity
-from bus_agent.cycle import INBOX_MAX, Cycle, IdentityMismatch
+from bus_agent.cycle.cycle import INBOX_MAX, Cycle, IdentityMismatch
 from bus_agent.runtime import AgentCommand, DriveCommand, Outcome
 
 PERIOD_NS = 1_000_000

@@ -11,7 +11,7 @@ import pytest
 from bus_agent.bus.sim_bus import SimBus, SimSdoError
 from bus_agent.cia402.states import Mode
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
-from bus_agent.cycle import Cycle, decode_supported_modes
+from bus_agent.cycle.cycle import Cycle, decode_supported_modes
 from bus_agent.runtime import DriveCommand, Outcome
 from bus_agent.sim.drive_model import PROFILES
 

@@ -12,7 +12,7 @@ from bus_agent.bus.base import ALState
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.cia402.states import State
 from bus_agent.config import AgentConfig
-from bus_agent.cycle import Cycle
+from bus_agent.cycle.cycle import Cycle
 from bus_agent.runtime import AgentCommand, DriveCommand
 
 

@@ -7,7 +7,7 @@ import struct
 import pytest
 
 from bus_agent.cia402.states import Controlword, Mode, State, decode_statusword
-from bus_agent.pdo import DriveOutputs
+from bus_agent.bus.pdo import DriveOutputs
 from bus_agent.sim.drive_model import (
     ABORT_DEVICE_STATE,
     ABORT_LENGTH_MISMATCH,

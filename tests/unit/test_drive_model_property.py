@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bus_agent.cia402.states import State, decode_statusword
-from bus_agent.pdo import DriveOutputs
+from bus_agent.bus.pdo import DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel
 
 S = State

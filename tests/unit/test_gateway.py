@@ -15,8 +15,8 @@ import zenoh
 
 from bus_agent.sim import child
 from bus_agent import runtime as rt
-from bus_agent.gateway import Gateway, GatewaySettings
-from bus_agent.zenoh_config import make_zenoh_config
+from bus_agent.gateway.gateway import Gateway, GatewaySettings
+from bus_agent.gateway.zenoh_config import make_zenoh_config
 from schemas import keys
 from schemas import messages as m
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from bus_agent.zenoh_config import ZenohConfigError, from_settings, make_zenoh_config
+from bus_agent.gateway.zenoh_config import ZenohConfigError, from_settings, make_zenoh_config
 
 ROOT = Path(__file__).resolve().parents[2]
 

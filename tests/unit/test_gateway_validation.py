@@ -1,11 +1,11 @@
-"""Command validation of the gateway (bus_agent.gateway.parse_command): pure, no session."""
+"""Command validation of the gateway (bus_agent.gateway.gateway.parse_command): pure, no session."""
 
 from __future__ import annotations
 
 import msgpack
 import pytest
 
-from bus_agent.gateway import RequestError, axes_in_key, parse_command
+from bus_agent.gateway.gateway import RequestError, axes_in_key, parse_command
 from schemas import keys
 from schemas import messages as m
 

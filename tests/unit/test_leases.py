@@ -1,10 +1,10 @@
-"""Lease table (bus_agent.leases): pure logic, the clock is a parameter."""
+"""Lease table (bus_agent.gateway.leases): pure logic, the clock is a parameter."""
 
 from __future__ import annotations
 
 import pytest
 
-from bus_agent.leases import LeaseEnd, LeaseResult, LeaseTable
+from bus_agent.gateway.leases import LeaseEnd, LeaseResult, LeaseTable
 
 
 def results(decisions):

@@ -9,7 +9,7 @@ import pytest
 from bus_agent.bus.base import ALState, Bus, BusError
 from bus_agent.bus.sim_bus import AL_INVALID_OUTPUT_CONFIG, AL_INVALID_STATE_CHANGE, AL_SM_WATCHDOG, SimBus, SimSdoError
 from bus_agent.cia402.states import State, decode_statusword
-from bus_agent.pdo import DriveOutputs
+from bus_agent.bus.pdo import DriveOutputs
 from bus_agent.sim.drive_model import ABORT_NO_OBJECT, ABORT_READ_ONLY, ABORT_VALUE_RANGE, ERROR_COMMUNICATION_LOST
 
 

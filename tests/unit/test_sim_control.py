@@ -15,7 +15,7 @@ from bus_agent.bus.base import ALState
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.cia402.states import State
 from bus_agent.sim.control import SimControl, SimControlError, parse_control_key, sim_inject
-from bus_agent.zenoh_config import make_zenoh_config
+from bus_agent.gateway.zenoh_config import make_zenoh_config
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -16,7 +16,7 @@ from enum import IntEnum
 from typing import Callable, Mapping
 
 from bus_agent.bus.base import ALState
-from bus_agent.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
+from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
 from bus_agent.sim.drive_model import Emcy, ObjectEntry, SdoAbort
 from bus_agent.sim.ecat.sii import MBX_IN_SIZE, MBX_OUT_SIZE, SmType
 
@@ -107,7 +107,7 @@ class PdoConfig:
         self.reset()
 
     def reset(self) -> None:
-        """Power-on defaults: 0x1600/0x1A00 as in bus_agent.pdo, assigned to SM2/SM3."""
+        """Power-on defaults: 0x1600/0x1A00 as in bus_agent.bus.pdo, assigned to SM2/SM3."""
         self.assign: dict[int, list[int]] = {0x1C12: [RXPDO_INDEX, 0, 0, 0], 0x1C13: [TXPDO_INDEX, 0, 0, 0]}
         self.assign_count = {0x1C12: 1, 0x1C13: 1}
         self.maps: dict[int, list[int]] = {}

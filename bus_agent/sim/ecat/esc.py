@@ -14,7 +14,7 @@ import time
 from typing import Callable
 
 from bus_agent.bus.base import AL_ERROR_FLAG, ALState
-from bus_agent.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
+from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
 from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START,

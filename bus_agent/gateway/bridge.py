@@ -1,10 +1,10 @@
 """The bridge between the cycle process and the gateway process (``gateway = "process"``).
 
-The Zenoh gateway runs in a child process (``python -m bus_agent.bridge --fd N``), so Zenoh
+The Zenoh gateway runs in a child process (``python -m bus_agent.gateway.bridge --fd N``), so Zenoh
 callbacks, msgpack and the publish loop never compete with the cycle thread for its GIL. The
-cycle process keeps the bus, the :class:`~bus_agent.cycle.Cycle` and :class:`GatewayProcess`
+cycle process keeps the bus, the :class:`~bus_agent.cycle.cycle.Cycle` and :class:`GatewayProcess`
 (two small threads); the child opens the Zenoh session and runs an unchanged
-:class:`~bus_agent.gateway.Gateway` against :class:`CycleProxy`, which has exactly the Cycle
+:class:`~bus_agent.gateway.gateway.Gateway` against :class:`CycleProxy`, which has exactly the Cycle
 surface the gateway uses. One ``AF_UNIX`` socketpair carries length-prefixed pickled tuples
 (:class:`Msg`; see docs/agent-gateway.md for the measured choice of pickle over msgpack).
 
@@ -52,7 +52,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from bus_agent import runtime as rt
-from bus_agent.realtime import set_thread_fifo
+from bus_agent.cycle.realtime import set_thread_fifo
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +264,7 @@ class GatewayProcess:
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         try:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "bus_agent.bridge", "--fd", str(theirs.fileno()),
+                [sys.executable, "-m", "bus_agent.gateway.bridge", "--fd", str(theirs.fileno()),
                  "--log-level", logging.getLevelName(self.log_level)],
                 pass_fds=(theirs.fileno(),), env=env, stdin=subprocess.DEVNULL)
         except OSError as exc:
@@ -599,8 +599,8 @@ class CycleProxy:
 
 
 def child_main(argv: Sequence[str] | None = None) -> int:
-    """The gateway process: ``python -m bus_agent.bridge --fd N [--log-level L]``."""
-    p = argparse.ArgumentParser(prog="python -m bus_agent.bridge")
+    """The gateway process: ``python -m bus_agent.gateway.bridge --fd N [--log-level L]``."""
+    p = argparse.ArgumentParser(prog="python -m bus_agent.gateway.bridge")
     p.add_argument("--fd", type=int, required=True, help="this end of the socketpair to the cycle process")
     p.add_argument("--log-level", default="INFO")
     args = p.parse_args(argv)
@@ -659,8 +659,8 @@ def child_main(argv: Sequence[str] | None = None) -> int:
 
     import zenoh
 
-    from bus_agent.gateway import Gateway, GatewaySettings
-    from bus_agent.zenoh_config import ZenohConfigError, from_settings
+    from bus_agent.gateway.gateway import Gateway, GatewaySettings
+    from bus_agent.gateway.zenoh_config import ZenohConfigError, from_settings
     from schemas import keys
 
     try:
@@ -716,6 +716,6 @@ def _sim_handler(proxy: CycleProxy, action: str, position: int, args: dict) -> s
 
 if __name__ == "__main__":
     # Run the importable module's copy (its logger name and classes), not this __main__ copy.
-    from bus_agent.bridge import child_main as _main
+    from bus_agent.gateway.bridge import child_main as _main
 
     sys.exit(_main())

@@ -3,7 +3,7 @@
 A group is a name and a list of members ``host/axis``; members may live on other hosts. On the
 host where a member faults or is lost, the other *local* members react in the same cycle
 (the cycle applies the reflex); the gateway carries the trigger to the other hosts, whose cycles
-call :meth:`bus_agent.cycle.Cycle.trigger_group`, so their members react within milliseconds.
+call :meth:`bus_agent.cycle.cycle.Cycle.trigger_group`, so their members react within milliseconds.
 """
 
 from __future__ import annotations

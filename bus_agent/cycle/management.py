@@ -3,7 +3,7 @@
 AL status reads, AL control writes (NMT) and step-wise recovery of lost slaves run here while
 the cycle thread keeps exchanging process data, so a slave that does not answer never stalls the
 others (their SM watchdogs would trip). SOEM makes the two threads' datagrams safe: each has its
-own frame index. Used only by :class:`bus_agent.cycle.Cycle`.
+own frame index. Used only by :class:`bus_agent.cycle.cycle.Cycle`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import threading
 from typing import Callable
 
 from bus_agent.bus.base import ALState, Bus, SlaveALStatus
-from bus_agent.realtime import set_thread_fifo
+from bus_agent.cycle.realtime import set_thread_fifo
 
 log = logging.getLogger(__name__)
 

@@ -34,7 +34,7 @@ from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 import zenoh
 
 from bus_agent import runtime as rt
-from bus_agent.leases import EndedLease, LeaseDecision, LeaseResult, LeaseTable
+from bus_agent.gateway.leases import EndedLease, LeaseDecision, LeaseResult, LeaseTable
 from schemas import keys
 from schemas import messages as m
 
@@ -78,7 +78,7 @@ class RequestError(ValueError):
 
 
 class CycleLike(Protocol):
-    """What the gateway needs from the cycle (``bus_agent.cycle.Cycle``)."""
+    """What the gateway needs from the cycle (``bus_agent.cycle.cycle.Cycle``)."""
 
     snapshot_sink: Callable[[rt.CycleSnapshot], None] | None
 

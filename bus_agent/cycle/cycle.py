@@ -15,7 +15,7 @@ One cycle (``_cycle``): exchange -> working counter check -> management reports 
 lost/found) -> commands and remote triggers -> group reflexes -> step every controller -> write
 outputs -> pending-command deadlines -> snapshot. Everything that can block on a slave (AL status
 reads, AL state requests, recovery of a lost slave with its SDOs) runs in a separate management
-thread (:class:`bus_agent.management.Management`) while the cycle keeps exchanging process data; the cycle only posts
+thread (:class:`bus_agent.cycle.management.Management`) while the cycle keeps exchanging process data; the cycle only posts
 requests to it and reads its reports. Timing: drift-free deadlines ``t0 + k * period`` from a
 monotonic clock; sleep coarse, spin the last :data:`SPIN_NS`; a cycle that starts more than one
 period late counts as an overrun and the schedule skips the missed slots (no burst of catch-up
@@ -39,10 +39,10 @@ from bus_agent.cia402.controller import (ControllerConfig, ControllerEvent, Driv
                                          Goal)
 from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
-from bus_agent.groups import Groups
-from bus_agent.pdo import DriveInputs, DriveOutputs
-from bus_agent.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management
-from bus_agent.realtime import helper_priority, set_thread_fifo
+from bus_agent.cycle.groups import Groups
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs
+from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management
+from bus_agent.cycle.realtime import helper_priority, set_thread_fifo
 from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand,
                                DriveSnapshot, Outcome)
 
