@@ -44,6 +44,7 @@ from schemas.messages import (
     encode,
 )
 
+from .orchestration import ordered_shutdown, two_phase_enable
 from .results import CommandResult, DriveResult, aggregate
 from .selectors import (
     DriveRef,
@@ -624,13 +625,11 @@ class Fleet:
                stages: Sequence[Sequence[str]] | None = None,
                before_phase: Callable[[str], None] | None = None):
         """Two-phase enable (see :func:`supervisor.orchestration.two_phase_enable`)."""
-        from .orchestration import two_phase_enable
         return two_phase_enable(self, selectors or ("**",), timeout_s=timeout_s, stages=stages,
                                 before_phase=before_phase)
 
     def shutdown(self, stages: Sequence[Sequence[str] | str], *, op: str = "disable", timeout_s: float = DEFAULT_TIMEOUT_S):
         """Ordered shutdown, last stage first (see :func:`supervisor.orchestration.ordered_shutdown`)."""
-        from .orchestration import ordered_shutdown
         return ordered_shutdown(self, stages, op=op, timeout_s=timeout_s)
 
     def switch_on(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:

@@ -13,13 +13,31 @@ disable voltage, to where they were) and the report says which drive failed and 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 
 from .results import CommandResult, Report, final_results
 from .selectors import DriveRef, SelectorError
 
-if TYPE_CHECKING:
-    from .fleet import Fleet, Selection
+
+class Selection(Protocol):
+    """What orchestration needs of a selection (``supervisor.fleet.Selection``)."""
+
+    @property
+    def drives(self) -> Sequence[DriveRef]: ...
+
+
+class Fleet(Protocol):
+    """What orchestration needs of a fleet (``supervisor.fleet.Fleet``); a protocol, so this module
+    does not import the fleet and the fleet can import it (no import circle)."""
+
+    def select(self, *selectors: str, allow_empty: bool = False) -> Any: ...
+    def selection_of(self, refs: Iterable[DriveRef]) -> Any: ...
+    def roster(self) -> list[DriveRef]: ...
+    def hosts(self) -> list[str]: ...
+    def drives(self) -> Mapping[DriveRef, Any]: ...
+    def fetch_status(self, target: Any, timeout_s: float = 2.0) -> Mapping[DriveRef, Any]: ...
+    def command(self, op: str, target: Any = "**", args: Mapping[str, Any] | None = None,
+                timeout_s: float = 5.0) -> CommandResult: ...
 
 log = logging.getLogger(__name__)
 
