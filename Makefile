@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv bench clean
+.PHONY: demo test venv bench clean sysdeps
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,12 +14,16 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+## sysdeps: Debian packages the tests need (deploy/apt-packages.txt; installs them when root)
+sysdeps:
+	bash deploy/system-deps.sh
+
 ## demo: run a bus agent on 4 simulated drives; in another shell: .venv/bin/drivectl status
 demo: $(STAMP)
 	$(VENV)/bin/bus-agent --sim 4
 
 ## test: the whole suite (root tests create their own veth pairs and namespaces)
-test: $(STAMP)
+test: $(STAMP) sysdeps
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 bench: $(STAMP)
