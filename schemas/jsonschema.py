@@ -54,6 +54,8 @@ ARG_VALUE_DEF = {
     ],
 }
 
+OPEN_WORD_PATTERN = "^[a-z][a-z0-9_]{0,31}$"
+
 
 def value_schema(t: type, meta: Any, allow_empty: bool = False) -> dict:
     """Schema of one value of Python type ``t`` under rule metadata ``meta``."""
@@ -61,7 +63,11 @@ def value_schema(t: type, meta: Any, allow_empty: bool = False) -> dict:
     if meta.get("doc"):
         out["description"] = meta["doc"]
     out["type"] = _JSON_TYPES[t]
-    if "choices" in meta:
+    if "choices" in meta and meta.get("open"):
+        # open vocabulary: today's values as examples, any lower-case word accepted
+        out["examples"] = list(meta["choices"])
+        out["pattern"] = OPEN_WORD_PATTERN
+    elif "choices" in meta:
         out["enum"] = list(meta["choices"])
     if "range" in meta:
         out["minimum"], out["maximum"] = meta["range"]
@@ -139,7 +145,8 @@ def message_schema(cls: type[Any]) -> dict:
         "type": "object",
         "properties": props,
         "required": required,
-        "additionalProperties": False,
+        # the evolution rule (docs/contract.md): only commands reject fields they do not know
+        "additionalProperties": not cls.STRICT,
     }
     if cls is CommandRequest:
         schema["allOf"] = _op_rules()

@@ -55,7 +55,9 @@ def _rule_text(t: type, meta: Any, allow_empty: bool = False) -> str:
     if "range" in meta:
         lo, hi = meta["range"]
         parts.append(f"{lo}..{hi}")
-    if "choices" in meta:
+    if "choices" in meta and meta.get("open"):
+        parts.append("open vocabulary, today " + ", ".join(f"`{c}`" for c in meta["choices"]))
+    elif "choices" in meta:
         parts.append("one of " + ", ".join(f"`{c}`" for c in meta["choices"]))
     if "min_len" in meta:
         parts.append(f"at least {meta['min_len']} chars")
@@ -115,9 +117,19 @@ def render_contract_markdown() -> str:
         "### Messages",
         "",
         "Every payload is a msgpack map: `v` (schema version, "
-        f"{SCHEMA_VERSION}), `type` (the message type) and the fields below; unknown fields, missing "
-        "required fields, wrong types and out-of-range values are rejected with an error naming the "
-        "field. JSON Schemas: `python -m schemas jsonschema --out DIR`.",
+        f"{SCHEMA_VERSION}), `type` (the message type) and the fields below. Missing required fields, "
+        "wrong types and out-of-range values are rejected with an error naming the field. JSON "
+        "Schemas: `python -m schemas jsonschema --out DIR`.",
+        "",
+        "**How the contract evolves.** Within one version, a writer may add *optional* fields (with a "
+        "default) and new words to an *open vocabulary*; an older reader never breaks on them: readers "
+        "of published and replied messages (`drive_status`, `agent_status`, `event`, `command_reply`) "
+        "ignore fields they do not know and accept any lower-case word in an open vocabulary (an "
+        "unknown `outcome` counts as not done). A `command_request` is the exception: an agent rejects "
+        "unknown fields and arguments (it never acts on a command it does not fully understand), so a "
+        "new argument is used only against agents that list it. Removing or renaming a field, "
+        "changing its meaning or type, or adding a required field bumps `v`; new keys or ops extend "
+        "the key space without changing existing ones.",
     ]
     for cls in MESSAGE_TYPES:
         doc = " ".join((cls.__doc__ or "").strip().split())

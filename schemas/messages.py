@@ -12,6 +12,7 @@ codec, the JSON Schema export and the README are generated from one definition.
 from __future__ import annotations
 
 import copy
+import re
 import functools
 import dataclasses
 import types
@@ -95,6 +96,8 @@ def _f(default: Any = dataclasses.MISSING, **meta: Any) -> Any:
 #   doc       one-line meaning
 #   range     (lo, hi) inclusive, for int/float
 #   choices   the allowed values
+#   open      with choices: an open vocabulary; the choices are the values known today, and a
+#             reader accepts any other lower-case word too (a newer writer may add values)
 #   max_len   longest str in characters
 #   name      str must be a legal key chunk (schemas.keys.validate_name); '' only where the
 #             default is '' (or allow_empty is set)
@@ -129,6 +132,7 @@ class DriveStatus:
     """Published on ``drives/@v1/<host>/drive/<axis>/status`` on change and as a heartbeat."""
 
     TYPE: ClassVar[str] = "drive_status"
+    STRICT: ClassVar[bool] = False  # published/replied state: readers ignore fields they do not know
     host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
     axis: str = _f(max_len=NAME_LEN, name=True, doc="axis name")
     seq: int = _f(range=U64, doc="per-drive sequence number, +1 per publication")
@@ -157,6 +161,7 @@ class AgentStatus:
     """Published on ``drives/@v1/<host>/agent``: the agent and its cycle."""
 
     TYPE: ClassVar[str] = "agent_status"
+    STRICT: ClassVar[bool] = False  # published/replied state: readers ignore fields they do not know
     host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
     seq: int = _f(range=U64, doc="sequence number, +1 per publication")
     time_ns: int = _f(range=U64, doc="agent wall clock, ns since the epoch")
@@ -181,12 +186,13 @@ class Event:
     """Published on ``drives/@v1/<host>/drive/<axis>/event``."""
 
     TYPE: ClassVar[str] = "event"
+    STRICT: ClassVar[bool] = False  # published/replied state: readers ignore fields they do not know
     host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
     axis: str = _f(max_len=NAME_LEN, name=True, doc="axis name")
     seq: int = _f(range=U64, doc="per-drive event sequence number")
     time_ns: int = _f(range=U64, doc="agent wall clock at the event, ns since the epoch")
     cycle: int = _f(range=U64, doc="agent cycle counter at the event")
-    kind: str = _f(choices=EVENT_KINDS, doc="what happened")
+    kind: str = _f(choices=EVENT_KINDS, open=True, doc="what happened")
     detail: str = _f("", max_len=400, doc="human-readable detail")
     from_state: str = _f("unknown", choices=DRIVE_STATES, doc="CiA 402 state before (transition)")
     to_state: str = _f("unknown", choices=DRIVE_STATES, doc="CiA 402 state after (transition)")
@@ -203,6 +209,7 @@ class CommandRequest:
     """
 
     TYPE: ClassVar[str] = "command_request"
+    STRICT: ClassVar[bool] = True  # an agent never acts on a command with fields it does not know
     request_id: str = _f(max_len=128, min_len=1, doc="caller-chosen id; a repeat returns the first outcome")
     op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op, equal to the last chunk of the key")
     args: dict = _f({}, arg_value=True, doc="op arguments, see the op argument table")
@@ -215,10 +222,11 @@ class CommandReply:
     """One terminal answer per addressed drive, on that drive's own ``cmd/<op>`` key."""
 
     TYPE: ClassVar[str] = "command_reply"
+    STRICT: ClassVar[bool] = False  # published/replied state: readers ignore fields they do not know
     request_id: str = _f(max_len=128, doc="request_id of the request answered")
     host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
     op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op of the request")
-    outcome: str = _f(choices=OUTCOMES, doc="terminal outcome for this drive")
+    outcome: str = _f(choices=OUTCOMES, open=True, doc="terminal outcome for this drive")
     axis: str = _f("", max_len=NAME_LEN, name=True, doc="'' for agent commands")
     state: str = _f("unknown", choices=DRIVE_STATES, doc="state when the outcome was decided")
     error_code: int = _f(0, range=U16, doc="0x603F error code reached (failed), 0 = none")
@@ -418,9 +426,13 @@ def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) 
         lo, hi = meta["range"]
         if not lo <= value <= hi:
             raise SchemaError(f"{where}: {value!r} out of range [{lo}, {hi}]")
-    if "choices" in meta and value not in meta["choices"]:
+    if "choices" in meta and value not in meta["choices"] and not (
+            meta.get("open") and isinstance(value, str) and _OPEN_WORD.match(value)):
         raise SchemaError(f"{where}: {value!r} is not one of {', '.join(map(str, meta['choices']))}")
     return value
+
+
+_OPEN_WORD = re.compile(r"[a-z][a-z0-9_]{0,31}\Z")
 
 
 def _check_field(cls: type[Any], f: dataclasses.Field, value: Any) -> Any:
@@ -448,7 +460,7 @@ def _plan(cls: type[Any]) -> tuple[frozenset, tuple]:
 def _validated(cls: type[Any], body: dict) -> dict:
     """Field values of ``cls`` taken from ``body``, checked and normalised."""
     known, rows = _plan(cls)
-    if not known.issuperset(body):
+    if cls.STRICT and not known.issuperset(body):
         unknown = set(body) - known
         raise SchemaError(f"{cls.TYPE}: unknown field(s) {', '.join(sorted(map(repr, unknown)))}")
     kwargs = {}

@@ -14,7 +14,7 @@ from typing import Any
 SUPPORTED = {
     "$schema", "$id", "$defs", "$ref", "title", "description", "default", "type", "const", "enum",
     "minimum", "maximum", "minLength", "maxLength", "pattern", "properties", "required",
-    "additionalProperties", "propertyNames", "items", "anyOf", "allOf", "if", "then", "maxProperties",
+    "additionalProperties", "propertyNames", "items", "anyOf", "allOf", "if", "then", "maxProperties", "examples",
 }
 
 
