@@ -205,9 +205,9 @@ def _validate(c: AgentConfig) -> None:
     if c.zenoh.mode not in ZENOH_MODES:
         raise ConfigError(f"zenoh.mode: {c.zenoh.mode!r} is not one of {', '.join(ZENOH_MODES)}")
     if sum((bool(c.ifname), c.sim_drives > 0, c.can is not None)) > 1:
-        raise ConfigError("ifname, sim_drives and can: choose one backend (a NIC, simulated drives or a CAN bus)")
+        raise ConfigError("ifname and sim_drives and can: choose one backend (a NIC, simulated drives or a CAN bus)")
     if not c.ifname and c.sim_drives <= 0 and c.can is None:
-        raise ConfigError("ifname, sim_drives or can: one is required (a NIC name, a number of simulated drives > 0, "
+        raise ConfigError("ifname or sim_drives or can: one is required (a NIC name, a number of simulated drives > 0, "
                           "or a [can] table)")
     if c.can is not None:
         _validate_can(c.can)
