@@ -123,7 +123,7 @@ def aggregate(
             results.append(DriveResult.from_reply(reply))
             continue
         if ref.host in gone:
-            why = f"no reply: agent {ref.host} is gone"
+            why = f"no reply: agent {ref.host} is gone or offline"
         elif errors:
             why = "no reply; agent error(s): " + "; ".join(errors)
         else:
