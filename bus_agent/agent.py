@@ -171,6 +171,7 @@ class Agent:
             lease_reaction={d.axis: d.policy.lease_reaction for d in drives},
             lease_ttl_s={d.axis: d.policy.lease_ttl_s for d in drives},
             has_connect=bool(cfg.zenoh.connect),
+            secure=bool(cfg.zenoh.pki),
         )
 
     def _gateway_lost(self, reason: str) -> None:

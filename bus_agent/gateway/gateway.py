@@ -110,21 +110,45 @@ class ParsedCommand:
     request: m.CommandRequest
     args: Mapping[str, Any]
     axes: tuple[str, ...]
+    principal: str | None = None  # from the key (authenticated), None on an unauthenticated key
 
 
-def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*") -> tuple[str, ...]:
-    """The axes of ``host`` whose ``cmd/<op>`` key intersects ``query_key``."""
+def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*",
+                principal: str | None = None) -> tuple[str, ...]:
+    """The axes of ``host`` whose ``cmd/<op>`` key (of ``principal``, if any) intersects ``query_key``."""
     qke = _ke(str(query_key))
-    return tuple(a for a in axes if _ke(keys.drive_cmd(host, a, op)).intersects(qke))
+    return tuple(a for a in axes if _ke(keys.drive_cmd(host, a, op, principal)).intersects(qke))
 
 
-def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], *, agent: bool = False) -> ParsedCommand:
+def requester(query_key: str, claimed: str, *, secure: bool) -> str:
+    """Who is asking: the principal the key names (``.../cmd/<op>/@sup/<principal>``, which the
+    router's ACL admits only from that principal), else, on an insecure agent, the payload's
+    ``supervisor`` (a claim nobody checked). The one place the gateway decides it.
+    Raises :class:`RequestError` when the payload names someone else than the key, or when a
+    secure agent gets a key without a principal."""
+    try:
+        principal = keys.command_principal(query_key)
+    except keys.InvalidKey as exc:
+        raise RequestError(str(exc)) from None
+    if principal is None:
+        if secure:
+            raise RequestError("this agent takes commands only on .../cmd/<op>/@sup/<principal> keys (--pki)")
+        return claimed
+    if claimed and claimed != principal:
+        raise RequestError(f"supervisor {claimed!r} in the payload is not the requester {principal!r} "
+                           "authenticated by the key")
+    return principal
+
+
+def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], *, agent: bool = False,
+                  secure: bool = False) -> ParsedCommand:
     """Decode and validate one command query; raise :class:`RequestError` naming the problem.
 
     ``payload``: the query payload (bytes or zenoh ZBytes, None if absent). ``agent``: the
     query came to ``.../agent/cmd/*`` (op ``nmt``) rather than ``.../drive/*/cmd/*``.
     The payload's op must be the key's op (checked as: the concrete key of that op intersects
-    the query key, which also admits ``cmd/*`` selectors).
+    the query key, which also admits ``cmd/*`` selectors). The request's ``supervisor`` is
+    replaced by :func:`requester` (``secure``: only authenticated keys are accepted).
     """
     if payload is None:
         raise RequestError("no payload: a command query carries a msgpack command_request (schemas.messages)")
@@ -132,25 +156,27 @@ def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], 
         req = m.decode(payload, m.CommandRequest)
     except m.SchemaError as exc:
         raise RequestError(f"invalid command_request: {exc}") from None
+    req = dataclasses.replace(req, supervisor=requester(query_key, req.supervisor, secure=secure))
+    principal = keys.command_principal(query_key)  # valid: requester() checked it
     if agent:
         if req.op not in m.AGENT_OPS:
             raise RequestError(f"op {req.op!r} is not an agent op (agent ops: {', '.join(m.AGENT_OPS)})")
-        if not _ke(keys.agent_cmd(host, req.op)).intersects(_ke(str(query_key))):
+        if not _ke(keys.agent_cmd(host, req.op, principal)).intersects(_ke(str(query_key))):
             raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key}")
         args = m.validate_args(req.op, req.args)
         if args.get("axis") and args["axis"] not in axes:
             raise RequestError(f"args.axis: {args['axis']!r} is not an axis of {host} ({', '.join(axes)})")
-        return ParsedCommand(req, args, ())
+        return ParsedCommand(req, args, (), principal)
     if req.op not in m.DRIVE_OPS:
         raise RequestError(f"op {req.op!r} is not a drive op (drive ops: {', '.join(m.DRIVE_OPS)})")
-    addressed = axes_in_key(query_key, host, axes, req.op)
+    addressed = axes_in_key(query_key, host, axes, req.op, principal)
     if not addressed:
         raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key} "
                            "(the key's last chunk is the op)")
     args = m.validate_args(req.op, req.args)
     if req.op in LEASE_OPS and req.supervisor and args["holder"] != req.supervisor:
         raise RequestError(f"args.holder {args['holder']!r} differs from supervisor {req.supervisor!r}")
-    return ParsedCommand(req, args, addressed)
+    return ParsedCommand(req, args, addressed, principal)
 
 
 # ---- pending requests ----------------------------------------------------------------------
@@ -165,8 +191,11 @@ class _Request:
         self.request_id = req.request_id
         self.op = req.op
         self.axes: tuple[str, ...] = parsed.axes or ("",)
-        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op) if a else keys.agent_cmd(host, req.op))
-                           for a in self.axes}
+        self.supervisor = req.supervisor
+        # Replies go on the key asked, authenticated form included (a reply must intersect the query).
+        self.principal = parsed.principal
+        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op, self.principal) if a else
+                               keys.agent_cmd(host, req.op, self.principal)) for a in self.axes}
         self.created_s = now_s
         self.received_ns = time.monotonic_ns()
         self.deadline_s = now_s + req.timeout_s + OUTCOME_GRACE_S
@@ -179,7 +208,8 @@ class _Request:
         return len(self.replies) == len(self.axes)
 
     def same_command(self, parsed: ParsedCommand) -> bool:
-        return parsed.request.op == self.op and (parsed.axes or ("",)) == self.axes
+        return (parsed.request.op == self.op and (parsed.axes or ("",)) == self.axes
+                and parsed.request.supervisor == self.supervisor and parsed.principal == self.principal)
 
     def attach(self, query: zenoh.Query) -> None:
         self.waiting.append((query, set(self.axes)))
@@ -238,6 +268,7 @@ class GatewaySettings:
     instance: str = ""              # this agent process' id ('' = a new random one)
     check_host: bool = True         # refuse to start while another agent holds the host name
     has_connect: bool = False       # the session has connect endpoints (wait for a link first)
+    secure: bool = False  # --pki: serve only authenticated command keys (requester from the key)
 
 
 @dataclass
@@ -368,10 +399,12 @@ class Gateway:
         self.cycle.snapshot_sink = self.on_snapshot
         # Commands last: by now status flows and the lease/group subscribers are in place.
         self._accepting = True
-        self._cmd_queryables.append(s.declare_queryable(
-            keys.drive_cmd(self.host, "*", "*"), lambda q: enqueue((self._on_drive_cmd, (q,)))))
-        self._cmd_queryables.append(s.declare_queryable(
-            keys.agent_cmd(self.host, "*"), lambda q: enqueue((self._on_agent_cmd, (q,)))))
+        # Authenticated keys always; the unauthenticated ones (the v1 contract's) only without --pki.
+        for principal in ("*",) if self.s.secure else ("*", None):
+            self._cmd_queryables.append(s.declare_queryable(
+                keys.drive_cmd(self.host, "*", "*", principal), lambda q: enqueue((self._on_drive_cmd, (q,)))))
+            self._cmd_queryables.append(s.declare_queryable(
+                keys.agent_cmd(self.host, "*", principal), lambda q: enqueue((self._on_agent_cmd, (q,)))))
         self._token = s.liveliness().declare_token(keys.alive(self.host))
         log.info("gateway %s: %d drive(s), %d remote group member(s)", self.host, len(self.axes), len(self._remotes))
 
@@ -605,7 +638,7 @@ class Gateway:
 
     def _on_drive_cmd(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
-        if not axes_in_key(key, self.host, self.axes):
+        if not (axes_in_key(key, self.host, self.axes) or axes_in_key(key, self.host, self.axes, principal="*")):
             _finish(query)  # a selector for other drives or hosts: not ours to answer
             return
         self._command(query, key, agent=False)
@@ -613,16 +646,22 @@ class Gateway:
     def _on_agent_cmd(self, query: zenoh.Query) -> None:
         self._command(query, str(query.key_expr), agent=True)
 
-    def _requester(self, query: zenoh.Query, request: m.CommandRequest | None) -> str:
-        """Who is asking: the one place that decides it. Today the request's own ``supervisor``
-        field (declared by the sender, not proven; '' -> anonymous)."""
-        return (request.supervisor if request is not None else "") or "anonymous"
+    def _requester(self, key: str, request: m.CommandRequest | None) -> str:
+        """Who is asking, for the audit trail: the requester :func:`requester` decided for a parsed
+        request (the key's authenticated principal, else the declared ``supervisor``); for a
+        refused one, the key's principal if it names one; '' -> anonymous."""
+        if request is not None:
+            return request.supervisor or "anonymous"
+        try:
+            return keys.command_principal(key) or "anonymous"
+        except keys.InvalidKey:
+            return "anonymous"
 
     def _audit(self, key: str, request: m.CommandRequest | None, axes: Sequence[str], requester: str,
                outcome: str, reason: str = "") -> None:
         """Log (INFO) and publish (event kind ``command``) one accepted or refused command."""
         rid = request.request_id if request is not None else ""
-        op = request.op if request is not None else key.rsplit("/", 1)[-1]
+        op = request.op if request is not None else key.split("/cmd/", 1)[-1].split("/", 1)[0]
         log.info("agent %s: command %s op %s axes %s from %s: %s%s", self.host, rid or "-", op,
                  ",".join(axes) or "-", requester, outcome, f": {reason}" if reason else "")
         detail = f"{op} {outcome} from {requester}" + (f": {reason}" if reason else "")
@@ -630,18 +669,19 @@ class Gateway:
             self._emit(rt.CycleEvent(axis, "command", detail=detail, request_id=rid, requester=requester))
 
     def _command(self, query: zenoh.Query, key: str, agent: bool) -> None:
-        key_axes = () if agent else axes_in_key(key, self.host, self.axes)
+        key_axes = () if agent else (axes_in_key(key, self.host, self.axes)
+                                     or axes_in_key(key, self.host, self.axes, principal="*"))
         if not self._accepting:
-            self._audit(key, None, key_axes, self._requester(query, None), "refused", "shutting down")
+            self._audit(key, None, key_axes, self._requester(key, None), "refused", "shutting down")
             _reply_err(query, f"agent {self.host} is shutting down: no new commands")
             return
         try:
-            parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent)
+            parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent, secure=self.s.secure)
         except RequestError as exc:
-            self._audit(key, None, key_axes, self._requester(query, None), "refused", str(exc))
+            self._audit(key, None, key_axes, self._requester(key, None), "refused", str(exc))
             _reply_err(query, f"{self.host}: {exc}")
             return
-        requester = self._requester(query, parsed.request)
+        requester = self._requester(key, parsed.request)
         now = time.monotonic()
         self._forget_old(now)
         rid = parsed.request.request_id
