@@ -111,6 +111,11 @@ def _can_flags(args: argparse.Namespace) -> CanConfig | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["scan"]:  # `bus-agent scan --can CHANNEL`: list the bus's drives (bus_agent/scan.py)
+        from bus_agent.scan import main as scan_main
+
+        return scan_main(argv[1:])
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
