@@ -69,6 +69,10 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("supervisor", "two-phase enable/disable of 4x16 and 32x32 drives; status fan-in", "bench.bench_supervisor",
               (), ("--sizes", "4x16", "--rounds", "1", "--gets", "50"), False,
               s.supervisor_figures, s.supervisor_headline, s.supervisor_targets),
+    Benchmark("canopen", "CAN agent, 8 nodes, 1 ms and 4 ms SYNC, next to a bare python-can SYNC loop",
+              "bench.bench_canopen", ("--seconds", "30", "--rt-priority", "10"),
+              ("--seconds", "3", "--rt-priority", "10"), True,
+              s.canopen_figures, s.canopen_headline, s.canopen_targets),
 )
 
 

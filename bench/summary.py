@@ -263,3 +263,40 @@ def render_markdown(summary: Mapping[str, Any]) -> str:
         lines.append(f"| {r['name']}: {r['what']} | {r['status']} | {when}{load_s} | {r.get('headline') or '-'} "
                      f"| {targets} |")
     return "\n".join(lines) + "\n"
+
+
+# ---- bench_canopen --------------------------------------------------------------------------------
+
+#: The CAN agent at the 4 ms SYNC period: p99.9 jitter at most this many times the bare python-can
+#: SYNC loop's in the same run, and at most this share of the TPDOs missed.
+CANOPEN_JITTER_RATIO_MAX = 1.25
+CANOPEN_MISSED_PCT_MAX = 1.0
+
+
+def canopen_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {"nodes": r.get("nodes"), "load_before": r.get("load_before"), "load_after": r.get("load_after"),
+            "periods": {p: {ph: {k: v[ph].get(k) for k in ("jitter_us", "overruns", "frames_sent_per_cycle",
+                                                          "tpdos_missed_pct", "cpu_pct")}
+                            for ph in ("bare", "agent")} | {"ratios": v["ratios"]}
+                        for p, v in r.get("periods", {}).items()}}
+
+
+def canopen_headline(r: Mapping[str, Any]) -> str:
+    parts = []
+    for p, v in r.get("periods", {}).items():
+        a, b = v["agent"], v["bare"]
+        parts.append(f"{int(p) // 1000} ms: jitter p99.9 agent {a['jitter_us']['p999']} / bare "
+                     f"{b['jitter_us']['p999']} us, TPDOs missed {a['tpdos_missed_pct']} % / {b['tpdos_missed_pct']} %, "
+                     f"{a['frames_sent_per_cycle']} frames sent per cycle")
+    return f"{r.get('nodes')} nodes; " + "; ".join(parts)
+
+
+def canopen_targets(r: Mapping[str, Any]) -> list[Target]:
+    v = r.get("periods", {}).get("4000")
+    if v is None:
+        return []
+    ratio = v["ratios"].get("agent_p999_jitter_over_bare")
+    missed = v["agent"]["tpdos_missed_pct"]
+    return [Target("4 ms SYNC: jitter p99.9 agent / bare", ratio, f"<= {CANOPEN_JITTER_RATIO_MAX} x",
+                   None if ratio is None else ratio <= CANOPEN_JITTER_RATIO_MAX),
+            Target("4 ms SYNC: TPDOs missed %", missed, f"< {CANOPEN_MISSED_PCT_MAX}", missed < CANOPEN_MISSED_PCT_MAX)]

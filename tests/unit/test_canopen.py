@@ -260,3 +260,12 @@ def test_can_flags_errors() -> None:
                       (["--can", "c", "--nodes", "1,x"], "node ids")):
         with pytest.raises(ConfigError, match=why):
             build_config(_parser().parse_args(argv))
+
+
+def test_the_can_example_configuration_loads() -> None:
+    from pathlib import Path
+
+    from bus_agent.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "deploy" / "agent.can.example.toml")
+    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "node", "explicit"]

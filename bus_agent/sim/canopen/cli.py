@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 
@@ -34,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP")
     p.add_argument("--write-eds", metavar="PATH", help="write the simulated drive's EDS file and exit")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="run the node loop SCHED_FIFO at this priority (1..99; 0: normal scheduling)")
     p.add_argument("--log-level", default="WARNING")
     return p
 
@@ -79,6 +82,11 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, lambda *_: segment.stop_event.set())
     signal.signal(signal.SIGINT, lambda *_: segment.stop_event.set())
+    if args.rt_priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
+        except (OSError, ValueError) as exc:
+            logging.getLogger(__name__).warning("SCHED_FIFO %d refused (%s): normal scheduling", args.rt_priority, exc)
     segment.boot()
     print(f"canopen-sim ready channel={args.channel} interface={args.interface} nodes={','.join(map(str, ids))} "
           f"profile={args.profile} name={args.name}", flush=True)
