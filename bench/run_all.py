@@ -73,6 +73,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "bench.bench_canopen", ("--seconds", "30", "--rt-priority", "10"),
               ("--seconds", "3", "--rt-priority", "10"), True,
               s.canopen_figures, s.canopen_headline, s.canopen_targets),
+    Benchmark("security", "mutual TLS + ACL against plain TCP in the same run: 16-drive enable, status fan-in",
+              "bench.bench_security", ("--rounds", "50", "--fanin", "8x32"), ("--quick",), False,
+              s.security_figures, s.security_headline, s.security_targets),
 )
 
 
