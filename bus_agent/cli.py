@@ -51,6 +51,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=ZENOH_MODES, help="zenoh session mode (default peer)")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; 0 = off)")
+    p.add_argument("--record-s", type=float, metavar="S",
+                   help="flight recorder ring length in seconds (default 10, 0 = off; [recorder] in the config)")
     p.add_argument("--gateway-thread", action="store_true",
                    help="run the Zenoh gateway as threads of this process (debugging) instead of a child process")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -69,6 +71,7 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
                      listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
+                     record_s=args.record_s,
                      gateway="thread" if args.gateway_thread else None)
     if args.config:
         return load_config(args.config).with_overrides(**overrides)

@@ -24,6 +24,7 @@ from rich.console import Console
 from schemas.messages import MODES, NMT_COMMANDS
 
 from .fleet import DEFAULT_CONNECT, Fleet, NoAgentError
+from .recordings import TRIGGER_WORDS, RecordingError, fetch_recording, write_csv
 from .results import CommandResult, Report, single
 from .selectors import SelectorError, parse_selector
 
@@ -103,6 +104,17 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("command", choices=NMT_COMMANDS)
     n.add_argument("--host", action="append", default=[], help="agent host (pattern; default every agent)")
     n.add_argument("--slave", help="only this slave: an axis name or a position (with one --host)")
+    r = sub.add_parser("record", help="fetch a flight recording of an agent into a CSV file")
+    r.add_argument("host", help="agent host name")
+    what = r.add_mutually_exclusive_group()
+    what.add_argument("--last", type=_positive, metavar="S", help="the last S seconds (default 10)")
+    what.add_argument("--trigger", choices=tuple(TRIGGER_WORDS), help="the latest window frozen by a fault, "
+                      "reflex, lost slave or request (last: any), or freeze one now")
+    r.add_argument("--out", required=True, metavar="FILE.csv")
+    pl = sub.add_parser("plot", help="draw a flight recording CSV as a PNG (states, statusword bits, motion)")
+    pl.add_argument("file", metavar="FILE.csv")
+    pl.add_argument("--out", required=True, metavar="FILE.png")
+    pl.add_argument("--axis", action="append", default=[], help="only this axis (repeat; default the first 8)")
     return p
 
 
@@ -168,6 +180,8 @@ def run(args: argparse.Namespace, console: Console) -> int:
         if not fleet.hosts():
             raise NoAgentError(f"no bus agent answered through {', '.join(fleet.connect)}")
         verb = args.verb
+        if verb == "record":
+            return _record(fleet, args, console)
         if verb == "status":
             return _status(fleet, args, console)
         if verb == "watch":
@@ -214,6 +228,36 @@ def run(args: argparse.Namespace, console: Console) -> int:
         return EXIT_OK if report.ok else EXIT_FAILED
 
 
+def _record(fleet: Fleet, args: argparse.Namespace, console: Console) -> int:
+    what = TRIGGER_WORDS[args.trigger] if args.trigger else "last"
+    try:
+        rec = fetch_recording(fleet.session, args.host, what, args.last or 10.0, timeout_s=max(args.timeout, 20.0))
+    except RecordingError as exc:
+        console.print(f"record {args.host} FAILED: {exc}", style="bold red", markup=False, highlight=False)
+        return EXIT_FAILED
+    rows = write_csv(rec, args.out)
+    summary = {"host": rec.host, "reason": rec.reason, "axis": rec.axis, "detail": rec.detail,
+               "trigger_cycle": rec.trigger_cycle, "first_cycle": rec.first_cycle, "cycles": rec.n_cycles,
+               "seconds": rec.n_cycles * rec.cycle_us / 1e6, "axes": rec.axes, "rows": rows, "out": args.out}
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        console.print(f"{rec.host}: {rec.n_cycles} cycles ({summary['seconds']:g} s) of {len(rec.axes)} drive(s), "
+                      f"{rec.reason}{' ' + rec.axis if rec.axis else ''}{': ' + rec.detail if rec.detail else ''}"
+                      f" -> {args.out}", markup=False, highlight=False)
+    return EXIT_OK
+
+
+def _plot(args: argparse.Namespace, console: Console) -> int:
+    from .plot import plot_file
+    try:
+        drawn = plot_file(args.file, args.out, args.axis)
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"plot {args.file}: {exc}") from None
+    console.print(f"{args.file}: {', '.join(drawn)} -> {args.out}", markup=False, highlight=False)
+    return EXIT_OK
+
+
 def _status(fleet: Fleet, args: argparse.Namespace, console: Console) -> int:
     from .watch import status_rows, status_table
     if args.selectors:
@@ -243,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     console = Console(stderr=False)
     err = Console(stderr=True, soft_wrap=True)
     try:
+        if args.verb == "plot":  # a file to a file: no agent involved
+            return _plot(args, console)
         return run(args, console)
     except (SelectorError, UsageError, ValueError) as exc:
         err.print(f"drivectl: {exc}", style="bold red", markup=False, highlight=False)
