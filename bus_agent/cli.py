@@ -26,7 +26,8 @@ import sys
 import threading
 from typing import Sequence
 
-from bus_agent.config import SIM_PROFILES, ZENOH_MODES, AgentConfig, ConfigError, ZenohConfig, load_config
+from bus_agent.config import (CAN_INTERFACES, SIM_PROFILES, ZENOH_MODES, AgentConfig, CanConfig, ConfigError,
+                              ZenohConfig, can_config, load_config)
 from schemas.keys import is_name
 
 log = logging.getLogger("bus_agent.cli")
@@ -43,12 +44,21 @@ def _parser() -> argparse.ArgumentParser:
     backend = p.add_mutually_exclusive_group()
     backend.add_argument("--ifname", help="NIC (or veth end) of the EtherCAT segment: pysoem backend, needs root")
     backend.add_argument("--sim", type=int, metavar="N", help="simulate N drives in-process (no root)")
+    backend.add_argument("--can", metavar="CHANNEL", help="CAN bus of CANopen drives: canopen backend "
+                         "(SocketCAN interface, or a udp_multicast group; docs/canopen.md)")
+    p.add_argument("--can-interface", choices=CAN_INTERFACES, help="python-can interface of --can (default socketcan)")
+    p.add_argument("--nodes", metavar="IDS", help="CANopen node ids of --can, e.g. 1,2,3 (slave positions in that order)")
     p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile")
     p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds")
     p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period")
     p.add_argument("--listen", action="append", metavar="EP", help="zenoh listen endpoint (repeatable)")
     p.add_argument("--connect", action="append", metavar="EP", help="zenoh connect endpoint, e.g. a router (repeatable)")
     p.add_argument("--mode", choices=ZENOH_MODES, help="zenoh session mode (default peer)")
+    p.add_argument("--pki", metavar="DIR", help="drives-pki directory: mutual TLS on every link, ACL on what it "
+                   "listens on, commands only from authenticated principals (see docs/security.md)")
+    p.add_argument("--identity", metavar="NAME", help="principal in --pki (default and only choice: the host name)")
+    p.add_argument("--insecure", action="store_true", default=None,
+                   help="allow listening on a non-loopback address without --pki")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; 0 = off)")
     p.add_argument("--gateway-thread", action="store_true",
@@ -66,20 +76,38 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     """The configuration from the file (if any) with the flags applied. Raises ConfigError."""
     if args.sim is not None and args.sim < 1:
         raise ConfigError(f"--sim: {args.sim} must be a number of drives >= 1")
-    overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile,
+    can = _can_flags(args)
+    overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile, can=can,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
                      listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
+                     pki=args.pki, identity=args.identity, insecure=args.insecure,
                      gateway="thread" if args.gateway_thread else None)
     if args.config:
         return load_config(args.config).with_overrides(**overrides)
-    if args.ifname is None and args.sim is None:
-        raise ConfigError("give --config, --ifname NIC or --sim N (e.g. `bus-agent --sim 4`)")
+    if args.ifname is None and args.sim is None and can is None:
+        raise ConfigError("give --config, --ifname NIC, --can CHANNEL --nodes IDS or --sim N (e.g. `bus-agent --sim 4`)")
     # Embedded default: a peer that drivectl reaches on loopback without any router.
     listen = tuple(args.listen or (() if args.connect else (DEFAULT_LISTEN,)))
-    base = AgentConfig(host=args.host or _default_host(), sim_drives=args.sim or 0, ifname=args.ifname,
-                       zenoh=ZenohConfig(listen=listen))
+    base = AgentConfig(host=args.host or _default_host(), sim_drives=args.sim or 0, ifname=args.ifname, can=can,
+                       zenoh=ZenohConfig(listen=listen, pki=args.pki, identity=args.identity,
+                                         insecure=bool(args.insecure)))
     overrides["listen"] = None
     return base.with_overrides(**overrides)
+
+
+def _can_flags(args: argparse.Namespace) -> CanConfig | None:
+    """--can/--can-interface/--nodes as a CanConfig (None without --can). Raises ConfigError."""
+    if args.can is None:
+        if args.nodes is not None or args.can_interface is not None:
+            raise ConfigError("--nodes and --can-interface go with --can CHANNEL")
+        return None
+    if not args.nodes:
+        raise ConfigError("--can needs --nodes, e.g. --nodes 1,2,3")
+    try:
+        ids = tuple(int(x, 0) for x in args.nodes.split(","))
+    except ValueError:
+        raise ConfigError(f"--nodes: {args.nodes!r} is not a comma-separated list of node ids") from None
+    return can_config(args.can, args.can_interface, ids)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -113,7 +141,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     z = config.zenoh
     assert agent.bus is not None  # started
     print(f"bus-agent ready host={config.host} drives={','.join(agent.axes)} backend={agent.bus.backend} "
-          f"listen={','.join(z.listen) or '-'} connect={','.join(z.connect) or '-'}", flush=True)
+          f"listen={','.join(z.listen) or '-'} connect={','.join(z.connect) or '-'} "
+          f"identity={f'{z.identity} (tls)' if z.pki else '- (insecure)'}", flush=True)
     code = EXIT_OK
     while not stop.wait(0.2):
         if agent.failed:

@@ -114,12 +114,25 @@ def render_contract_markdown() -> str:
         "`?` and classes widen to `$*` in the zenoh query, and the caller keeps the replies that "
         "`selector_matches` accepts.",
         "",
+        "**Authenticated commands.** A command key may end in `@sup/<principal>`, naming who asks "
+        "(replies come on the same form of the key). On a secure deployment (`--pki`) the router's ACL "
+        "lets each principal query only keys ending in its own name, and agents serve only these keys: "
+        "the agent takes the requester from the key, a `supervisor` field naming anyone else is "
+        "rejected, and leases are bound to that principal. Agents without `--pki` serve both forms, so "
+        "clients written against the plain keys keep working on insecure deployments (loopback, "
+        "`--insecure`). Principal chunks are names, never wildcards.",
+        "",
         "### Messages",
         "",
         "Every payload is a msgpack map: `v` (schema version, "
         f"{SCHEMA_VERSION}), `type` (the message type) and the fields below. Missing required fields, "
         "wrong types and out-of-range values are rejected with an error naming the field. JSON "
-        "Schemas: `python -m schemas jsonschema --out DIR`.",
+        "Schemas: `python -m schemas jsonschema --out DIR`; a standard draft 2020-12 validator "
+        "accepts exactly what the codec accepts (tested with the `jsonschema` package). As in JSON "
+        "Schema, an integer is a number with no fractional part: `8.0` is read as `8`. NaN, "
+        "infinities and bytes have no JSON form and are rejected. Patterns end with `$(?!\\n)`, the "
+        "end of input in ECMA-262 and in Python's `re` alike (Python's bare `$` also matches "
+        "before a final newline).",
         "",
         "**How the contract evolves.** Within one version, a writer may add *optional* fields (with a "
         "default) and new words to an *open vocabulary*; an older reader never breaks on them: readers "

@@ -74,7 +74,8 @@ OUTCOMES = ("done", "failed", "timeout", "rejected", "busy", "aborted")
 AXIS_STATES = ("disabled", "standstill", "homing", "discrete_motion", "continuous_motion",
                "synchronized_motion", "stopping", "error_stop")
 #: Event kinds.
-EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning")
+EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning",
+               "command", "conflict")
 #: EtherCAT AL states by name (register 0x0130 low nibble).
 AL_STATES = ("init", "preop", "boot", "safeop", "op", "none")
 AGENT_STATES = ("starting", "running", "stopping", "stopped", "error")
@@ -191,6 +192,8 @@ class AgentStatus:
     al_states: dict = _f({}, keys=NAME, values=AL_STATE, doc="axis -> AL state name")
     leases: dict = _f({}, keys=NAME, values=NAME, doc="axis -> lease holder, for leased axes")
     groups: dict = _f({}, keys=NAME, values=Meta(list, {"items": MEMBER}), doc="group name -> list of member keys 'host/axis'")
+    instance: str = _f("", max_len=64, doc="this agent process' random id, new at every start: two ids under one host name are a conflict")
+    conflict: str = _f("", max_len=400, doc="another agent publishes under this host name ('' if none): commands are refused by supervisors")
 
 
 @dataclass(frozen=True)
@@ -210,6 +213,7 @@ class Event:
     to_state: str = _f("unknown", choices=DRIVE_STATES, doc="CiA 402 state after (transition)")
     error_code: int = _f(0, range=U16, doc="0x603F error code (fault), 0 = none")
     request_id: str = _f("", max_len=128, doc="request the event belongs to ('' if none)")
+    requester: str = _f("", max_len=128, doc="who sent the command (kind command; '' = anonymous)")
 
 
 @dataclass(frozen=True)
@@ -226,7 +230,7 @@ class CommandRequest:
     op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op, equal to the last chunk of the key")
     args: dict = _f({}, arg_value=True, doc="op arguments, see the op argument table")
     timeout_s: float = _f(5.0, range=(0.0, 3600.0), doc="deadline for the goal, from receipt")
-    supervisor: str = _f("", max_len=NAME_LEN, name=True, doc="sender identity, for leases ('' = anonymous)")
+    supervisor: str = _f("", max_len=NAME_LEN, name=True, doc="sender identity, for leases ('' = anonymous); on an @sup/<principal> key, '' or that principal")
 
 
 @dataclass(frozen=True)
@@ -400,6 +404,19 @@ def _check_arg_value(where: str, value: Any, depth: int) -> Any:
     )
 
 
+def _integer(where: str, value: Any) -> int:
+    """An integer as JSON Schema counts one: an int, or a float with no fractional part (8.0).
+
+    JSON has one number type, so ``8`` and ``8.0`` are the same value to a JSON Schema validator
+    and to a writer in JavaScript; the codec agrees and normalises the float to an int.
+    """
+    if isinstance(value, float) and value.is_integer():  # False for NaN and infinities
+        return int(value)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise SchemaError(f"{where}: expected int, got {type(value).__name__}")
+    return value
+
+
 def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) -> Any:
     """Check ``value`` against type ``t`` and rule metadata; return it normalised."""
     if isinstance(value, msgpack.ExtType):  # a namedtuple: must not pass as a list
@@ -408,8 +425,7 @@ def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) 
         if not isinstance(value, bool):
             raise SchemaError(f"{where}: expected bool, got {type(value).__name__}")
     elif t is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise SchemaError(f"{where}: expected int, got {type(value).__name__}")
+        value = _integer(where, value)
     elif t is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise SchemaError(f"{where}: expected number, got {type(value).__name__}")
@@ -573,8 +589,8 @@ def from_dict(body: Any, expected: type[Any] | None = None) -> Any:
     if "v" not in body:
         raise SchemaError("v: missing schema version")
     v = body["v"]
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise SchemaError(f"v: schema version must be an integer, got {type(v).__name__}")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (isinstance(v, float) and not v.is_integer()):
+        raise SchemaError(f"v: schema version must be an integer, got {v!r}")
     if v != SCHEMA_VERSION:
         raise SchemaError(f"v: schema version {v!r} is not supported (this side speaks {SCHEMA_VERSION})")
     tname = body.get("type")

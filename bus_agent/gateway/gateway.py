@@ -34,9 +34,11 @@ from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 import zenoh
 
 from bus_agent import runtime as rt
+from bus_agent.gateway.hostclaim import ConflictTracker, check_host_free, new_instance
 from bus_agent.gateway.leases import EndedLease, LeaseDecision, LeaseResult, LeaseTable
 from schemas import keys
 from schemas import messages as m
+from schemas.error_codes import describe
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +63,8 @@ MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
+#: Ops an agent refuses while another agent uses its host name (lowering ops still work).
+CONFLICT_REFUSED_OPS = frozenset({"enable", "switch_on", "fault_reset", "set_mode", "nmt"})
 #: Request-id memory: size and time to live of finished requests.
 DEDUP_SIZE = 1024
 DEDUP_TTL_S = 300.0
@@ -106,21 +110,45 @@ class ParsedCommand:
     request: m.CommandRequest
     args: Mapping[str, Any]
     axes: tuple[str, ...]
+    principal: str | None = None  # from the key (authenticated), None on an unauthenticated key
 
 
-def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*") -> tuple[str, ...]:
-    """The axes of ``host`` whose ``cmd/<op>`` key intersects ``query_key``."""
+def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*",
+                principal: str | None = None) -> tuple[str, ...]:
+    """The axes of ``host`` whose ``cmd/<op>`` key (of ``principal``, if any) intersects ``query_key``."""
     qke = _ke(str(query_key))
-    return tuple(a for a in axes if _ke(keys.drive_cmd(host, a, op)).intersects(qke))
+    return tuple(a for a in axes if _ke(keys.drive_cmd(host, a, op, principal)).intersects(qke))
 
 
-def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], *, agent: bool = False) -> ParsedCommand:
+def requester(query_key: str, claimed: str, *, secure: bool) -> str:
+    """Who is asking: the principal the key names (``.../cmd/<op>/@sup/<principal>``, which the
+    router's ACL admits only from that principal), else, on an insecure agent, the payload's
+    ``supervisor`` (a claim nobody checked). The one place the gateway decides it.
+    Raises :class:`RequestError` when the payload names someone else than the key, or when a
+    secure agent gets a key without a principal."""
+    try:
+        principal = keys.command_principal(query_key)
+    except keys.InvalidKey as exc:
+        raise RequestError(str(exc)) from None
+    if principal is None:
+        if secure:
+            raise RequestError("this agent takes commands only on .../cmd/<op>/@sup/<principal> keys (--pki)")
+        return claimed
+    if claimed and claimed != principal:
+        raise RequestError(f"supervisor {claimed!r} in the payload is not the requester {principal!r} "
+                           "authenticated by the key")
+    return principal
+
+
+def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], *, agent: bool = False,
+                  secure: bool = False) -> ParsedCommand:
     """Decode and validate one command query; raise :class:`RequestError` naming the problem.
 
     ``payload``: the query payload (bytes or zenoh ZBytes, None if absent). ``agent``: the
     query came to ``.../agent/cmd/*`` (op ``nmt``) rather than ``.../drive/*/cmd/*``.
     The payload's op must be the key's op (checked as: the concrete key of that op intersects
-    the query key, which also admits ``cmd/*`` selectors).
+    the query key, which also admits ``cmd/*`` selectors). The request's ``supervisor`` is
+    replaced by :func:`requester` (``secure``: only authenticated keys are accepted).
     """
     if payload is None:
         raise RequestError("no payload: a command query carries a msgpack command_request (schemas.messages)")
@@ -128,25 +156,27 @@ def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], 
         req = m.decode(payload, m.CommandRequest)
     except m.SchemaError as exc:
         raise RequestError(f"invalid command_request: {exc}") from None
+    req = dataclasses.replace(req, supervisor=requester(query_key, req.supervisor, secure=secure))
+    principal = keys.command_principal(query_key)  # valid: requester() checked it
     if agent:
         if req.op not in m.AGENT_OPS:
             raise RequestError(f"op {req.op!r} is not an agent op (agent ops: {', '.join(m.AGENT_OPS)})")
-        if not _ke(keys.agent_cmd(host, req.op)).intersects(_ke(str(query_key))):
+        if not _ke(keys.agent_cmd(host, req.op, principal)).intersects(_ke(str(query_key))):
             raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key}")
         args = m.validate_args(req.op, req.args)
         if args.get("axis") and args["axis"] not in axes:
             raise RequestError(f"args.axis: {args['axis']!r} is not an axis of {host} ({', '.join(axes)})")
-        return ParsedCommand(req, args, ())
+        return ParsedCommand(req, args, (), principal)
     if req.op not in m.DRIVE_OPS:
         raise RequestError(f"op {req.op!r} is not a drive op (drive ops: {', '.join(m.DRIVE_OPS)})")
-    addressed = axes_in_key(query_key, host, axes, req.op)
+    addressed = axes_in_key(query_key, host, axes, req.op, principal)
     if not addressed:
         raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key} "
                            "(the key's last chunk is the op)")
     args = m.validate_args(req.op, req.args)
     if req.op in LEASE_OPS and req.supervisor and args["holder"] != req.supervisor:
         raise RequestError(f"args.holder {args['holder']!r} differs from supervisor {req.supervisor!r}")
-    return ParsedCommand(req, args, addressed)
+    return ParsedCommand(req, args, addressed, principal)
 
 
 # ---- pending requests ----------------------------------------------------------------------
@@ -161,20 +191,25 @@ class _Request:
         self.request_id = req.request_id
         self.op = req.op
         self.axes: tuple[str, ...] = parsed.axes or ("",)
-        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op) if a else keys.agent_cmd(host, req.op))
-                           for a in self.axes}
+        self.supervisor = req.supervisor
+        # Replies go on the key asked, authenticated form included (a reply must intersect the query).
+        self.principal = parsed.principal
+        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op, self.principal) if a else
+                               keys.agent_cmd(host, req.op, self.principal)) for a in self.axes}
         self.created_s = now_s
         self.received_ns = time.monotonic_ns()
         self.deadline_s = now_s + req.timeout_s + OUTCOME_GRACE_S
         self.replies: dict[str, m.CommandReply] = {}
         self.waiting: list[tuple[zenoh.Query, set[str]]] = []
+        self.requester = "anonymous"
 
     @property
     def done(self) -> bool:
         return len(self.replies) == len(self.axes)
 
     def same_command(self, parsed: ParsedCommand) -> bool:
-        return parsed.request.op == self.op and (parsed.axes or ("",)) == self.axes
+        return (parsed.request.op == self.op and (parsed.axes or ("",)) == self.axes
+                and parsed.request.supervisor == self.supervisor and parsed.principal == self.principal)
 
     def attach(self, query: zenoh.Query) -> None:
         self.waiting.append((query, set(self.axes)))
@@ -230,6 +265,10 @@ class GatewaySettings:
     groups: Mapping[str, Sequence[str]] = field(default_factory=dict)   # name -> "host/axis"
     lease_reaction: Mapping[str, str] = field(default_factory=dict)     # axis -> LEASE_REACTION_OPS key
     lease_ttl_s: Mapping[str, float] = field(default_factory=dict)      # axis -> default ttl
+    instance: str = ""              # this agent process' id ('' = a new random one)
+    check_host: bool = True         # refuse to start while another agent holds the host name
+    has_connect: bool = False       # the session has connect endpoints (wait for a link first)
+    secure: bool = False  # --pki: serve only authenticated command keys (requester from the key)
 
 
 @dataclass
@@ -255,6 +294,10 @@ class Gateway:
         self.host = settings.host
         self.axes = tuple(settings.axes)
         self.agent_state_override: str | None = None
+        self.instance = settings.instance or new_instance()
+        # Other agents under our host name; a conflict ends after three silent status periods.
+        self._conflicts = ConflictTracker(self.host, self.instance, max(1.0, 3 * settings.agent_period_s))
+        self._conflict_text = ""
         # cycle -> publisher
         self._latest: rt.CycleSnapshot | None = None
         self._events: collections.deque[tuple[rt.CycleEvent, int, int]] = collections.deque(maxlen=8192)
@@ -315,7 +358,11 @@ class Gateway:
     # ---- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
+        """Check that the host name is free (:class:`~bus_agent.gateway.hostclaim.HostNameTaken`
+        otherwise, nothing declared), then declare everything, commands last."""
         s = self.session
+        if self.s.check_host:
+            check_host_free(s, self.host, has_connect=self.s.has_connect)
         # A cycle already running (behind the process bridge) has a snapshot: drive status goes
         # out in the first publish pass, before the agent status that lists the axes.
         self._latest = self._latest or getattr(self.cycle, "latest", None)
@@ -335,6 +382,8 @@ class Gateway:
             keys.agent_status(self.host), lambda q: enqueue((self._on_agent_query, (q,)))))
         self._other_decls.append(s.liveliness().declare_subscriber(
             keys.ALL_SUPERVISORS, lambda smp: enqueue((self._on_supervisor_token, (smp,))), history=True))
+        self._other_decls.append(s.declare_subscriber(
+            keys.agent_status(self.host), lambda smp: enqueue((self._on_own_host_status, (smp,)))))
         remote_hosts = sorted({r.host for r in self._remotes})
         for host in remote_hosts:
             self._other_decls.append(s.declare_subscriber(
@@ -350,10 +399,12 @@ class Gateway:
         self.cycle.snapshot_sink = self.on_snapshot
         # Commands last: by now status flows and the lease/group subscribers are in place.
         self._accepting = True
-        self._cmd_queryables.append(s.declare_queryable(
-            keys.drive_cmd(self.host, "*", "*"), lambda q: enqueue((self._on_drive_cmd, (q,)))))
-        self._cmd_queryables.append(s.declare_queryable(
-            keys.agent_cmd(self.host, "*"), lambda q: enqueue((self._on_agent_cmd, (q,)))))
+        # Authenticated keys always; the unauthenticated ones (the v1 contract's) only without --pki.
+        for principal in ("*",) if self.s.secure else ("*", None):
+            self._cmd_queryables.append(s.declare_queryable(
+                keys.drive_cmd(self.host, "*", "*", principal), lambda q: enqueue((self._on_drive_cmd, (q,)))))
+            self._cmd_queryables.append(s.declare_queryable(
+                keys.agent_cmd(self.host, "*", principal), lambda q: enqueue((self._on_agent_cmd, (q,)))))
         self._token = s.liveliness().declare_token(keys.alive(self.host))
         log.info("gateway %s: %d drive(s), %d remote group member(s)", self.host, len(self.axes), len(self._remotes))
 
@@ -478,7 +529,7 @@ class Gateway:
             state=d.state if d.state in m.DRIVE_STATES else "unknown", statusword=d.statusword,
             controlword=d.controlword, goal=d.goal, halt=d.halt, mode=d.mode, mode_display=d.mode_display,
             position=d.position, velocity=d.velocity, torque=d.torque, error_code=d.error_code,
-            error_text=d.error_text[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
+            error_text=(d.error_text or describe(d.error_code))[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
             axis_state=d.axis_state, homed=d.homed, target_position=d.target_position,
             following_error=max(-2**31, min(2**31 - 1, d.following_error)), motion_request_id=d.motion_request_id[:128],
         )
@@ -494,13 +545,16 @@ class Gateway:
             log.debug("event for unknown axis %r dropped: %s", ev.axis, ev)
             return
         self._event_seq[ev.axis] = self._event_seq.get(ev.axis, 0) + 1
+        detail = ev.detail
+        if ev.kind == "fault" and ev.error_code and describe(ev.error_code) not in detail:
+            detail = f"{detail}: {describe(ev.error_code)}" if detail else describe(ev.error_code)
         try:
             msg = m.Event(
                 host=self.host, axis=ev.axis, seq=self._event_seq[ev.axis], time_ns=time_ns, cycle=cycle,
-                kind=ev.kind, detail=ev.detail[:400],
+                kind=ev.kind, detail=detail[:400],
                 from_state=ev.from_state if ev.from_state in m.DRIVE_STATES else "unknown",
                 to_state=ev.to_state if ev.to_state in m.DRIVE_STATES else "unknown",
-                error_code=ev.error_code, request_id=ev.request_id[:128],
+                error_code=ev.error_code, request_id=ev.request_id[:128], requester=ev.requester[:128],
             )
             pub.put(m.encode(msg))
         except m.SchemaError as exc:
@@ -518,6 +572,7 @@ class Gateway:
             overruns=st.overruns, wkc_errors=st.wkc_errors, expected_wkc=st.expected_wkc,
             axes=list(self.axes), al_states={d.axis: d.al_state for d in snap.drives} if snap else {},
             leases=dict(self._lease_holders), groups={g: list(ms) for g, ms in self.s.groups.items()},
+            instance=self.instance, conflict=self._conflict_text[:400],
         )
 
     # ---- command thread ---------------------------------------------------------------------
@@ -550,6 +605,8 @@ class Gateway:
         return t
 
     def _timers(self, now: float) -> None:
+        if self._conflicts.expire(now):
+            self._conflict_changed()
         ended = self.leases.expire(now)
         if ended:
             self._leases_ended(ended)
@@ -583,7 +640,7 @@ class Gateway:
 
     def _on_drive_cmd(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
-        if not axes_in_key(key, self.host, self.axes):
+        if not (axes_in_key(key, self.host, self.axes) or axes_in_key(key, self.host, self.axes, principal="*")):
             _finish(query)  # a selector for other drives or hosts: not ours to answer
             return
         self._command(query, key, agent=False)
@@ -591,28 +648,58 @@ class Gateway:
     def _on_agent_cmd(self, query: zenoh.Query) -> None:
         self._command(query, str(query.key_expr), agent=True)
 
+    def _requester(self, key: str, request: m.CommandRequest | None) -> str:
+        """Who is asking, for the audit trail: the requester :func:`requester` decided for a parsed
+        request (the key's authenticated principal, else the declared ``supervisor``); for a
+        refused one, the key's principal if it names one; '' -> anonymous."""
+        if request is not None:
+            return request.supervisor or "anonymous"
+        try:
+            return keys.command_principal(key) or "anonymous"
+        except keys.InvalidKey:
+            return "anonymous"
+
+    def _audit(self, key: str, request: m.CommandRequest | None, axes: Sequence[str], requester: str,
+               outcome: str, reason: str = "") -> None:
+        """Log (INFO) and publish (event kind ``command``) one accepted or refused command."""
+        rid = request.request_id if request is not None else ""
+        op = request.op if request is not None else key.split("/cmd/", 1)[-1].split("/", 1)[0]
+        log.info("agent %s: command %s op %s axes %s from %s: %s%s", self.host, rid or "-", op,
+                 ",".join(axes) or "-", requester, outcome, f": {reason}" if reason else "")
+        detail = f"{op} {outcome} from {requester}" + (f": {reason}" if reason else "")
+        for axis in axes or ("",):
+            self._emit(rt.CycleEvent(axis, "command", detail=detail, request_id=rid, requester=requester))
+
     def _command(self, query: zenoh.Query, key: str, agent: bool) -> None:
+        key_axes = () if agent else (axes_in_key(key, self.host, self.axes)
+                                     or axes_in_key(key, self.host, self.axes, principal="*"))
         if not self._accepting:
+            self._audit(key, None, key_axes, self._requester(key, None), "refused", "shutting down")
             _reply_err(query, f"agent {self.host} is shutting down: no new commands")
             return
         try:
-            parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent)
+            parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent, secure=self.s.secure)
         except RequestError as exc:
-            log.info("agent %s: command on %s refused: %s", self.host, key, exc)
+            self._audit(key, None, key_axes, self._requester(key, None), "refused", str(exc))
             _reply_err(query, f"{self.host}: {exc}")
             return
+        requester = self._requester(key, parsed.request)
         now = time.monotonic()
         self._forget_old(now)
         rid = parsed.request.request_id
         first = self._requests.get(rid)
         if first is not None:
             if not first.same_command(parsed):
-                _reply_err(query, f"{self.host}: request_id {rid!r} was already used for op {first.op} on "
-                                  f"{', '.join(first.axes) or 'the agent'}: use a new request_id")
+                reason = (f"request_id {rid!r} was already used for op {first.op} on "
+                          f"{', '.join(first.axes) or 'the agent'}: use a new request_id")
+                self._audit(key, parsed.request, parsed.axes, requester, "refused", reason)
+                _reply_err(query, f"{self.host}: {reason}")
                 return
             first.attach(query)  # the first outcome(s), now or when they come: no second action
             return
+        self._audit(key, parsed.request, parsed.axes, requester, "accepted")
         req = _Request(parsed, self.host, now)
+        req.requester = requester
         self._requests[rid] = req
         self._pending.add(req)
         req.attach(query)
@@ -623,6 +710,11 @@ class Gateway:
 
     def _submit(self, req: _Request, parsed: ParsedCommand) -> None:
         r = parsed.request
+        if self._conflict_text and r.op in CONFLICT_REFUSED_OPS:
+            # Another agent may obey the same command: nothing that raises power or clears a fault.
+            for axis in parsed.axes or ("",):
+                self._outcome(req, rt.Outcome(axis, "rejected", state=self._state(axis), reason=self._conflict_text))
+            return
         on_outcome = functools.partial(self._outcome_from_cycle, req)
         if not parsed.axes:  # agent command
             blocked = self._blocking_leases(r.supervisor, [parsed.args["axis"]] if parsed.args.get("axis") else self.axes)
@@ -681,6 +773,8 @@ class Gateway:
                                      error_code=reply.error_code, request_id=req.request_id))
         if req.done:
             self._pending.discard(req)
+            log.info("agent %s: command %s op %s from %s finished: %s", self.host, req.request_id, req.op,
+                     req.requester, ", ".join(f"{a or 'agent'}={r.outcome}" for a, r in sorted(req.replies.items())))
 
     def _reply(self, req: _Request, o: rt.Outcome) -> m.CommandReply:
         return m.CommandReply(
@@ -797,6 +891,26 @@ class Gateway:
             log.error("agent %s: %s reaction %s for %s could not be queued (inbox full); retrying",
                       self.host, why, ops[0], ", ".join(axes))
             threading.Timer(0.01, lambda: self._inbox.put((self._run_internal, (ops, axes, why)))).start()
+
+    # -- one agent per host name
+
+    def _on_own_host_status(self, sample: zenoh.Sample) -> None:
+        try:
+            st = m.decode(sample.payload.to_bytes(), m.AgentStatus)
+        except m.SchemaError:
+            return
+        if self._conflicts.seen(st.instance, time.monotonic()):
+            self._conflict_changed()
+
+    def _conflict_changed(self) -> None:
+        self._conflict_text = self._conflicts.text
+        if self._conflict_text:
+            log.error("agent %s: %s", self.host, self._conflict_text)
+        else:
+            log.warning("agent %s: host name conflict over (no other instance for %.0f s)", self.host,
+                        self._conflicts.hold_s)
+        self._emit(rt.CycleEvent("", "conflict", detail=self._conflict_text or "host name conflict over"))
+        self._next_agent_s = 0.0  # say it in the agent status now
 
     # -- cross-host groups
 

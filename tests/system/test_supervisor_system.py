@@ -19,6 +19,8 @@ pytestmark = pytest.mark.timeout(120)
 
 HOSTS = ("h1", "h2", "h3")
 N_DRIVES = 4
+#: A killed agent is reported gone within this (safety bound: link lease 3 s, plus a loaded host).
+DEPARTURE_BOUND_S = 10.0
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +101,7 @@ def test_two_phase_enable_then_ordered_shutdown(fleet: Fleet) -> None:
                     reached.append(st.host)
 
     fleet.on("status", on_status)
-    report = fleet.shutdown([["h1/*"], ["h2/*"], ["h3/*"]])
+    report = fleet.take_down([["h1/*"], ["h2/*"], ["h3/*"]])
     assert report.ok, report.reason
     assert [label for label, _ in report.steps] == ["disable:stage3", "disable:stage2", "disable:stage1"]
     assert fleet.wait_until(lambda f: _all_in(f, f.roster(), "switch_on_disabled"), 5), _states(fleet)
@@ -215,7 +217,8 @@ def test_agent_killed_is_reported_gone(bed: dict, fleet: Fleet) -> None:
     try:
         assert fleet.wait_for_agents(["h8"], 10, drives=len(HOSTS) * N_DRIVES + 2)
         agent.kill()
-        assert gone.wait(1.0), "departure of h8 not reported within 1 s"
+        # a safety bound (the link lease is 3 s), not a latency figure; generous for a loaded host
+        assert gone.wait(DEPARTURE_BOUND_S), f"departure of h8 not reported within {DEPARTURE_BOUND_S} s"
         assert "h8" not in fleet.hosts()
         res = fleet.command("switch_on", fleet.selection_of([r for r in fleet.drives() if r.host == "h8"]))
         assert res.results and {r.outcome for r in res.results} == {"missing"}
