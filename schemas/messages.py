@@ -75,7 +75,7 @@ AXIS_STATES = ("disabled", "standstill", "homing", "discrete_motion", "continuou
                "synchronized_motion", "stopping", "error_stop")
 #: Event kinds.
 EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning",
-               "command", "conflict")
+               "command", "conflict", "emcy")
 #: EtherCAT AL states by name (register 0x0130 low nibble).
 AL_STATES = ("init", "preop", "boot", "safeop", "op", "none")
 AGENT_STATES = ("starting", "running", "stopping", "stopped", "error")
