@@ -199,7 +199,7 @@ def supervisor_headline(r: Mapping[str, Any]) -> str:
     parts = []
     for s in r["sizes"]:
         bare = s.get("get_rtt_bare", {})
-        text = (f"{s['drives']} drives: enable wall/overhead {_s(s.get('enable_wall_s_median'))}/"
+        text = (f"{_size(s)}: enable wall/overhead {_s(s.get('enable_wall_s_median'))}/"
                 f"{_s(s.get('enable_overhead_s_median'))}, disable {_s(s.get('disable_wall_s_median'))}/"
                 f"{_s(s.get('disable_overhead_s_median'))}, bare get p50 {bare.get('p50_ms')} ms")
         d = s.get("departure")
@@ -218,10 +218,16 @@ def _s(v: float | None) -> str:
     return "-" if v is None else f"{v * 1e3:.1f} ms" if v < 1 else f"{v:.2f} s"
 
 
+def _size(s: Mapping[str, Any]) -> str:
+    """``AxD``, and the transport unless plain TCP."""
+    transport = s.get("transport", "tcp")
+    return f"{s['agents']}x{s['drives'] // max(1, s['agents'])}" + ("" if transport == "tcp" else f" {transport}")
+
+
 def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
     out = []
     for s in r["sizes"]:
-        size = f"{s['agents']}x{s['drives'] // max(1, s['agents'])}"
+        size = _size(s)
         rounds = s.get("rounds", [])
         ok = sum(1 for x in rounds if x["enable"]["ok"] and x["disable"]["ok"])
         out.append(Target(f"{size}: enable/disable rounds ok", f"{ok}/{len(rounds)}", "all", bool(rounds) and
