@@ -28,7 +28,9 @@ def bed() -> Iterator[CanBed]:
     master, sim = pair_names(f"zcm{os.getpid() % 10000}", 0)
     try:
         veth_up(master, sim, master_netns=b.netns, sim_netns=b.netns)
-        b.module("ecat-sim", "bus_agent.sim.cli", "--ifname", sim, "--drives", "2", ready="ecat-sim ready")
+        # SCHED_FIFO: on a loaded host a normal-priority ecat-sim answers too late for start-up
+        b.module("ecat-sim", "bus_agent.sim.cli", "--ifname", sim, "--drives", "2", "--rt-priority", "20",
+                 ready="ecat-sim ready")
         b.module("canopen-sim", "bus_agent.sim.canopen.cli", "--channel", CHANNEL, "--interface", "udp_multicast",
                  "--nodes", "2", ready="canopen-sim ready")
         b.ecat_master = master  # type: ignore[attr-defined]
