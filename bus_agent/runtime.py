@@ -72,6 +72,11 @@ class DriveSnapshot:
     error_text: str
     al_state: str
     lost: bool
+    #: Actual values (position, velocity, torque) the drive does not map: their fields read 0.
+    absent: tuple[str, ...] = ()
+    #: Other mapped input objects: names (CiA 402 table, else '0xIIII:SS') and their values.
+    object_names: tuple[str, ...] = ()
+    objects: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)

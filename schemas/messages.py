@@ -154,6 +154,10 @@ class DriveStatus:
     lost: bool = _f(False, doc="slave not answering (working counter or AL state)")
     lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="supervisor holding the lease, '' if none")
     slave: int = _f(0, range=(0, 65535), doc="slave position on the segment (0-based)")
+    absent: list = _f([], items=Meta(str, {"choices": ("position", "velocity", "torque")}),
+                      doc="actual values the drive does not map (their fields read 0 and mean nothing)")
+    objects: dict = _f({}, keys=Meta(str, {"max_len": 64}), values=Meta(int, {"range": (-(2**63), 2**64 - 1)}),
+                       doc="other mapped input objects by name (CiA 402 table, else '0xIIII:SS') -> value")
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ LEASE_REACTION_OPS: dict[str, tuple[str, ...]] = {
 #: ``motion_period_s`` and with every heartbeat.
 CHANGE_FIELDS = ("state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                  "error_code", "error_text", "al_state", "lost")
-MOTION_FIELDS = ("position", "velocity", "torque")
+MOTION_FIELDS = ("position", "velocity", "torque", "objects")
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
@@ -479,6 +479,7 @@ class Gateway:
             controlword=d.controlword, goal=d.goal, halt=d.halt, mode=d.mode, mode_display=d.mode_display,
             position=d.position, velocity=d.velocity, torque=d.torque, error_code=d.error_code,
             error_text=d.error_text[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
+            absent=list(d.absent), objects=dict(zip(d.object_names, d.objects)),
         )
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
