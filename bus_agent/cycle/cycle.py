@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 from bus_agent.bus.base import ALState, Bus, BusError, SlaveALStatus, SlaveInfo, al_status_text
-from bus_agent.cia402.controller import (ControllerConfig, ControllerEvent, DriveController, EventKind,
+from bus_agent.cia402.controller import (DISABLED_IN_FAULT, ControllerConfig, ControllerEvent, DriveController, EventKind,
                                          Goal)
 from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
@@ -192,6 +192,11 @@ class Cycle:
         self._inbox_lock = threading.Lock()
         self._triggers: collections.deque[tuple[str, str]] = collections.deque(maxlen=INBOX_MAX)
         self._events: list[CycleEvent] = []
+        # Optional bus hooks (the CANopen backend): EMCY frames as (slave, error code, register,
+        # text), and the text of the last emergency per slave as {slave: (error code, text)}.
+        self._take_emergencies: Callable[[], list[tuple[int, int, int, str]]] | None = \
+            getattr(bus, "take_emergencies", None)
+        self._error_texts: dict[int, tuple[int, str]] = getattr(bus, "error_texts", {})
         self._lost_origins: list[tuple[str, str]] = []
         self._ordered_stop = True
         self._desired_al: dict[int, ALState] = {}
@@ -550,6 +555,12 @@ class Cycle:
                 i.modes_of_operation_display = d.mode_display_sdo
             if d.sdo_error_code:
                 i.error_code = d.error_code_sdo
+        if self._take_emergencies is not None:
+            for slave, code, register, text in self._take_emergencies():
+                for d in self.drives:
+                    if d.slave == slave:
+                        self._event(d.axis, "emcy", f"EMCY 0x{code:04X} {text} (error register 0x{register:02X})",
+                                    error_code=code)
 
         # Reflex origins are detected on the fresh statusword, before any controller step, so the
         # other members get their new goal in this very cycle.
@@ -918,7 +929,11 @@ class Cycle:
             terminal = OUTCOME_OF_EVENT.get((p.kind, k))
             if terminal is not None:
                 outcome, default_reason = terminal
-                self._resolve(d, outcome, "" if outcome == "done" else ev.reason or default_reason, now_ns)
+                if outcome == "done":
+                    reason = ev.reason if ev.reason == DISABLED_IN_FAULT else ""
+                else:
+                    reason = ev.reason or default_reason
+                self._resolve(d, outcome, reason, now_ns)
 
     def _auto_reset(self, d: _Drive, now_ns: int) -> None:
         a = d.cfg.policy.auto_reset
@@ -1030,7 +1045,7 @@ class Cycle:
                 n.phase = "to_target"
             else:
                 for s in n.slaves:
-                    n.ticket = mgmt.request_state(s, ALState.INIT)
+                    n.ticket = mgmt.request_state(s, ALState.INIT, nmt=n.command)  # CAN: reset node / comm.
                 n.phase = "to_init"
             return
         if self._al_ticket < n.ticket:
@@ -1094,9 +1109,15 @@ class Cycle:
                 controlword=d.controlword, goal=c.goal.value, halt=c.halt, mode=c.mode,
                 mode_display=i.modes_of_operation_display, position=i.position_actual,
                 velocity=i.velocity_actual, torque=i.torque_actual, error_code=i.error_code,
-                error_text="", al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost,
+                error_text=self._error_text(d.slave, i.error_code),
+                al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost,
                 absent=d.absent, object_names=d.object_names, objects=i.extra))
         return tuple(out)
+
+    def _error_text(self, slave: int, error_code: int) -> str:
+        """The text of the bus's last emergency of ``slave`` when it is about this error code."""
+        t = self._error_texts.get(slave) if error_code else None
+        return t[1] if t is not None and t[0] == error_code else ""
 
     def _update_stats(self) -> None:
         ps = sorted(self._periods)
