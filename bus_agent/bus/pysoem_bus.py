@@ -92,6 +92,7 @@ class PysoemBus:
         self._inputs: list[DriveInputs] = []
         self._expected_wkc = 0
         self._setups: dict[int, SlaveSetup] = {}
+        self._preop_values: dict[tuple[int, int], bytes | BusError] = {}
         self._mappings: dict[int, SlaveMapping] = {}
         self._codecs: list[DriveCodec] = []
         self._opened = False
@@ -206,7 +207,20 @@ class PysoemBus:
             raise BusError(f"{who}: its PDO mapping is not the one of start-up ({describe(current)}, was "
                            f"{describe(self._codecs[position].mapping)}): not brought back")
         self._mappings[position] = current
+        try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
+            self._preop_values[(position, 0x6502)] = read(0x6502, 0, 4)
+        except BusError as e:
+            self._preop_values[(position, 0x6502)] = e
         return current
+
+    def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
+        v = self._preop_values.get((position, index)) if subindex == 0 else None
+        if v is None:
+            return self.sdo_read(position, index, subindex, size)
+        if isinstance(v, BusError):
+            raise v
+        return v
 
     def codec(self, position: int) -> DriveCodec:
         """The process-data codec of the slave at ``position`` (after start())."""

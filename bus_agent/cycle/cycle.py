@@ -312,6 +312,8 @@ class Cycle:
         sdo_read = getattr(self.bus, "sdo_read", None)
         if sdo_read is None:
             return None
+        # read in PRE-OP by a bus that can (no SDO between OP and the first cycle: SM watchdog)
+        sdo_read = getattr(self.bus, "preop_sdo_read", sdo_read)
         try:
             raw = sdo_read(d.slave, SUPPORTED_DRIVE_MODES, 0, 4)
             if len(raw) < 1:
@@ -333,8 +335,14 @@ class Cycle:
         (AL status, AL requests, recovery). Returns once the threads run."""
         if self._thread is not None:
             return
-        self.open()
+        # GC settings first: a full collection between OP and the first cycle could outlast the
+        # slaves' SM watchdog (100 ms) in a large process
         self._prepare_process()
+        try:
+            self.open()
+        except BaseException:
+            self._restore_process()
+            raise
         self._mgmt.rt_priority = helper_priority(self.rt_priority)
         self._mgmt.start()
         self._thread = threading.Thread(target=self._run, name=f"cycle-{self.config.host}", daemon=True)
