@@ -18,12 +18,13 @@ class Outcome:
     """Terminal answer for one axis (or for the agent when ``axis`` is '')."""
 
     axis: str
-    outcome: str  # schemas.messages.OUTCOMES: done, failed, timeout, rejected, busy
+    outcome: str  # schemas.messages.OUTCOMES: done, failed, timeout, rejected, busy, aborted
     state: str = "unknown"  # schemas.messages.DRIVE_STATES
     error_code: int = 0
     reason: str = ""
     elapsed_s: float = 0.0
     cycles: int = 0
+    duration_s: float = 0.0  # motion: the planned profile duration (move prepare: the minimum)
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,12 @@ class DriveSnapshot:
     #: Other mapped input objects: names (CiA 402 table, else '0xIIII:SS') and their values.
     object_names: tuple[str, ...] = ()
     objects: tuple[int, ...] = ()
+    # motion layer (bus_agent.motion): PLCopen axis state, homed, 0x607A written, following error
+    axis_state: str = "disabled"
+    homed: bool = False
+    target_position: int = 0
+    following_error: int = 0
+    motion_request_id: str = ""
 
 
 @dataclass(frozen=True)
