@@ -49,7 +49,13 @@ class AgentState(str, Enum):
 
 
 def make_bus(config: AgentConfig) -> Bus:
-    """The backend the configuration asks for: a NIC (pysoem) or simulated drives."""
+    """The backend the configuration asks for: a NIC (pysoem), a CAN bus (canopen) or simulated drives."""
+    if config.can is not None:
+        try:
+            from bus_agent.bus.canopen.bus import canopen_bus
+        except ImportError as exc:
+            raise AgentError(f"canopen backend unavailable: {exc}") from None
+        return canopen_bus(config.can)
     if config.ifname:
         try:
             from bus_agent.bus.pysoem_bus import PysoemBus

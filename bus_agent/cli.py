@@ -26,7 +26,8 @@ import sys
 import threading
 from typing import Sequence
 
-from bus_agent.config import SIM_PROFILES, ZENOH_MODES, AgentConfig, ConfigError, ZenohConfig, load_config
+from bus_agent.config import (CAN_INTERFACES, SIM_PROFILES, ZENOH_MODES, AgentConfig, CanConfig, ConfigError,
+                              ZenohConfig, can_config, load_config)
 from schemas.keys import is_name
 
 log = logging.getLogger("bus_agent.cli")
@@ -43,6 +44,10 @@ def _parser() -> argparse.ArgumentParser:
     backend = p.add_mutually_exclusive_group()
     backend.add_argument("--ifname", help="NIC (or veth end) of the EtherCAT segment: pysoem backend, needs root")
     backend.add_argument("--sim", type=int, metavar="N", help="simulate N drives in-process (no root)")
+    backend.add_argument("--can", metavar="CHANNEL", help="CAN bus of CANopen drives: canopen backend "
+                         "(SocketCAN interface, or a udp_multicast group; docs/canopen.md)")
+    p.add_argument("--can-interface", choices=CAN_INTERFACES, help="python-can interface of --can (default socketcan)")
+    p.add_argument("--nodes", metavar="IDS", help="CANopen node ids of --can, e.g. 1,2,3 (slave positions in that order)")
     p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile")
     p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds")
     p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period")
@@ -66,20 +71,36 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     """The configuration from the file (if any) with the flags applied. Raises ConfigError."""
     if args.sim is not None and args.sim < 1:
         raise ConfigError(f"--sim: {args.sim} must be a number of drives >= 1")
-    overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile,
+    can = _can_flags(args)
+    overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile, can=can,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
                      listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
                      gateway="thread" if args.gateway_thread else None)
     if args.config:
         return load_config(args.config).with_overrides(**overrides)
-    if args.ifname is None and args.sim is None:
-        raise ConfigError("give --config, --ifname NIC or --sim N (e.g. `bus-agent --sim 4`)")
+    if args.ifname is None and args.sim is None and can is None:
+        raise ConfigError("give --config, --ifname NIC, --can CHANNEL --nodes IDS or --sim N (e.g. `bus-agent --sim 4`)")
     # Embedded default: a peer that drivectl reaches on loopback without any router.
     listen = tuple(args.listen or (() if args.connect else (DEFAULT_LISTEN,)))
-    base = AgentConfig(host=args.host or _default_host(), sim_drives=args.sim or 0, ifname=args.ifname,
+    base = AgentConfig(host=args.host or _default_host(), sim_drives=args.sim or 0, ifname=args.ifname, can=can,
                        zenoh=ZenohConfig(listen=listen))
     overrides["listen"] = None
     return base.with_overrides(**overrides)
+
+
+def _can_flags(args: argparse.Namespace) -> CanConfig | None:
+    """--can/--can-interface/--nodes as a CanConfig (None without --can). Raises ConfigError."""
+    if args.can is None:
+        if args.nodes is not None or args.can_interface is not None:
+            raise ConfigError("--nodes and --can-interface go with --can CHANNEL")
+        return None
+    if not args.nodes:
+        raise ConfigError("--can needs --nodes, e.g. --nodes 1,2,3")
+    try:
+        ids = tuple(int(x, 0) for x in args.nodes.split(","))
+    except ValueError:
+        raise ConfigError(f"--nodes: {args.nodes!r} is not a comma-separated list of node ids") from None
+    return can_config(args.can, args.can_interface, ids)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -25,6 +25,9 @@ REFLEXES = ("quick_stop", "disable")
 SIM_PROFILES = ("generic", "indy7")
 #: Where the Zenoh gateway runs: a child process (the cycle keeps its GIL) or threads of the agent.
 GATEWAY_MODES = ("process", "thread")
+#: CAN backend: python-can interfaces and PDO policies (bus_agent/bus/canopen, docs/canopen.md).
+CAN_INTERFACES = ("socketcan", "udp_multicast")
+CAN_PDO_POLICIES = ("node", "default", "explicit")
 
 
 class ConfigError(ValueError):
@@ -104,6 +107,28 @@ class DriveConfig:
 
 
 @dataclass(frozen=True)
+class CanNode:
+    """``[[can.nodes]]``: one CANopen node (slave position = its place in the list)."""
+
+    node_id: int
+    pdo: str = "default"                       # CAN_PDO_POLICIES
+    eds: str | None = None                     # EDS file of the drive (names objects; optional)
+    rpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per RPDO 1..4
+    tpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per TPDO 1..4
+    startup_sdos: tuple[tuple[int, int, int, int], ...] = ()  # (index, subindex, value, bytes)
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """``[can]``: the CANopen backend (``bus-agent --can CHANNEL``)."""
+
+    channel: str
+    interface: str = "socketcan"
+    nodes: tuple[CanNode, ...] = ()
+    heartbeat_ms: int = 100
+
+
+@dataclass(frozen=True)
 class AgentConfig:
     host: str
     zenoh: ZenohConfig = ZenohConfig()
@@ -118,13 +143,14 @@ class AgentConfig:
     default_policy: DrivePolicy = DrivePolicy()
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
+    can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
 
     def __post_init__(self) -> None:
         _validate(self)
 
     @property
     def backend(self) -> str:
-        return "pysoem" if self.ifname else "sim"
+        return "canopen" if self.can else "pysoem" if self.ifname else "sim"
 
     def drive_configs(self, n_slaves: int) -> tuple[DriveConfig, ...]:
         """The drives to control on a segment of ``n_slaves``: the configured ones, or one per
@@ -145,7 +171,7 @@ class AgentConfig:
         o = {k: v for k, v in overrides.items() if v is not None}
         zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting"}
         top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s", "gateway",
-               "rt_priority"}
+               "rt_priority", "can"}
         unknown = set(o) - top - set(zkeys)
         if unknown:
             raise ConfigError(f"unknown override(s): {', '.join(sorted(unknown))}")
@@ -153,8 +179,13 @@ class AgentConfig:
         t = {k: v for k, v in o.items() if k in top}
         if t.get("ifname"):
             t.setdefault("sim_drives", 0)
+            t.setdefault("can", None)
         elif t.get("sim_drives"):
             t.setdefault("ifname", None)
+            t.setdefault("can", None)
+        elif t.get("can"):
+            t.setdefault("ifname", None)
+            t.setdefault("sim_drives", 0)
         zenoh: ZenohConfig = dataclasses.replace(self.zenoh, **z)  # type: ignore[arg-type]  # keys checked above
         return dataclasses.replace(self, zenoh=zenoh, **t)
 
@@ -173,10 +204,13 @@ def _validate(c: AgentConfig) -> None:
     _name(c.host, "host")
     if c.zenoh.mode not in ZENOH_MODES:
         raise ConfigError(f"zenoh.mode: {c.zenoh.mode!r} is not one of {', '.join(ZENOH_MODES)}")
-    if c.ifname and c.sim_drives:
-        raise ConfigError("ifname and sim_drives: choose one backend (a NIC, or simulated drives)")
-    if not c.ifname and c.sim_drives <= 0:
-        raise ConfigError("ifname or sim_drives: one is required (a NIC name, or a number of simulated drives > 0)")
+    if sum((bool(c.ifname), c.sim_drives > 0, c.can is not None)) > 1:
+        raise ConfigError("ifname and sim_drives and can: choose one backend (a NIC, simulated drives or a CAN bus)")
+    if not c.ifname and c.sim_drives <= 0 and c.can is None:
+        raise ConfigError("ifname or sim_drives or can: one is required (a NIC name, a number of simulated drives > 0, "
+                          "or a [can] table)")
+    if c.can is not None:
+        _validate_can(c.can)
     if c.sim_profile not in SIM_PROFILES:
         raise ConfigError(f"sim_profile: {c.sim_profile!r} is not one of {', '.join(SIM_PROFILES)}")
     if not 100 <= c.cycle_us <= 1_000_000:
@@ -217,6 +251,64 @@ def _validate(c: AgentConfig) -> None:
             _name(axis, f"groups.{g} member axis")
             if host == c.host and c.drives and axis not in axes:
                 raise ConfigError(f"groups.{g}: member {m!r} is on this host but no drive has axis {axis!r}")
+
+
+def _validate_can(c: CanConfig) -> None:
+    if not c.channel:
+        raise ConfigError("can.channel: required (a SocketCAN interface, or a udp_multicast group)")
+    if c.interface not in CAN_INTERFACES:
+        raise ConfigError(f"can.interface: {c.interface!r} is not one of {', '.join(CAN_INTERFACES)}")
+    if not c.nodes:
+        raise ConfigError("can.nodes: at least one node id")
+    if not 1 <= c.heartbeat_ms <= 0xFFFF:
+        raise ConfigError(f"can.heartbeat_ms: {c.heartbeat_ms} must be 1..65535")
+    seen: set[int] = set()
+    for i, n in enumerate(c.nodes):
+        key = f"can.nodes[{i}]"
+        if isinstance(n.node_id, bool) or not isinstance(n.node_id, int) or not 1 <= n.node_id <= 127:
+            raise ConfigError(f"{key}.id: {n.node_id!r} must be a node id 1..127")
+        if n.node_id in seen:
+            raise ConfigError(f"{key}.id: node {n.node_id} listed twice")
+        seen.add(n.node_id)
+        if n.pdo not in CAN_PDO_POLICIES:
+            raise ConfigError(f"{key}.pdo: {n.pdo!r} is not one of {', '.join(CAN_PDO_POLICIES)}")
+        if (n.pdo == "explicit") != bool(n.rpdo or n.tpdo):
+            raise ConfigError(f"{key}: rpdo/tpdo are given exactly when pdo = \"explicit\"")
+        for side, pdos in (("rpdo", n.rpdo), ("tpdo", n.tpdo)):
+            if len(pdos) > 4 or any(not isinstance(v, int) or not 0 < v <= 0xFFFFFFFF for p in pdos for v in p):
+                raise ConfigError(f"{key}.{side}: up to 4 PDOs, each a list of mapping entries "
+                                  "(index << 16 | subindex << 8 | bits)")
+        for j, (index, sub, _value, size) in enumerate(n.startup_sdos):
+            if not (0 <= index <= 0xFFFF and 0 <= sub <= 0xFF and size in (1, 2, 4)):
+                raise ConfigError(f"{key}.sdo[{j}]: index 0..0xFFFF, subindex 0..255, size 1, 2 or 4")
+
+
+def can_config(channel: str, interface: str | None, node_ids: tuple[int, ...]) -> CanConfig:
+    """``--can CHANNEL --can-interface IF --nodes 1,2,3`` as a CanConfig (defaults for the rest)."""
+    return CanConfig(channel=channel, interface=interface or "socketcan",
+                     nodes=tuple(CanNode(node_id=n) for n in node_ids))
+
+
+def _can(t: _Table) -> CanConfig:
+    nodes = []
+    for i, raw in enumerate(t.get("nodes", list, [])):
+        if isinstance(raw, int) and not isinstance(raw, bool):
+            nodes.append(CanNode(node_id=raw))
+            continue
+        n = _Table(raw, f"can.nodes[{i}]")
+        sdos = []
+        for j, s in enumerate(n.get("sdo", list, [])):
+            st = _Table(s, f"can.nodes[{i}].sdo[{j}]")
+            sdos.append((st.get("index", int), st.get("subindex", int, 0), st.get("value", int), st.get("size", int)))
+            st.done()
+        nodes.append(CanNode(node_id=n.get("id", int), pdo=n.get("pdo", str, "default"), eds=n.get("eds", str, None),
+                             rpdo=tuple(tuple(p) for p in n.get("rpdo", list, [])),
+                             tpdo=tuple(tuple(p) for p in n.get("tpdo", list, [])), startup_sdos=tuple(sdos)))
+        n.done()
+    cfg = CanConfig(channel=t.get("channel", str), interface=t.get("interface", str, "socketcan"),
+                    nodes=tuple(nodes), heartbeat_ms=t.get("heartbeat_ms", int, 100))
+    t.done()
+    return cfg
 
 
 def _validate_policy(p: DrivePolicy, key: str) -> None:
@@ -366,6 +458,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         default_policy=defaults,
         gateway=t.get("gateway", str, "process"),
         rt_priority=rt_priority,
+        can=_can(t.table("can")) if "can" in t.data else None,
     )
     t.done()
     return cfg

@@ -3,11 +3,20 @@
 One schema per message type describes its wire map: ``v`` and ``type`` as constants, every field
 with its type and the rule metadata of :mod:`schemas.messages` (``range`` -> ``minimum`` /
 ``maximum``, ``choices`` -> ``enum``, ``max_len`` -> ``maxLength``, ``name`` -> ``pattern``,
-``doc`` -> ``description``), required fields, and no other properties. ``command_request``
-also carries the per-op argument rules (:data:`schemas.messages.OP_ARGS`) as ``if``/``then``.
+``doc`` -> ``description``, an open vocabulary -> ``pattern`` + ``examples``) and required fields.
+Only ``command_request`` (strict) forbids other properties; it also carries the per-op argument
+rules (:data:`schemas.messages.OP_ARGS`) as ``if``/``then``.
 
-The wire format is msgpack; JSON Schema describes the decoded value. "integer" means a msgpack
-integer (never a float), "number" a finite integer or float.
+The wire format is msgpack; JSON Schema describes the JSON form of the decoded value, and the
+codec agrees with a standard validator (the ``jsonschema`` package, draft 2020-12) on every map
+that has a JSON form:
+
+- "integer" is JSON Schema's: an int or a float with no fractional part (``8.0``); the codec
+  accepts both for an int field and normalises to int.
+- "number" is a finite int or float. NaN, infinities, bytes and extension types have no JSON
+  form; the codec rejects them wherever it reads a value (see :mod:`schemas.messages`).
+- patterns end with :data:`END`, which is the end of input in ECMA-262 and in Python's ``re``
+  alike, so no dialect accepts a trailing newline the codec rejects.
 """
 
 from __future__ import annotations
@@ -32,10 +41,15 @@ from .messages import (
 )
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
+#: End of input in every regex dialect a validator may use. ECMA-262's ``$`` (what the JSON Schema
+#: spec names) is the end of input; Python's ``re`` (what the ``jsonschema`` package applies) also
+#: matches ``$`` before a final newline, so ``^a$`` would accept ``"a\n"``. The lookahead is a
+#: no-op in ECMA-262 and closes that gap in Python, so the patterns mean what the codec checks.
+END = r"$(?!\n)"
 _NAME = _keys.NAME_PATTERN.strip("^$")
-NAME_PATTERN = f"^{_NAME}$"
-NAME_OR_EMPTY_PATTERN = f"^(?:{_NAME})?$"
-MEMBER_PATTERN = f"^{_NAME}/{_NAME}$"
+NAME_PATTERN = f"^{_NAME}{END}"
+NAME_OR_EMPTY_PATTERN = f"^(?:{_NAME})?{END}"
+MEMBER_PATTERN = f"^{_NAME}/{_NAME}{END}"
 
 _JSON_TYPES = {bool: "boolean", int: "integer", float: "number", str: "string", list: "array", dict: "object"}
 
@@ -54,7 +68,7 @@ ARG_VALUE_DEF = {
     ],
 }
 
-OPEN_WORD_PATTERN = "^[a-z][a-z0-9_]{0,31}$"
+OPEN_WORD_PATTERN = f"^[a-z][a-z0-9_]{{0,31}}{END}"
 
 
 def value_schema(t: type, meta: Any, allow_empty: bool = False) -> dict:

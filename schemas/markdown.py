@@ -119,7 +119,12 @@ def render_contract_markdown() -> str:
         "Every payload is a msgpack map: `v` (schema version, "
         f"{SCHEMA_VERSION}), `type` (the message type) and the fields below. Missing required fields, "
         "wrong types and out-of-range values are rejected with an error naming the field. JSON "
-        "Schemas: `python -m schemas jsonschema --out DIR`.",
+        "Schemas: `python -m schemas jsonschema --out DIR`; a standard draft 2020-12 validator "
+        "accepts exactly what the codec accepts (tested with the `jsonschema` package). As in JSON "
+        "Schema, an integer is a number with no fractional part: `8.0` is read as `8`. NaN, "
+        "infinities and bytes have no JSON form and are rejected. Patterns end with `$(?!\\n)`, the "
+        "end of input in ECMA-262 and in Python's `re` alike (Python's bare `$` also matches "
+        "before a final newline).",
         "",
         "**How the contract evolves.** Within one version, a writer may add *optional* fields (with a "
         "default) and new words to an *open vocabulary*; an older reader never breaks on them: readers "

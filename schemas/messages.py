@@ -363,6 +363,19 @@ def _check_arg_value(where: str, value: Any, depth: int) -> Any:
     )
 
 
+def _integer(where: str, value: Any) -> int:
+    """An integer as JSON Schema counts one: an int, or a float with no fractional part (8.0).
+
+    JSON has one number type, so ``8`` and ``8.0`` are the same value to a JSON Schema validator
+    and to a writer in JavaScript; the codec agrees and normalises the float to an int.
+    """
+    if isinstance(value, float) and value.is_integer():  # False for NaN and infinities
+        return int(value)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise SchemaError(f"{where}: expected int, got {type(value).__name__}")
+    return value
+
+
 def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) -> Any:
     """Check ``value`` against type ``t`` and rule metadata; return it normalised."""
     if isinstance(value, msgpack.ExtType):  # a namedtuple: must not pass as a list
@@ -371,8 +384,7 @@ def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) 
         if not isinstance(value, bool):
             raise SchemaError(f"{where}: expected bool, got {type(value).__name__}")
     elif t is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise SchemaError(f"{where}: expected int, got {type(value).__name__}")
+        value = _integer(where, value)
     elif t is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise SchemaError(f"{where}: expected number, got {type(value).__name__}")
@@ -536,8 +548,8 @@ def from_dict(body: Any, expected: type[Any] | None = None) -> Any:
     if "v" not in body:
         raise SchemaError("v: missing schema version")
     v = body["v"]
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise SchemaError(f"v: schema version must be an integer, got {type(v).__name__}")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (isinstance(v, float) and not v.is_integer()):
+        raise SchemaError(f"v: schema version must be an integer, got {v!r}")
     if v != SCHEMA_VERSION:
         raise SchemaError(f"v: schema version {v!r} is not supported (this side speaks {SCHEMA_VERSION})")
     tname = body.get("type")

@@ -129,6 +129,11 @@ def zenoh_config(mode: str, connect: Sequence[str], listen: Sequence[str] = (),
     return zenoh.Config.from_json5(json.dumps(conf))
 
 
+def zenoh_error_text(exc: BaseException) -> str:
+    """A zenoh error without the library's source location (``... at /root/.cargo/...rs:388.``)."""
+    return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", str(exc)).strip()
+
+
 Listener = Callable[..., None]
 
 
@@ -203,7 +208,9 @@ class Fleet:
             self._session = zenoh.open(zenoh_config(self.mode, self.connect, self.listen,
                                                     int(self.connect_timeout_s * 1000)))
         except zenoh.ZError as exc:
-            raise NoAgentError(f"cannot reach {', '.join(self.connect)}: {exc}") from None
+            raise NoAgentError(f"cannot reach {', '.join(self.connect)} ({zenoh_error_text(exc)}); check that "
+                               "a router or bus agent is running and listening there (bus-agent --sim listens "
+                               f"on {DEFAULT_CONNECT[0]}), or give --connect") from None
         s = self._session
         self._dispatcher = threading.Thread(target=self._dispatch, name=f"fleet-{self.name}-events", daemon=True)
         self._dispatcher.start()

@@ -139,7 +139,7 @@ def _body(msg, **changes):
         (EXAMPLES[0], {"statusword": 0x10000}, "drive_status.statusword: 65536 out of range"),
         (EXAMPLES[0], {"statusword": -1}, "drive_status.statusword"),
         (EXAMPLES[0], {"statusword": True}, "drive_status.statusword: expected int, got bool"),
-        (EXAMPLES[0], {"statusword": 1.0}, "drive_status.statusword: expected int, got float"),
+        (EXAMPLES[0], {"statusword": 1.5}, "drive_status.statusword: expected int, got float"),
         (EXAMPLES[0], {"halt": 1}, "drive_status.halt: expected bool"),
         (EXAMPLES[0], {"state": "on"}, "drive_status.state: 'on' is not one of"),
         (EXAMPLES[0], {"host": "a/b"}, "drive_status.host: 'a/b' is not a legal name"),

@@ -8,12 +8,12 @@ from __future__ import annotations
 import struct
 import time
 
+import pysoem  # a dependency: a broken import fails the run, never skips it
 import pytest
+import zenoh
 
-pysoem = pytest.importorskip("pysoem")
-
-from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT  # noqa: E402
-from bus_agent.sim.drive_model import PROFILES  # noqa: E402
+from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT
+from bus_agent.sim.drive_model import PROFILES
 
 pytestmark = [pytest.mark.root, pytest.mark.timeout(60)]
 
@@ -322,7 +322,6 @@ def test_64_drives_multi_frame(ecat_segment):
 
 
 def test_fault_injection_over_zenoh(ecat_segment):
-    zenoh = pytest.importorskip("zenoh")
     import socket
 
     from bus_agent.sim.control import SimControlError, sim_inject

@@ -11,6 +11,7 @@ from typing import Iterator
 import pytest
 import zenoh
 
+from bus_agent.sim.child import wait_for
 from supervisor.fleet import Fleet, zenoh_config
 from supervisor.testbed import Proc, _env, free_port, start_cli_agent, start_router
 
@@ -155,20 +156,45 @@ def test_partial_failure_exit_1_lists_the_drive(bed: str) -> None:
         assert drivectl(bed, "disable", "h3/*").returncode == 0
 
 
+def _results(r: subprocess.CompletedProcess) -> dict[str, dict]:
+    """'host/axis' (or host for agent commands) -> its result in a ``--json`` command report."""
+    body = json.loads(r.stdout)
+    rows = body["final"] if "final" in body else body["results"]
+    return {f"{x['host']}/{x['axis']}" if x["axis"] else x["host"]: x for x in rows}
+
+
 def test_quick_stop_halt_mode_nmt(bed: str) -> None:
-    assert drivectl(bed, "enable", "h2/*").returncode == 0
-    r = drivectl(bed, "--json", "halt", "h2/*")
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert drivectl(bed, "halt", "--off", "h2/*").returncode == 0
-    assert drivectl(bed, "quick-stop").returncode in (0, 1)  # every drive; disabled ones may refuse
-    assert drivectl(bed, "disable", "**").returncode == 0
-    r = drivectl(bed, "--json", "mode", "csv", "h1/axis0")
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert drivectl(bed, "mode", "csp", "h1/axis0").returncode == 0
-    r = drivectl(bed, "--json", "nmt", "preop", "--host", "h1", "--slave", "0")
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert json.loads(r.stdout)["final"][0]["host"] == "h1"
-    assert drivectl(bed, "nmt", "start", "--host", "h1").returncode == 0
+    """Each verb's per-drive outcome, and its effect as the drives' own status shows it."""
+    h2 = [f"h2/axis{i}" for i in range(N)]
+    with Fleet(connect=[bed]) as fleet:
+        def seen(pred, what: str) -> None:  # status is published on change
+            wait_for(pred, 10, what)
+
+        assert drivectl(bed, "enable", "h2/*").returncode == 0
+        r = drivectl(bed, "--json", "halt", "h2/*")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert {k: v["outcome"] for k, v in _results(r).items()} == {k: "done" for k in h2}
+        seen(lambda: all(fleet.status(k).halt for k in h2), "halt bit set on h2")
+        assert drivectl(bed, "halt", "--off", "h2/*").returncode == 0
+        seen(lambda: not any(fleet.status(k).halt for k in h2), "halt bit cleared on h2")
+        r = drivectl(bed, "--json", "quick-stop", "h2/*")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert {k: (v["outcome"], v["state"]) for k, v in _results(r).items()} == {
+            k: ("done", "quick_stop_active") for k in h2}
+        assert drivectl(bed, "disable", "**").returncode == 0
+        r = drivectl(bed, "--json", "mode", "csv", "h1/axis0")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert _results(r)["h1/axis0"]["outcome"] == "done"
+        seen(lambda: fleet.status("h1/axis0").mode_display == 9, "0x6061 echo of csv")
+        assert drivectl(bed, "mode", "csp", "h1/axis0").returncode == 0
+        seen(lambda: fleet.status("h1/axis0").mode_display == 8, "0x6061 echo of csp")
+        r = drivectl(bed, "--json", "nmt", "preop", "--host", "h1", "--slave", "0")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert json.loads(r.stdout)["final"][0]["host"] == "h1"
+        seen(lambda: fleet.status("h1/axis0").al_state == "preop", "h1 slave 0 in PRE-OP")
+        assert fleet.status("h1/axis1").al_state == "op"  # only slave 0
+        assert drivectl(bed, "nmt", "start", "--host", "h1").returncode == 0
+        seen(lambda: fleet.status("h1/axis0").al_state == "op", "h1 slave 0 back in OP")
 
 
 def test_watch_draws_the_live_table(bed: str) -> None:

@@ -19,6 +19,8 @@ pytestmark = pytest.mark.timeout(120)
 
 HOSTS = ("h1", "h2", "h3")
 N_DRIVES = 4
+#: A killed agent is reported gone within this (safety bound: link lease 3 s, plus a loaded host).
+DEPARTURE_BOUND_S = 10.0
 
 
 @pytest.fixture(scope="module")
@@ -215,7 +217,8 @@ def test_agent_killed_is_reported_gone(bed: dict, fleet: Fleet) -> None:
     try:
         assert fleet.wait_for_agents(["h8"], 10, drives=len(HOSTS) * N_DRIVES + 2)
         agent.kill()
-        assert gone.wait(1.0), "departure of h8 not reported within 1 s"
+        # a safety bound (the link lease is 3 s), not a latency figure; generous for a loaded host
+        assert gone.wait(DEPARTURE_BOUND_S), f"departure of h8 not reported within {DEPARTURE_BOUND_S} s"
         assert "h8" not in fleet.hosts()
         res = fleet.command("switch_on", fleet.selection_of([r for r in fleet.drives() if r.host == "h8"]))
         assert res.results and {r.outcome for r in res.results} == {"missing"}

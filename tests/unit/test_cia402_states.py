@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from bus_agent.cia402.states import (
     AUTOMATIC_TRANSITIONS,
+    DISABLE_OPERATION,
     STATE_KEEP_COMMANDS,
     STATUSWORD_OF_STATE,
     STATUSWORD_PATTERNS,
@@ -36,6 +39,69 @@ def test_every_statusword_decodes_to_its_single_matching_pattern():
         assert counts[state] == 1024
     assert sum(counts.values()) == 0x10000
     assert counts[State.UNKNOWN] == 0x10000 - 4 * 2048 - 4 * 1024
+
+
+# The standard's tables as printed (IEC 61800-7-201 / CiA 402, "state coding" of the statusword
+# and "command coding" of the controlword), copied as text, bit 15 first, x = don't care. These
+# are independent oracles: nothing below reads the masks and values of the code under test.
+STANDARD_STATUSWORD_TABLE = {
+    "xxxx xxxx x0xx 0000": State.NOT_READY_TO_SWITCH_ON,
+    "xxxx xxxx x1xx 0000": State.SWITCH_ON_DISABLED,
+    "xxxx xxxx x01x 0001": State.READY_TO_SWITCH_ON,
+    "xxxx xxxx x01x 0011": State.SWITCHED_ON,
+    "xxxx xxxx x01x 0111": State.OPERATION_ENABLED,
+    "xxxx xxxx x00x 0111": State.QUICK_STOP_ACTIVE,
+    "xxxx xxxx x0xx 1111": State.FAULT_REACTION_ACTIVE,
+    "xxxx xxxx x0xx 1000": State.FAULT,
+}
+#: Controlword bits 7 (fault reset), 3 (enable operation), 2 (quick stop, active low), 1 (enable
+#: voltage), 0 (switch on) of each command, and the transitions it triggers.
+STANDARD_CONTROLWORD_TABLE = {
+    "shutdown": ("0x110", (2, 6, 8)),
+    "switch_on": ("00111", (3,)),
+    "disable_voltage": ("0xx0x", (7, 9, 10, 12)),
+    "quick_stop": ("0x01x", (7, 10, 11)),
+    "disable_operation": ("00111", (5,)),
+    "enable_operation": ("01111", (4, 16)),
+}
+
+
+_STANDARD_ROWS = [(re.compile(pattern.replace(" ", "").replace("x", ".")), state)
+                  for pattern, state in STANDARD_STATUSWORD_TABLE.items()]
+
+
+def _standard_state(statusword: int) -> State:
+    """The state the standard's table gives for ``statusword`` (UNKNOWN if no row matches)."""
+    bits = format(statusword, "016b")
+    rows = [state for pattern, state in _STANDARD_ROWS if pattern.fullmatch(bits)]
+    assert len(rows) <= 1, f"0x{statusword:04X}: the table is not a partition: {rows}"
+    return rows[0] if rows else State.UNKNOWN
+
+
+def test_every_statusword_decodes_as_the_standards_table_says():
+    # the 8 defined states cover 4 x 2048 + 4 x 1024 = 12,288 statuswords; bit 7 (warning) and
+    # bits 8-15 never change the state
+    counts = {s: 0 for s in State}
+    for statusword in range(0x10000):
+        expected = _standard_state(statusword)
+        assert decode_statusword(statusword) is expected, f"0x{statusword:04X}: expected {expected}"
+        counts[expected] += 1
+    assert counts[State.UNKNOWN] == 0x10000 - 12288
+
+
+def test_controlword_commands_follow_the_standards_table():
+    values = {"shutdown": Controlword.SHUTDOWN, "switch_on": Controlword.SWITCH_ON,
+              "disable_voltage": Controlword.DISABLE_VOLTAGE, "quick_stop": Controlword.QUICK_STOP,
+              "disable_operation": DISABLE_OPERATION, "enable_operation": Controlword.ENABLE_OPERATION}
+    for name, (pattern, transitions) in STANDARD_CONTROLWORD_TABLE.items():
+        bits = format(values[name], "016b")
+        low = bits[-8] + bits[-4:]  # bits 7, 3, 2, 1, 0
+        assert all(p in ("x", b) for p, b in zip(pattern, low)), (name, low, pattern)
+        assert values[name] & 0xFF70 == 0, name  # nothing else set
+        for n in transitions:
+            t = TRANSITIONS[n]
+            assert values[name] in (t.command, *t.alternatives), (name, n, t)
+    assert TRANSITIONS[15].command & 0x0080  # fault reset: bit 7 (its rising edge)
 
 
 @pytest.mark.parametrize("statusword, state", [

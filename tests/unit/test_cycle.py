@@ -9,7 +9,7 @@ from bus_agent.bus.base import ALState
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.cia402.states import State
 from bus_agent.config import AgentConfig, DriveConfig, DrivePolicy, Identity
-from bus_agent.cycle.cycle import INBOX_MAX, Cycle, IdentityMismatch
+from bus_agent.cycle.cycle import INBOX_MAX, STATS_EVERY, Cycle, IdentityMismatch
 from bus_agent.runtime import AgentCommand, DriveCommand, Outcome
 
 PERIOD_NS = 1_000_000
@@ -243,7 +243,9 @@ def test_lost_slave_reacts_and_returns_disabled():
         assert snap.drives[1].lost
         assert snap.drives[0].goal == "quick_stop"  # its group reacted in the same cycle
         assert any(e.kind == "reflex" and e.axis == "axis0" for e in snap.events)
-        assert hh.cycle.stats().wkc_errors >= 0
+        # the unplugged slave's missing working counter is counted, and reaches the published stats
+        assert hh.cycle.wkc_errors >= 1
+        hh.until(lambda s: s.stats.wkc_errors >= 1, 2 * STATS_EVERY)
         r2 = hh.cmd("enable", "axis1")
         hh.until(hh.done(r2))
         assert hh.outcomes[r2][0].outcome == "rejected"
@@ -339,6 +341,18 @@ def test_configured_drives_axis_names_and_policy():
     try:
         assert hh.cycle.axes == ("lift",)
         assert [d.axis for d in hh.cycle.latest.drives] == ["lift"]
+        # the configured 0.05 s transition timeout (default 5 s) decides the outcome of a goal the
+        # drive never reaches: this drive ignores its controlword
+        model = hh.bus.model(1)
+        model._transition = lambda cw, reset_edge: None
+        rid = hh.cmd("enable", "lift", timeout_s=10.0)
+        hh.until(hh.done(rid), 200)
+        (out,) = hh.outcomes[rid]
+        assert out.outcome == "timeout" and "within 0.05 s" in out.reason
+        assert 45 <= out.cycles <= 60  # 1 ms per fake tick
+        del model._transition  # the drive answers again: told "timeout", it must not become enabled
+        hh.ticks(300)
+        assert hh.state(1) == State.SWITCH_ON_DISABLED
     finally:
         hh.cycle.stop(timeout_s=1.0)
 
@@ -387,14 +401,37 @@ def test_auto_reset_is_off_by_default_and_bounded_when_configured():
 
     policy = DrivePolicy(auto_reset=AutoReset(enabled=True, max_attempts=2, backoff_s=0.02, backoff_max_s=0.05))
     hh = Harness(n=2, drives=(DriveConfig(slave=0, policy=policy), DriveConfig(slave=1))).open()
-    try:
+
+    def warnings() -> list:
+        return [e for s in hh.snaps for e in s.events if e.kind == "warning" and e.axis == "axis0"]
+
+    def fault_then_reset_ms() -> float:
+        """Inject a fault on axis0; fake ms from its Fault state to the next auto reset."""
         hh.bus.inject_fault(0, 0x2310)
+        hh.until(lambda s: hh.state(0) == State.FAULT, 100)
+        t0, n = hh.clock.ns, len(warnings())
+        hh.until(lambda s: len(warnings()) > n, 500)
+        return (hh.clock.ns - t0) / 1e6
+
+    try:
         hh.bus.inject_fault(1, 0x2310)
-        hh.until(lambda s: hh.state(0) == State.SWITCH_ON_DISABLED, 500)
-        warnings = [e for s in hh.snaps for e in s.events if e.kind == "warning" and e.axis == "axis0"]
-        assert warnings and "auto fault reset attempt 1/2" in warnings[0].detail
-        hh.ticks(300)
-        assert hh.state(1) == State.FAULT  # not configured: never reset without a command
+        # attempt 1 after backoff_s, attempt 2 after 2 x backoff_s (exponential backoff)
+        assert 19 <= fault_then_reset_ms() <= 25
+        assert "auto fault reset attempt 1/2" in warnings()[-1].detail
+        hh.until(lambda s: hh.state(0) == State.SWITCH_ON_DISABLED, 100)
         assert hh.snap_drive("axis0").goal == "disabled"  # reset, not re-enabled
+        assert 39 <= fault_then_reset_ms() <= 45
+        assert "auto fault reset attempt 2/2" in warnings()[-1].detail
+        hh.until(lambda s: hh.state(0) == State.SWITCH_ON_DISABLED, 100)
+        # attempts exhausted: reported once, then the drive waits in Fault for a command
+        hh.bus.inject_fault(0, 0x2310)
+        hh.until(lambda s: any("exhausted" in w.detail for w in warnings()), 500)
+        hh.ticks(500)
+        assert hh.state(0) == State.FAULT
+        assert sum("exhausted" in w.detail for w in warnings()) == 1
+        assert hh.state(1) == State.FAULT  # not configured: never reset without a command
+        rid = hh.cmd("fault_reset", "axis0")
+        hh.until(hh.done(rid), 500)
+        assert hh.outcomes[rid][0].outcome == "done" and hh.state(0) == State.SWITCH_ON_DISABLED
     finally:
         hh.cycle.stop(timeout_s=1.0)

@@ -200,14 +200,37 @@ def test_inbox_full_is_busy(gw):
     assert "inbox full" in oks[0][1].reason
 
 
-def test_status_get_on_change_and_heartbeat(gw):
+def test_status_heartbeat_republishes_an_unchanged_status(gw):
     gateway, cycle, client = gw
     got = []
     sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
     try:
-        wait_for(lambda: len(got) >= 2, what="heartbeats")       # heartbeat every 0.3 s
+        wait_for(lambda: len(got) >= 2, what="heartbeats")       # heartbeat every 0.3 s, nothing changes
+        assert {(s.state, s.error_code) for s in got} == {("switch_on_disabled", 0)}
+        seqs = [s.seq for s in got]
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    finally:
+        sub.undeclare()
+
+
+def test_status_on_change_and_get(net):
+    """With the heartbeat an hour away, only the on-change path can publish the fault."""
+    agent_s, client = net
+    cycle = FakeCycle()
+    ticker = Ticker(cycle)
+    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0)
+    ticker.t.start()
+    got = []
+    sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
+    try:
+        # the start-up publication is behind us (the next heartbeat is an hour away) and the
+        # publisher sees the subscriber
+        wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
+                 what="first status published and the subscriber matched")
+        n = len(got)
         cycle.set("x2", state="fault", error_code=0x2310)
-        wait_for(lambda: any(s.state == "fault" for s in got), timeout_s=1.0, what="on-change status")
+        wait_for(lambda: any(s.state == "fault" for s in got[n:]), what="on-change status")
+        assert [(s.state, s.error_code) for s in got[n:]] == [("fault", 0x2310)]  # once, on the change
         seqs = [s.seq for s in got]
         assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
         replies = list(client.get(keys.drive_status(HOST, "*"), timeout=2.0))
@@ -215,6 +238,9 @@ def test_status_get_on_change_and_heartbeat(gw):
         assert set(st) == set(AXES) and st["x2"].state == "fault" and st["x2"].error_code == 0x2310
     finally:
         sub.undeclare()
+        ticker.stop.set()
+        ticker.t.join()
+        gateway.close()
 
 
 def test_cycle_events_published_with_seq(gw):

@@ -1,0 +1,65 @@
+"""SDO client adapter (CiA 301 §7.2.4) over python-canopen's ``SdoClient``: errors become
+:class:`SdoError` (a BusError) naming the node, the object and the abort code with its text.
+Blocking (one request/response per expedited transfer): management thread and start-up only.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Callable
+
+from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
+
+from bus_agent.bus.base import BusError
+
+SdoRead = Callable[[int, int], bytes]          # (index, subindex) -> bytes
+SdoWrite = Callable[[int, int, bytes], None]   # (index, subindex, data)
+
+
+class SdoError(BusError):
+    """An SDO transfer refused (``abort_code``) or unanswered (``abort_code`` 0)."""
+
+    def __init__(self, node_id: int, what: str, index: int, subindex: int, abort_code: int, detail: str) -> None:
+        self.node_id = node_id
+        self.index = index
+        self.subindex = subindex
+        self.abort_code = abort_code
+        code = f"aborted with 0x{abort_code:08X} " if abort_code else ""
+        super().__init__(f"node {node_id}: SDO {what} 0x{index:04X}:{subindex} {code}({detail})")
+
+
+def _abort_text(e: SdoAbortedError) -> str:
+    return SdoAbortedError.CODES.get(e.code, "unknown abort code")
+
+
+def read(client: SdoClient, node_id: int, index: int, subindex: int) -> bytes:
+    """Upload one object. Raises SdoError."""
+    try:
+        return bytes(client.upload(index, subindex))
+    except SdoAbortedError as e:
+        raise SdoError(node_id, "read", index, subindex, e.code, _abort_text(e)) from None
+    except SdoCommunicationError as e:
+        raise SdoError(node_id, "read", index, subindex, 0, f"no valid answer: {e}") from None
+
+
+def write(client: SdoClient, node_id: int, index: int, subindex: int, data: bytes) -> None:
+    """Download one object. Raises SdoError (the node changed nothing)."""
+    try:
+        client.download(index, subindex, bytes(data))
+    except SdoAbortedError as e:
+        raise SdoError(node_id, "write", index, subindex, e.code, _abort_text(e)) from None
+    except SdoCommunicationError as e:
+        raise SdoError(node_id, "write", index, subindex, 0, f"no valid answer: {e}") from None
+
+
+_FORMATS = {8: "<B", 16: "<H", 32: "<I"}
+
+
+def read_uint(sdo_read: SdoRead, index: int, subindex: int) -> int:
+    """An unsigned object of 1, 2 or 4 bytes."""
+    raw = sdo_read(index, subindex)
+    return int.from_bytes(raw[:4], "little")
+
+
+def write_uint(sdo_write: SdoWrite, index: int, subindex: int, value: int, bits: int) -> None:
+    sdo_write(index, subindex, struct.pack(_FORMATS[bits], value))

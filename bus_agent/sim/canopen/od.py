@@ -1,0 +1,95 @@
+"""The object dictionary of a simulated CANopen drive: CiA 301 communication objects plus the
+drive model's objects (bus_agent.sim.drive_model.OBJECT_TABLE), as python-canopen's
+``ObjectDictionary`` for its SDO server and as an EDS file (``canopen-sim --write-eds``).
+
+The EtherCAT-only objects of the model (sync manager types and assignment 0x1C00-0x1C13, and its
+single 13/15-byte PDO mappings 0x1600/0x1A00) are replaced by CANopen's PDO communication and
+mapping objects (0x1400/0x1600/0x1800/0x1A00 + n, n = 0..3, at most 8 bytes per PDO).
+"""
+
+from __future__ import annotations
+
+import canopen
+from canopen import objectdictionary as odm
+
+from bus_agent.bus.canopen import mapping as m
+from bus_agent.sim.drive_model import OBJECT_TABLE, ObjectEntry, _e
+
+_DATATYPES = {"u8": odm.UNSIGNED8, "i8": odm.INTEGER8, "u16": odm.UNSIGNED16, "i16": odm.INTEGER16,
+              "u32": odm.UNSIGNED32, "i32": odm.INTEGER32, "str": odm.VISIBLE_STRING}
+_EXCLUDED = frozenset({0x1C00, 0x1C12, 0x1C13, 0x1600, 0x1A00})
+MAX_MAP_ENTRIES = 8
+DEFAULT_HEARTBEAT_MS = 100
+
+#: Defaults that depend on the node id are filled in by :func:`comm_defaults`.
+COMM_TABLE: tuple[ObjectEntry, ...] = (
+    _e(0x1005, 0, "COB-ID SYNC", "u32", "rw", default=m.SYNC_COB_ID),
+    _e(0x1014, 0, "COB-ID EMCY", "u32", "ro"),
+    _e(0x1017, 0, "producer heartbeat time", "u16", "rw", default=DEFAULT_HEARTBEAT_MS),
+    *(x for n in range(m.MAX_PDOS) for x in (
+        _e(m.RPDO_COMM + n, 0, f"RPDO{n + 1} communication: highest sub", "u8", "ro", default=2),
+        _e(m.RPDO_COMM + n, 1, f"RPDO{n + 1} COB-ID", "u32", "rw"),
+        _e(m.RPDO_COMM + n, 2, f"RPDO{n + 1} transmission type", "u8", "rw", default=m.TRANSMISSION_SYNC),
+        _e(m.RPDO_MAP + n, 0, f"RPDO{n + 1} mapping: number", "u8", "rw", low=0, high=MAX_MAP_ENTRIES),
+        *(_e(m.RPDO_MAP + n, i, f"RPDO{n + 1} mapping {i}", "u32", "rw") for i in range(1, MAX_MAP_ENTRIES + 1)),
+        _e(m.TPDO_COMM + n, 0, f"TPDO{n + 1} communication: highest sub", "u8", "ro", default=2),
+        _e(m.TPDO_COMM + n, 1, f"TPDO{n + 1} COB-ID", "u32", "rw"),
+        _e(m.TPDO_COMM + n, 2, f"TPDO{n + 1} transmission type", "u8", "rw", default=m.TRANSMISSION_SYNC),
+        _e(m.TPDO_MAP + n, 0, f"TPDO{n + 1} mapping: number", "u8", "rw", low=0, high=MAX_MAP_ENTRIES),
+        *(_e(m.TPDO_MAP + n, i, f"TPDO{n + 1} mapping {i}", "u32", "rw") for i in range(1, MAX_MAP_ENTRIES + 1)),
+    )),
+)
+COMM_OBJECTS: dict[tuple[int, int], ObjectEntry] = {(e.index, e.subindex): e for e in COMM_TABLE}
+DRIVE_OBJECTS: dict[tuple[int, int], ObjectEntry] = {(e.index, e.subindex): e for e in OBJECT_TABLE
+                                                     if e.index not in _EXCLUDED}
+
+
+def comm_defaults(node_id: int) -> dict[tuple[int, int], int]:
+    """Power-on / reset-communication values of the communication objects of ``node_id``:
+    the default layout (bus_agent.bus.canopen.mapping) on PDO 1 and 2, PDO 3 and 4 invalid."""
+    values = {k: int(e.default) for k, e in COMM_OBJECTS.items()}
+    values[(0x1014, 0)] = m.EMCY_COB_BASE + node_id
+    for tx, comm, mp, defaults in ((False, m.RPDO_COMM, m.RPDO_MAP, m.DEFAULT_RPDO_ENTRIES),
+                                   (True, m.TPDO_COMM, m.TPDO_MAP, m.DEFAULT_TPDO_ENTRIES)):
+        for n in range(m.MAX_PDOS):
+            cob = m.default_cob_id(tx, n + 1, node_id)
+            entries = defaults[n] if n < len(defaults) else ()
+            values[(comm + n, 1)] = cob if entries else cob | m.COB_ID_INVALID
+            values[(mp + n, 0)] = len(entries)
+            for i, e in enumerate(entries, start=1):
+                values[(mp + n, i)] = m.mapping_value(e)
+    return values
+
+
+def build(node_id: int, device_name: str = "SimDrive402") -> canopen.ObjectDictionary:
+    """python-canopen's object dictionary of one simulated node (no values: the node's read
+    and write callbacks serve them)."""
+    od = canopen.ObjectDictionary()
+    od.node_id = node_id
+    od.device_information.product_name = device_name
+    records: dict[int, odm.ODRecord] = {}
+    entries = sorted({**DRIVE_OBJECTS, **COMM_OBJECTS}.values(), key=lambda e: (e.index, e.subindex))
+    multi = {e.index for e in entries if e.subindex > 0}
+    defaults = comm_defaults(node_id)
+    for e in entries:
+        var = odm.ODVariable(e.name, e.index, e.subindex)
+        var.data_type = _DATATYPES[e.datatype]
+        var.access_type = e.access
+        default = defaults.get((e.index, e.subindex), e.default)
+        var.default = default  # type: ignore[assignment]  # str for VISIBLE_STRING
+        var.pdo_mappable = e.pdo_mappable
+        if e.index in multi:
+            rec = records.get(e.index)
+            if rec is None:
+                rec = records[e.index] = odm.ODRecord(e.name.split(":")[0], e.index)
+                od.add_object(rec)
+            rec.add_member(var)
+        else:
+            od.add_object(var)
+    return od
+
+
+def write_eds(path: str, node_id: int = 1, device_name: str = "SimDrive402") -> None:
+    """Write the simulated drive's EDS (what ``bus-agent`` may load per drive)."""
+    odm.export_od(build(node_id, device_name), path, doc_type="eds")
+
