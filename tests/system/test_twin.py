@@ -18,7 +18,7 @@ from bus_agent.sim.child import ChildProcess, wait_for
 from supervisor.fleet import Fleet
 from twin import Twin, TwinError
 
-pytestmark = [pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.timeout(300)]
 
 FLEET_TOML = """
 [hosts.press]
@@ -106,7 +106,7 @@ def fleet_file(tmp_path):
 def test_cli_reproduces_the_fleet_injects_faults_and_stops_clean_on_sigterm(fleet_file):
     cli = TwinCli(fleet_file)
     try:
-        cli.expect_ready(90)
+        cli.expect_ready(120)
         assert "hosts=press,robot,conv drives=5 backend=sim" in cli.output() or "drives=5" in cli.output()
         procs = descendants(cli.pid)
         assert sum("bus_agent.cli" in cmdline(p) for p in procs) >= 3
@@ -130,7 +130,7 @@ def test_cli_reproduces_the_fleet_injects_faults_and_stops_clean_on_sigterm(flee
             assert cli.command("frobnicate").startswith("error unknown command 'frobnicate'")
             assert "robot/j1=switch_on_disabled" in cli.command("status")
         cli.popen.send_signal(signal.SIGTERM)
-        assert cli.popen.wait(40) == 0
+        assert cli.popen.wait(90) == 0
         wait_for(lambda: not alive(procs), 10, "no child of the twin left")
         assert "drives-twin stopped" in cli.output()
     finally:
@@ -140,11 +140,11 @@ def test_cli_reproduces_the_fleet_injects_faults_and_stops_clean_on_sigterm(flee
 def test_cli_agent_killed_is_reported_and_everything_stops(fleet_file):
     cli = TwinCli(fleet_file)
     try:
-        cli.expect_ready(90)
+        cli.expect_ready(120)
         procs = descendants(cli.pid)
         victim = next(p for p in procs if "bus_agent.cli" in cmdline(p) and "robot.toml" in cmdline(p))
         os.kill(victim, signal.SIGKILL)
-        assert cli.popen.wait(40) == 1
+        assert cli.popen.wait(90) == 1
         out = cli.output()
         assert "bus-agent robot exited unexpectedly (exit code -9)" in out
         wait_for(lambda: not alive(procs), 10, "no child of the twin left")
@@ -156,14 +156,14 @@ def test_cli_bad_fleet_failed_start_and_sigint(tmp_path, fleet_file):
     bad = tmp_path / "bad.toml"
     bad.write_text('[hosts.h1]\naxes = ["a"]\nagent = { host = "x" }\n')
     done = subprocess.run([sys.executable, "-m", "twin.cli", "--fleet", str(bad)], capture_output=True, text=True,
-                          timeout=30)
+                          timeout=120)
     assert done.returncode == 2 and "hosts.h1.agent: key(s) ['host'] are set by the twin" in done.stderr
     done = subprocess.run([sys.executable, "-m", "twin.cli", "--fleet", str(tmp_path / "none.toml")],
-                          capture_output=True, text=True, timeout=30)
+                          capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "cannot read" in done.stderr
 
     done = subprocess.run([sys.executable, "-m", "twin.cli", "--fleet", str(fleet_file), "--listen", "tcp/x"],
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=120)
     assert done.returncode == 3 and re.search(r"drives-router did not become ready \(exit [23]\)", done.stderr), \
         done.stderr
 
@@ -171,10 +171,10 @@ def test_cli_bad_fleet_failed_start_and_sigint(tmp_path, fleet_file):
     one.write_text('[hosts.h1]\naxes = ["a"]\n')
     cli = TwinCli(one)
     try:
-        cli.expect_ready(90)
+        cli.expect_ready(120)
         procs = descendants(cli.pid)
         cli.popen.send_signal(signal.SIGINT)
-        assert cli.popen.wait(40) == 0
+        assert cli.popen.wait(90) == 0
         wait_for(lambda: not alive(procs), 10, "no child of the twin left")
     finally:
         cli.kill()
