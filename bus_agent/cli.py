@@ -54,6 +54,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", metavar="EP", help="zenoh listen endpoint (repeatable)")
     p.add_argument("--connect", action="append", metavar="EP", help="zenoh connect endpoint, e.g. a router (repeatable)")
     p.add_argument("--mode", choices=ZENOH_MODES, help="zenoh session mode (default peer)")
+    p.add_argument("--pki", metavar="DIR", help="drives-pki directory: mutual TLS on every link, ACL on what it "
+                   "listens on, commands only from authenticated principals (see docs/security.md)")
+    p.add_argument("--identity", metavar="NAME", help="principal in --pki (default and only choice: the host name)")
+    p.add_argument("--insecure", action="store_true", default=None,
+                   help="allow listening on a non-loopback address without --pki")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; 0 = off)")
     p.add_argument("--gateway-thread", action="store_true",
@@ -75,6 +80,7 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile, can=can,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
                      listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
+                     pki=args.pki, identity=args.identity, insecure=args.insecure,
                      gateway="thread" if args.gateway_thread else None)
     if args.config:
         return load_config(args.config).with_overrides(**overrides)
@@ -83,7 +89,8 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     # Embedded default: a peer that drivectl reaches on loopback without any router.
     listen = tuple(args.listen or (() if args.connect else (DEFAULT_LISTEN,)))
     base = AgentConfig(host=args.host or _default_host(), sim_drives=args.sim or 0, ifname=args.ifname, can=can,
-                       zenoh=ZenohConfig(listen=listen))
+                       zenoh=ZenohConfig(listen=listen, pki=args.pki, identity=args.identity,
+                                         insecure=bool(args.insecure)))
     overrides["listen"] = None
     return base.with_overrides(**overrides)
 
@@ -134,7 +141,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     z = config.zenoh
     assert agent.bus is not None  # started
     print(f"bus-agent ready host={config.host} drives={','.join(agent.axes)} backend={agent.bus.backend} "
-          f"listen={','.join(z.listen) or '-'} connect={','.join(z.connect) or '-'}", flush=True)
+          f"listen={','.join(z.listen) or '-'} connect={','.join(z.connect) or '-'} "
+          f"identity={f'{z.identity} (tls)' if z.pki else '- (insecure)'}", flush=True)
     code = EXIT_OK
     while not stop.wait(0.2):
         if agent.failed:

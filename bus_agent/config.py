@@ -15,6 +15,7 @@ from typing import Any, Mapping
 
 from bus_agent.cia402.states import Mode
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX
+from bus_agent.security.exposure import exposed_endpoints, refusal
 from schemas.keys import InvalidKey, validate_name
 
 ZENOH_MODES = ("peer", "client", "router")
@@ -40,6 +41,9 @@ class ZenohConfig:
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     scouting: bool = False  # multicast scouting: off unless asked (tests and plants set endpoints)
+    pki: str | None = None       # drives-pki directory: mTLS links, ACL, authenticated commands
+    identity: str | None = None  # principal in it; an agent's is its host name (the default)
+    insecure: bool = False       # allow a non-loopback listen without pki (explicit opt-out)
 
 
 @dataclass(frozen=True)
@@ -146,6 +150,8 @@ class AgentConfig:
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
 
     def __post_init__(self) -> None:
+        if self.zenoh.pki and not self.zenoh.identity:  # an agent's principal is its host name
+            object.__setattr__(self, "zenoh", dataclasses.replace(self.zenoh, identity=self.host))
         _validate(self)
 
     @property
@@ -167,9 +173,10 @@ class AgentConfig:
     def with_overrides(self, **overrides: Any) -> "AgentConfig":
         """A copy with CLI flags applied (``host``, ``ifname``, ``sim_drives``, ``sim_profile``,
         ``cycle_us``, ``reflex``, ``heartbeat_s``, ``zenoh_mode``, ``listen``, ``connect``,
-        ``scouting``, ``gateway``, ``rt_priority``); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
+        ``scouting``, ``pki``, ``identity``, ``insecure``, ``gateway``, ``rt_priority``); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
         o = {k: v for k, v in overrides.items() if v is not None}
-        zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting"}
+        zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting",
+                 "pki": "pki", "identity": "identity", "insecure": "insecure"}
         top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s", "gateway",
                "rt_priority", "can"}
         unknown = set(o) - top - set(zkeys)
@@ -186,6 +193,8 @@ class AgentConfig:
         elif t.get("can"):
             t.setdefault("ifname", None)
             t.setdefault("sim_drives", 0)
+        if "host" in t and "identity" not in z and self.zenoh.identity == self.host:
+            z["identity"] = None  # derived from the old host name: derive it again
         zenoh: ZenohConfig = dataclasses.replace(self.zenoh, **z)  # type: ignore[arg-type]  # keys checked above
         return dataclasses.replace(self, zenoh=zenoh, **t)
 
@@ -204,6 +213,15 @@ def _validate(c: AgentConfig) -> None:
     _name(c.host, "host")
     if c.zenoh.mode not in ZENOH_MODES:
         raise ConfigError(f"zenoh.mode: {c.zenoh.mode!r} is not one of {', '.join(ZENOH_MODES)}")
+    if c.zenoh.identity and c.zenoh.identity != c.host:
+        raise ConfigError(f"zenoh.identity: {c.zenoh.identity!r} is not the host name {c.host!r} (an agent's "
+                          "certificate is issued to its host name: drives-pki issue DIR HOST --role agent)")
+    if c.zenoh.identity and not c.zenoh.pki:
+        raise ConfigError("zenoh.identity needs zenoh.pki (the directory of drives-pki)")
+    exposed = exposed_endpoints(c.zenoh.listen)
+    if exposed and not c.zenoh.pki and not c.zenoh.insecure:
+        raise ConfigError(refusal("zenoh.listen", exposed, "drives-pki init DIR; drives-pki issue DIR HOST "
+                                  "--role agent; bus-agent --pki DIR"))
     if sum((bool(c.ifname), c.sim_drives > 0, c.can is not None)) > 1:
         raise ConfigError("ifname and sim_drives and can: choose one backend (a NIC, simulated drives or a CAN bus)")
     if not c.ifname and c.sim_drives <= 0 and c.can is None:
@@ -407,7 +425,9 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     t = _Table(data, "")
     z = t.table("zenoh")
     zenoh = ZenohConfig(mode=z.get("mode", str, "peer"), listen=z.strings("listen"),
-                        connect=z.strings("connect"), scouting=z.get("scouting", bool, False))
+                        connect=z.strings("connect"), scouting=z.get("scouting", bool, False),
+                        pki=z.get("pki", str, None), identity=z.get("identity", str, None),
+                        insecure=z.get("insecure", bool, False))
     z.done()
     s = t.table("status")
     heartbeat_s = s.get("heartbeat_s", _NUM, 1.0)

@@ -2,7 +2,7 @@
 
     drives-router                                             # listens on tcp/127.0.0.1:7447
     drives-router --config deploy/router.json5                # TLS, ACL, ... from the file
-    drives-router --listen tcp/10.213.7.1:7447 --connect tcp/10.213.7.2:7447
+    drives-router --listen tcp/10.213.7.1:7447 --connect tcp/10.213.7.2:7447 --pki /etc/zenoh-drives/pki --identity r1
 
 One router per host: the host's bus agents and supervisors connect to it, and routers connect
 to each other with explicit ``--connect`` endpoints (see docs/deployment.md). The session is
@@ -29,6 +29,7 @@ from typing import Sequence
 import zenoh
 
 from bus_agent.gateway.zenoh_config import ZenohConfigError, make_zenoh_config
+from bus_agent.security.exposure import exposed_endpoints, refusal
 
 log = logging.getLogger("bus_agent.router")
 
@@ -46,12 +47,15 @@ def _file_endpoints(conf: zenoh.Config, key: str) -> list[str]:
     return [str(ep) for ep in value or []]
 
 
-def build_config(config_file: str | None, listen: Sequence[str] = (), connect: Sequence[str] = ()) -> tuple[
+def build_config(config_file: str | None, listen: Sequence[str] = (), connect: Sequence[str] = (), *,
+                 pki: str | None = None, identity: str | None = None, insecure: bool = False) -> tuple[
         zenoh.Config, list[str], list[str]]:
     """The router's ``zenoh.Config`` and its effective listen and connect endpoints.
 
     The file (JSON5, e.g. deploy/router.json5) is loaded first; ``listen``/``connect`` replace
     its lists when non-empty. With neither, the router listens on :data:`DEFAULT_LISTEN`.
+    ``pki``/``identity``: mutual TLS and the ACL compiled from the directory's principals.toml.
+    Without them, a listen endpoint off loopback is refused unless ``insecure``.
     Raises :class:`RouterConfigError`.
     """
     base = None
@@ -68,8 +72,12 @@ def build_config(config_file: str | None, listen: Sequence[str] = (), connect: S
     connect = list(connect)
     if not listen and not connect:
         raise RouterConfigError("a router needs at least one --listen or --connect endpoint")
+    exposed = exposed_endpoints(listen)
+    if exposed and not pki and not insecure:
+        raise RouterConfigError(refusal("drives-router", exposed, "drives-pki init DIR; drives-pki issue DIR NAME "
+                                        "--role router --san ADDRESS"))
     try:
-        conf = make_zenoh_config("router", listen, connect, base=base)
+        conf = make_zenoh_config("router", listen, connect, base=base, pki=pki, identity=identity)
     except ZenohConfigError as exc:
         raise RouterConfigError(str(exc)) from None
     return conf, listen, connect
@@ -83,6 +91,10 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"listen endpoint (repeatable; default {DEFAULT_LISTEN} without --config)")
     p.add_argument("--connect", action="append", default=[], metavar="EP",
                    help="another router to connect to (repeatable; retried in the background)")
+    p.add_argument("--pki", metavar="DIR", help="drives-pki directory: mutual TLS on every link and the ACL "
+                   "compiled from DIR/principals.toml, default deny (see docs/security.md)")
+    p.add_argument("--identity", metavar="NAME", help="this router's principal in --pki (role router)")
+    p.add_argument("--insecure", action="store_true", help="allow a non-loopback listen endpoint without --pki")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
 
@@ -92,7 +104,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        conf, listen, connect = build_config(args.config, args.listen, args.connect)
+        conf, listen, connect = build_config(args.config, args.listen, args.connect, pki=args.pki,
+                                             identity=args.identity, insecure=args.insecure)
     except RouterConfigError as exc:
         print(f"drives-router: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -107,7 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_STARTUP
         try:
             print(f"drives-router ready zid={session.info.zid()} listen={','.join(listen) or '-'} "
-                  f"connect={','.join(connect) or '-'}", flush=True)
+                  f"connect={','.join(connect) or '-'} identity={args.identity + ' (tls, acl)' if args.pki else '- (insecure)'}",
+                  flush=True)
             log.info("router up: listen %s connect %s", listen, connect)
             while not stop.wait(0.5):
                 pass

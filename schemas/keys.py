@@ -8,7 +8,13 @@ Layout (every level fixed, so keys parse without guessing)::
     drives/@v1/<host>/drive/<axis>/status     drive status (put on change + heartbeat; get)
     drives/@v1/<host>/drive/<axis>/event      drive events
     drives/@v1/<host>/drive/<axis>/cmd/<op>   drive commands
+    drives/@v1/<host>/drive/<axis>/cmd/<op>/@sup/<principal>   drive commands, authenticated
+    drives/@v1/<host>/agent/cmd/<op>/@sup/<principal>          agent commands, authenticated
     drives/@v1/@sup/<name>                    supervisor liveliness token
+
+A command key ending in ``@sup/<principal>`` names who asks. On a secure deployment the router's
+ACL lets each principal query only keys that end in its own name (``bus_agent.security.roles``),
+so the agent takes the requester from the key, never from the payload.
 
 ``@v1`` and ``@sup`` are verbatim chunks: wildcards never match them.
 Host, axis and supervisor names are single legal chunks (see :func:`validate_name`).
@@ -20,6 +26,7 @@ Every builder also takes selector chunks (``*``, ``**``, ``ax*``; see
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import re
 from dataclasses import dataclass
@@ -231,6 +238,7 @@ class ParsedKey:
     axis: str | None = None
     op: str | None = None
     name: str | None = None
+    principal: str | None = None  # commands: the ``@sup/<principal>`` tail, None without it
 
 
 def agent_status(host: str) -> str:
@@ -238,9 +246,14 @@ def agent_status(host: str) -> str:
     return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent"
 
 
-def agent_cmd(host: str, op: str) -> str:
-    """Key of agent command ``op`` on ``host`` (a query; op ``nmt``)."""
-    return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent/cmd/{zenoh_chunk(op, 'op')}"
+def _by(principal: str | None) -> str:
+    return "" if principal is None else f"/{SUPERVISOR_CHUNK}/{zenoh_chunk(principal, 'principal')}"
+
+
+def agent_cmd(host: str, op: str, principal: str | None = None) -> str:
+    """Key of agent command ``op`` on ``host`` (a query; op ``nmt``); with ``principal``, the
+    authenticated form ending in ``@sup/<principal>``."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent/cmd/{zenoh_chunk(op, 'op')}{_by(principal)}"
 
 
 def alive(host: str) -> str:
@@ -258,12 +271,29 @@ def drive_event(host: str, axis: str) -> str:
     return f"{ROOT}/{zenoh_chunk(host, 'host')}/drive/{zenoh_chunk(axis, 'axis')}/event"
 
 
-def drive_cmd(host: str, axis: str, op: str) -> str:
-    """Key of drive command ``op`` for ``host/axis`` (a query with a ``command_request``)."""
+def drive_cmd(host: str, axis: str, op: str, principal: str | None = None) -> str:
+    """Key of drive command ``op`` for ``host/axis`` (a query with a ``command_request``); with
+    ``principal``, the authenticated form ending in ``@sup/<principal>``."""
     return (
         f"{ROOT}/{zenoh_chunk(host, 'host')}/drive/"
-        f"{zenoh_chunk(axis, 'axis')}/cmd/{zenoh_chunk(op, 'op')}"
+        f"{zenoh_chunk(axis, 'axis')}/cmd/{zenoh_chunk(op, 'op')}{_by(principal)}"
     )
+
+
+def command_principal(key: str) -> str | None:
+    """The principal of a command key or key expression (its ``@sup/<principal>`` tail), None
+    if it has none. Raises :class:`InvalidKey` when the principal chunk is not a plain name
+    (a wildcard there would stand for anyone)."""
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[-2] != SUPERVISOR_CHUNK or "cmd" not in parts[:-2]:
+        return None
+    return validate_name(parts[-1], "principal")
+
+
+def host_tree(host: str) -> str:
+    """Every key of ``host`` without a verbatim chunk below it (``drives/@v1/<host>/**``):
+    status, events, agent status, its token and the unauthenticated command keys."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/**"
 
 
 def supervisor_alive(name: str) -> str:
@@ -279,6 +309,19 @@ def parse(key: str) -> ParsedKey:
     rest = parts[2:]
     if len(rest) == 2 and rest[0] == SUPERVISOR_CHUNK:
         return ParsedKey(KeyKind.SUPERVISOR, name=validate_name(rest[1], "supervisor"))
+    principal = None
+    if len(rest) > 2 and rest[-2] == SUPERVISOR_CHUNK and "cmd" in rest:
+        principal = validate_name(rest[-1], "principal")
+        rest = rest[:-2]
+    parsed = _parse_host_key(key, rest)
+    if principal is None:
+        return parsed
+    if parsed.kind not in (KeyKind.DRIVE_CMD, KeyKind.AGENT_CMD):
+        raise InvalidKey(f"key {key!r}: only command keys end in {SUPERVISOR_CHUNK}/<principal>")
+    return dataclasses.replace(parsed, principal=principal)
+
+
+def _parse_host_key(key: str, rest: list[str]) -> ParsedKey:
     host = validate_name(rest[0], "host")
     tail = rest[1:]
     if tail == ["agent"]:
@@ -317,6 +360,8 @@ ALL_DRIVE_EVENTS = f"{ROOT}/*/drive/*/event"
 ALL_AGENT_STATUS = f"{ROOT}/*/agent"
 ALL_ALIVE = f"{ROOT}/*/alive"
 ALL_SUPERVISORS = f"{ROOT}/{SUPERVISOR_CHUNK}/*"
+#: Every simulator control key (what production ACLs deny).
+ALL_SIM = f"{SIM_ROOT}/**"
 
 
 def parse_sim_control(key: str) -> tuple[str, int, str]:
@@ -357,6 +402,11 @@ KEY_TABLE: tuple[KeyInfo, ...] = (
     KeyInfo(f"{ROOT}/<host>/drive/<axis>/cmd/<op>", KeyKind.DRIVE_CMD.value,
             "drive commands; one reply per addressed drive on its own key",
             "queryable", "command_request -> command_reply"),
+    KeyInfo(f"{ROOT}/<host>/drive/<axis>/cmd/<op>/{SUPERVISOR_CHUNK}/<principal>", KeyKind.DRIVE_CMD.value,
+            "drive commands from an authenticated principal (the ACL admits only its own name); "
+            "the only command keys an agent serves with --pki", "queryable", "command_request -> command_reply"),
+    KeyInfo(f"{ROOT}/<host>/agent/cmd/<op>/{SUPERVISOR_CHUNK}/<principal>", KeyKind.AGENT_CMD.value,
+            "agent commands from an authenticated principal", "queryable", "command_request -> command_reply"),
     KeyInfo(f"{ROOT}/{SUPERVISOR_CHUNK}/<name>", KeyKind.SUPERVISOR.value,
             "liveliness token of a supervisor that holds leases", "liveliness token"),
     KeyInfo(f"{SIM_ROOT}/<segment>/<slave>/<action>", "sim_control",

@@ -114,6 +114,14 @@ def render_contract_markdown() -> str:
         "`?` and classes widen to `$*` in the zenoh query, and the caller keeps the replies that "
         "`selector_matches` accepts.",
         "",
+        "**Authenticated commands.** A command key may end in `@sup/<principal>`, naming who asks "
+        "(replies come on the same form of the key). On a secure deployment (`--pki`) the router's ACL "
+        "lets each principal query only keys ending in its own name, and agents serve only these keys: "
+        "the agent takes the requester from the key, a `supervisor` field naming anyone else is "
+        "rejected, and leases are bound to that principal. Agents without `--pki` serve both forms, so "
+        "clients written against the plain keys keep working on insecure deployments (loopback, "
+        "`--insecure`). Principal chunks are names, never wildcards.",
+        "",
         "### Messages",
         "",
         "Every payload is a msgpack map: `v` (schema version, "

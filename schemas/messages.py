@@ -214,7 +214,7 @@ class CommandRequest:
     op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op, equal to the last chunk of the key")
     args: dict = _f({}, arg_value=True, doc="op arguments, see the op argument table")
     timeout_s: float = _f(5.0, range=(0.0, 3600.0), doc="deadline for the goal, from receipt")
-    supervisor: str = _f("", max_len=NAME_LEN, name=True, doc="sender identity, for leases ('' = anonymous)")
+    supervisor: str = _f("", max_len=NAME_LEN, name=True, doc="sender identity, for leases ('' = anonymous); on an @sup/<principal> key, '' or that principal")
 
 
 @dataclass(frozen=True)

@@ -115,10 +115,18 @@ def default_name() -> str:
 
 
 def zenoh_config(mode: str, connect: Sequence[str], listen: Sequence[str] = (),
-                 connect_timeout_ms: int = 2000) -> zenoh.Config:
-    """A session config for the supervisor: multicast scouting off, explicit endpoints."""
+                 connect_timeout_ms: int = 2000, *, pki: str | None = None,
+                 identity: str | None = None) -> zenoh.Config:
+    """A session config for the supervisor: multicast scouting off, explicit endpoints; with
+    ``pki``/``identity``, mutual TLS as that principal (``bus_agent.gateway.zenoh_config``).
+    Raises ValueError on a bad mode or identity."""
     if mode not in ("client", "peer"):
         raise ValueError(f"mode {mode!r}: use 'client' or 'peer'")
+    if pki is not None or identity is not None:
+        from bus_agent.gateway.zenoh_config import make_zenoh_config
+
+        return make_zenoh_config(mode, listen if mode == "peer" else (), connect,
+                                 connect_timeout_ms=connect_timeout_ms, pki=pki, identity=identity)
     conf: dict[str, Any] = {
         "mode": mode,
         "connect": {"endpoints": list(connect), "timeout_ms": connect_timeout_ms},
@@ -161,7 +169,19 @@ class Fleet:
         connect_timeout_s: float = 2.0,
         discovery_timeout_s: float = 1.0,
         lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
+        pki: str | os.PathLike[str] | None = None,
+        identity: str | None = None,
     ) -> None:
+        if (pki is None) != (identity is None):
+            raise ValueError("pki and identity go together (a drives-pki directory and a principal in it)")
+        if identity is not None:
+            keys.validate_name(identity, "identity")
+            if name and name != identity:
+                raise ValueError(f"name {name!r}: with a pki the supervisor's name is its identity {identity!r}")
+            name = identity
+        #: The drives-pki directory and principal this supervisor authenticates as (None: insecure).
+        self.pki = None if pki is None else str(pki)
+        self.identity = identity
         self.name = keys.validate_name(name or default_name(), "supervisor name")
         self.mode = mode
         self.connect = tuple(connect)
@@ -206,11 +226,15 @@ class Fleet:
         """
         try:
             self._session = zenoh.open(zenoh_config(self.mode, self.connect, self.listen,
-                                                    int(self.connect_timeout_s * 1000)))
+                                                    int(self.connect_timeout_s * 1000), pki=self.pki,
+                                                    identity=self.identity))
         except zenoh.ZError as exc:
             raise NoAgentError(f"cannot reach {', '.join(self.connect)} ({zenoh_error_text(exc)}); check that "
                                "a router or bus agent is running and listening there (bus-agent --sim listens "
-                               f"on {DEFAULT_CONNECT[0]}), or give --connect") from None
+                               f"on {DEFAULT_CONNECT[0]}), or give --connect"
+                               + (f"; as {self.identity}: check that the router trusts the CA of {self.pki} and "
+                                  "that its certificate names the address dialled" if self.identity else
+                                  "; a secure router (tls/) needs --pki DIR --identity NAME")) from None
         s = self._session
         self._dispatcher = threading.Thread(target=self._dispatch, name=f"fleet-{self.name}-events", daemon=True)
         self._dispatcher.start()
@@ -611,8 +635,14 @@ class Fleet:
             replies = dict(col.replies)
             errors = list(col.errors)
         elapsed = time.monotonic() - t0
+        silent = ""
+        if self.identity and not replies and not errors and col.finished >= len(keyexprs) and elapsed < wait_s / 2:
+            # Every query ended with no reply long before its deadline: what an ACL denial looks like.
+            silent = (f"denied at once: identity {self.identity!r} may not {request.op} (router ACL), "
+                      "or no agent serves authenticated commands")
         result = aggregate(request.op, request.request_id, sorted(col.addressed), replies,
-                           errors=errors, gone_hosts=gone, timeout_s=wait_s, elapsed_s=elapsed)
+                           errors=errors, gone_hosts=gone, timeout_s=wait_s, elapsed_s=elapsed,
+                           denied_reason=silent)
         level = logging.INFO if result.ok else logging.WARNING
         log.log(level, "supervisor %s: %s to %d drive(s): %s in %.3f s", self.name, request.op,
                 len(col.addressed), result.counts(), elapsed)
@@ -626,7 +656,7 @@ class Fleet:
         req = CommandRequest(self._request_id(op), op, dict(args or {}), float(timeout_s), self.name)
         if not sel.drives:
             return CommandResult(op, req.request_id, ())
-        return self._query(sel.plan.keyexprs(op), req, sel.drives, timeout_s + REPLY_MARGIN_S)
+        return self._query(sel.plan.keyexprs(op, self.identity), req, sel.drives, timeout_s + REPLY_MARGIN_S)
 
     def enable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S,
                stages: Sequence[Sequence[str]] | None = None,
@@ -686,9 +716,9 @@ class Fleet:
             addressed.update(matched)
             pair = sel.zenoh_pair()
             if pair is None:
-                keyexprs.extend(keys.agent_cmd(m, "nmt") for m in matched)
+                keyexprs.extend(keys.agent_cmd(m, "nmt", self.identity) for m in matched)
             else:
-                keyexprs.append(keys.agent_cmd(pair[0], "nmt"))
+                keyexprs.append(keys.agent_cmd(pair[0], "nmt", self.identity))
         args: dict[str, Any] = {"command": command}
         if axis is not None:
             args["axis"] = self._axis_of_slave(axis, addressed)

@@ -17,6 +17,9 @@ from .selectors import DriveRef
 
 #: The outcome given to an addressed drive that sent no reply.
 MISSING = "missing"
+#: The outcome given to an addressed drive whose command was answered by no-one at once while
+#: its agent is alive: on a secure deployment, the router's ACL refused it.
+DENIED = "denied"
 
 
 @dataclass(frozen=True)
@@ -107,11 +110,14 @@ def aggregate(
     gone_hosts: Iterable[str] = (),
     timeout_s: float = 0.0,
     elapsed_s: float = 0.0,
+    denied_reason: str = "",
 ) -> CommandResult:
     """Combine the replies received for ``addressed`` drives into a :class:`CommandResult`.
 
     A drive without a reply becomes ``missing`` with the reason: its agent is gone, the agent
-    answered with an error, or nothing came back before the deadline.
+    answered with an error, or nothing came back before the deadline; or ``denied`` with
+    ``denied_reason`` when that is given (the caller saw the queries end at once, unanswered)
+    and its agent is not gone.
     """
     errors = tuple(errors)
     gone = set(gone_hosts)
@@ -124,6 +130,9 @@ def aggregate(
             continue
         if ref.host in gone:
             why = f"no reply: agent {ref.host} is gone"
+        elif denied_reason:
+            results.append(DriveResult(ref.host, ref.axis, DENIED, error=denied_reason, elapsed_s=elapsed_s))
+            continue
         elif errors:
             why = "no reply; agent error(s): " + "; ".join(errors)
         else:

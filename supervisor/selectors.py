@@ -145,9 +145,10 @@ def resolve(
     return sorted(chosen)
 
 
-def drive_cmd_keyexpr(host: str, axis: str, op: str) -> str:
-    """A zenoh key expression for ``cmd/<op>`` of the drives (host, axis) selects (wildcards ok)."""
-    return keys.drive_cmd(host, axis, op)
+def drive_cmd_keyexpr(host: str, axis: str, op: str, principal: str | None = None) -> str:
+    """A zenoh key expression for ``cmd/<op>`` of the drives (host, axis) selects (wildcards ok);
+    with ``principal``, the authenticated form (``.../cmd/<op>/@sup/<principal>``)."""
+    return keys.drive_cmd(host, axis, op, principal)
 
 
 @dataclass(frozen=True)
@@ -156,8 +157,8 @@ class QueryPlan:
 
     pairs: tuple[tuple[str, str], ...]
 
-    def keyexprs(self, op: str) -> list[str]:
-        return [drive_cmd_keyexpr(h, a, op) for h, a in self.pairs]
+    def keyexprs(self, op: str, principal: str | None = None) -> list[str]:
+        return [drive_cmd_keyexpr(h, a, op, principal) for h, a in self.pairs]
 
 
 def plan_queries(

@@ -106,21 +106,45 @@ class ParsedCommand:
     request: m.CommandRequest
     args: Mapping[str, Any]
     axes: tuple[str, ...]
+    principal: str | None = None  # from the key (authenticated), None on an unauthenticated key
 
 
-def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*") -> tuple[str, ...]:
-    """The axes of ``host`` whose ``cmd/<op>`` key intersects ``query_key``."""
+def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*",
+                principal: str | None = None) -> tuple[str, ...]:
+    """The axes of ``host`` whose ``cmd/<op>`` key (of ``principal``, if any) intersects ``query_key``."""
     qke = _ke(str(query_key))
-    return tuple(a for a in axes if _ke(keys.drive_cmd(host, a, op)).intersects(qke))
+    return tuple(a for a in axes if _ke(keys.drive_cmd(host, a, op, principal)).intersects(qke))
 
 
-def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], *, agent: bool = False) -> ParsedCommand:
+def requester(query_key: str, claimed: str, *, secure: bool) -> str:
+    """Who is asking: the principal the key names (``.../cmd/<op>/@sup/<principal>``, which the
+    router's ACL admits only from that principal), else, on an insecure agent, the payload's
+    ``supervisor`` (a claim nobody checked). The one place the gateway decides it.
+    Raises :class:`RequestError` when the payload names someone else than the key, or when a
+    secure agent gets a key without a principal."""
+    try:
+        principal = keys.command_principal(query_key)
+    except keys.InvalidKey as exc:
+        raise RequestError(str(exc)) from None
+    if principal is None:
+        if secure:
+            raise RequestError("this agent takes commands only on .../cmd/<op>/@sup/<principal> keys (--pki)")
+        return claimed
+    if claimed and claimed != principal:
+        raise RequestError(f"supervisor {claimed!r} in the payload is not the requester {principal!r} "
+                           "authenticated by the key")
+    return principal
+
+
+def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], *, agent: bool = False,
+                  secure: bool = False) -> ParsedCommand:
     """Decode and validate one command query; raise :class:`RequestError` naming the problem.
 
     ``payload``: the query payload (bytes or zenoh ZBytes, None if absent). ``agent``: the
     query came to ``.../agent/cmd/*`` (op ``nmt``) rather than ``.../drive/*/cmd/*``.
     The payload's op must be the key's op (checked as: the concrete key of that op intersects
-    the query key, which also admits ``cmd/*`` selectors).
+    the query key, which also admits ``cmd/*`` selectors). The request's ``supervisor`` is
+    replaced by :func:`requester` (``secure``: only authenticated keys are accepted).
     """
     if payload is None:
         raise RequestError("no payload: a command query carries a msgpack command_request (schemas.messages)")
@@ -128,25 +152,27 @@ def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], 
         req = m.decode(payload, m.CommandRequest)
     except m.SchemaError as exc:
         raise RequestError(f"invalid command_request: {exc}") from None
+    req = dataclasses.replace(req, supervisor=requester(query_key, req.supervisor, secure=secure))
+    principal = keys.command_principal(query_key)  # valid: requester() checked it
     if agent:
         if req.op not in m.AGENT_OPS:
             raise RequestError(f"op {req.op!r} is not an agent op (agent ops: {', '.join(m.AGENT_OPS)})")
-        if not _ke(keys.agent_cmd(host, req.op)).intersects(_ke(str(query_key))):
+        if not _ke(keys.agent_cmd(host, req.op, principal)).intersects(_ke(str(query_key))):
             raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key}")
         args = m.validate_args(req.op, req.args)
         if args.get("axis") and args["axis"] not in axes:
             raise RequestError(f"args.axis: {args['axis']!r} is not an axis of {host} ({', '.join(axes)})")
-        return ParsedCommand(req, args, ())
+        return ParsedCommand(req, args, (), principal)
     if req.op not in m.DRIVE_OPS:
         raise RequestError(f"op {req.op!r} is not a drive op (drive ops: {', '.join(m.DRIVE_OPS)})")
-    addressed = axes_in_key(query_key, host, axes, req.op)
+    addressed = axes_in_key(query_key, host, axes, req.op, principal)
     if not addressed:
         raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key} "
                            "(the key's last chunk is the op)")
     args = m.validate_args(req.op, req.args)
     if req.op in LEASE_OPS and req.supervisor and args["holder"] != req.supervisor:
         raise RequestError(f"args.holder {args['holder']!r} differs from supervisor {req.supervisor!r}")
-    return ParsedCommand(req, args, addressed)
+    return ParsedCommand(req, args, addressed, principal)
 
 
 # ---- pending requests ----------------------------------------------------------------------
@@ -161,8 +187,11 @@ class _Request:
         self.request_id = req.request_id
         self.op = req.op
         self.axes: tuple[str, ...] = parsed.axes or ("",)
-        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op) if a else keys.agent_cmd(host, req.op))
-                           for a in self.axes}
+        self.supervisor = req.supervisor
+        # Replies go on the key asked, authenticated form included (a reply must intersect the query).
+        self.principal = parsed.principal
+        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op, self.principal) if a else
+                               keys.agent_cmd(host, req.op, self.principal)) for a in self.axes}
         self.created_s = now_s
         self.received_ns = time.monotonic_ns()
         self.deadline_s = now_s + req.timeout_s + OUTCOME_GRACE_S
@@ -174,7 +203,8 @@ class _Request:
         return len(self.replies) == len(self.axes)
 
     def same_command(self, parsed: ParsedCommand) -> bool:
-        return parsed.request.op == self.op and (parsed.axes or ("",)) == self.axes
+        return (parsed.request.op == self.op and (parsed.axes or ("",)) == self.axes
+                and parsed.request.supervisor == self.supervisor and parsed.principal == self.principal)
 
     def attach(self, query: zenoh.Query) -> None:
         self.waiting.append((query, set(self.axes)))
@@ -230,6 +260,7 @@ class GatewaySettings:
     groups: Mapping[str, Sequence[str]] = field(default_factory=dict)   # name -> "host/axis"
     lease_reaction: Mapping[str, str] = field(default_factory=dict)     # axis -> LEASE_REACTION_OPS key
     lease_ttl_s: Mapping[str, float] = field(default_factory=dict)      # axis -> default ttl
+    secure: bool = False  # --pki: serve only authenticated command keys (requester from the key)
 
 
 @dataclass
@@ -350,10 +381,12 @@ class Gateway:
         self.cycle.snapshot_sink = self.on_snapshot
         # Commands last: by now status flows and the lease/group subscribers are in place.
         self._accepting = True
-        self._cmd_queryables.append(s.declare_queryable(
-            keys.drive_cmd(self.host, "*", "*"), lambda q: enqueue((self._on_drive_cmd, (q,)))))
-        self._cmd_queryables.append(s.declare_queryable(
-            keys.agent_cmd(self.host, "*"), lambda q: enqueue((self._on_agent_cmd, (q,)))))
+        # Authenticated keys always; the unauthenticated ones (the v1 contract's) only without --pki.
+        for principal in ("*",) if self.s.secure else ("*", None):
+            self._cmd_queryables.append(s.declare_queryable(
+                keys.drive_cmd(self.host, "*", "*", principal), lambda q: enqueue((self._on_drive_cmd, (q,)))))
+            self._cmd_queryables.append(s.declare_queryable(
+                keys.agent_cmd(self.host, "*", principal), lambda q: enqueue((self._on_agent_cmd, (q,)))))
         self._token = s.liveliness().declare_token(keys.alive(self.host))
         log.info("gateway %s: %d drive(s), %d remote group member(s)", self.host, len(self.axes), len(self._remotes))
 
@@ -581,7 +614,7 @@ class Gateway:
 
     def _on_drive_cmd(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
-        if not axes_in_key(key, self.host, self.axes):
+        if not (axes_in_key(key, self.host, self.axes) or axes_in_key(key, self.host, self.axes, principal="*")):
             _finish(query)  # a selector for other drives or hosts: not ours to answer
             return
         self._command(query, key, agent=False)
@@ -594,7 +627,7 @@ class Gateway:
             _reply_err(query, f"agent {self.host} is shutting down: no new commands")
             return
         try:
-            parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent)
+            parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent, secure=self.s.secure)
         except RequestError as exc:
             log.info("agent %s: command on %s refused: %s", self.host, key, exc)
             _reply_err(query, f"{self.host}: {exc}")

@@ -10,6 +10,12 @@ same defaults (see shared/docs/zenoh.md):
   ``open`` returns at once and the link comes up when the router does); clients wait at most
   :data:`DEFAULT_CLIENT_CONNECT_TIMEOUT_MS` in ``open`` and fail with a clear error otherwise.
 
+- with ``pki``/``identity`` (a ``drives-pki`` directory and a principal in it): every link is
+  ``tls/`` with mutual TLS against the directory's CA (``tcp/`` endpoints are rewritten to
+  ``tls/``; clients check the server certificate's name), and sessions that accept links (routers,
+  and any session with listen endpoints) load the ACL compiled from ``principals.toml``, default
+  deny (``bus_agent.security.roles``).
+
 ``make_zenoh_config(mode, listen, connect)`` is a stable signature: other packages import it.
 """
 
@@ -17,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import zenoh
@@ -47,6 +54,41 @@ def _check_endpoint(ep: str) -> str:
     return ep
 
 
+def _secure_endpoint(ep: str) -> str:
+    proto, _, addr = ep.partition("/")
+    if proto == "tls":
+        return ep
+    if proto == "tcp":
+        return f"tls/{addr}"
+    raise ZenohConfigError(f"endpoint {ep!r}: with --pki every link is tls/ (or tcp/, made tls/), not {proto}/")
+
+
+def secure_settings(pki: str | Path, identity: str, *, acl: bool) -> dict[str, Any]:
+    """TLS (mutual, against ``pki``'s CA) as ``identity``, and with ``acl`` the access control
+    compiled from ``pki``/principals.toml. Raises :class:`ZenohConfigError` naming the file or
+    principal at fault (missing, expired, not in principals.toml, key readable by others)."""
+    from bus_agent.security import pki as pki_mod
+    from bus_agent.security import principals, roles
+
+    try:
+        files = pki_mod.check_identity(pki, identity)
+        known = principals.load(pki)
+    except (pki_mod.PkiError, principals.PrincipalsError) as exc:
+        raise ZenohConfigError(f"--pki {pki} --identity {identity}: {exc}") from None
+    if identity not in known:
+        raise ZenohConfigError(f"--identity {identity!r} is not in {Path(pki) / principals.FILE_NAME} "
+                               f"(issue it with `drives-pki issue {pki} {identity} --role ROLE`)")
+    settings: dict[str, Any] = {"transport/link/tls": {
+        "root_ca_certificate": str(files.ca),
+        "listen_certificate": str(files.cert), "listen_private_key": str(files.key),
+        "connect_certificate": str(files.cert), "connect_private_key": str(files.key),
+        "enable_mtls": True, "verify_name_on_connect": True,
+    }}
+    if acl:
+        settings["access_control"] = roles.compile_acl(known.values())
+    return settings
+
+
 def make_zenoh_config(
     mode: str = "peer",
     listen: Iterable[str] = (),
@@ -57,6 +99,9 @@ def make_zenoh_config(
     connect_timeout_ms: int | None = None,
     extra: Mapping[str, Any] | None = None,
     base: zenoh.Config | None = None,
+    pki: str | Path | None = None,
+    identity: str | None = None,
+    acl: bool | None = None,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config``.
 
@@ -65,12 +110,21 @@ def make_zenoh_config(
     for peers and routers and :data:`DEFAULT_CLIENT_CONNECT_TIMEOUT_MS` for clients.
     ``extra``: further settings as ``{"path/to/key": json-serialisable value}`` (TLS, ACL, auth).
     ``base``: a config (e.g. loaded from a JSON5 file) to apply these settings on top of.
-    Raises :class:`ZenohConfigError` on an unknown mode or a malformed endpoint.
+    ``pki``/``identity``: secure the session (see the module docstring); ``acl`` None loads the
+    ACL in routers and in sessions that listen.
+    Raises :class:`ZenohConfigError` on an unknown mode, a malformed endpoint or a bad identity.
     """
     if mode not in MODES:
         raise ZenohConfigError(f"zenoh mode {mode!r} is not one of {', '.join(MODES)}")
     listen = [_check_endpoint(ep) for ep in listen]
     connect = [_check_endpoint(ep) for ep in connect]
+    secure: dict[str, Any] = {}
+    if pki is not None or identity is not None:
+        if pki is None or not identity:
+            raise ZenohConfigError("--pki and --identity go together (a PKI directory and a principal in it)")
+        listen = [_secure_endpoint(ep) for ep in listen]
+        connect = [_secure_endpoint(ep) for ep in connect]
+        secure = secure_settings(pki, identity, acl=(mode == "router" or bool(listen)) if acl is None else acl)
     if link_lease_ms < 100:
         raise ZenohConfigError(f"link lease {link_lease_ms} ms is too short (at least 100 ms)")
     if connect_timeout_ms is None:
@@ -88,6 +142,7 @@ def make_zenoh_config(
     if listen or mode != "client":
         # An empty list keeps a peer from listening on a random port of every interface.
         settings["listen/endpoints"] = listen
+    settings.update(secure)
     settings.update(extra or {})
     return _apply(zenoh.Config() if base is None else base, settings)
 
@@ -121,4 +176,6 @@ def from_settings(zc: Any) -> zenoh.Config:
         link_lease_ms=int(getattr(zc, "link_lease_ms", None) or DEFAULT_LINK_LEASE_MS),
         connect_timeout_ms=getattr(zc, "connect_timeout_ms", None),
         base=base,
+        pki=getattr(zc, "pki", None),
+        identity=getattr(zc, "identity", None),
     )

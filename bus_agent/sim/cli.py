@@ -19,6 +19,7 @@ import signal
 import sys
 import threading
 
+from bus_agent.security.exposure import exposed_endpoints, refusal
 from bus_agent.sim.drive_model import PROFILES
 from bus_agent.sim.ecat.control import ACTIONS, TcpControl, UnixControl, apply_action
 from bus_agent.sim.ecat.frameloop import FrameLoop
@@ -58,12 +59,9 @@ def _zenoh_control(args, name: str, n: int, channel: QueuedControl):
 
     from bus_agent.sim.control import SimControl
 
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    if args.zenoh_connect:
-        conf.insert_json5("connect/endpoints", json.dumps(args.zenoh_connect))
-    if args.zenoh_listen:
-        conf.insert_json5("listen/endpoints", json.dumps(args.zenoh_listen))
+    from bus_agent.gateway.zenoh_config import make_zenoh_config
+
+    conf = make_zenoh_config("peer", args.zenoh_listen, args.zenoh_connect, pki=args.pki, identity=args.identity)
     session = zenoh.open(conf)
 
     def make(action: str):
@@ -87,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP")
+    p.add_argument("--pki", metavar="DIR", help="drives-pki directory: the Zenoh control over mutual TLS")
+    p.add_argument("--identity", metavar="NAME", help="principal in --pki (role testbed)")
+    p.add_argument("--insecure", action="store_true", help="allow a non-loopback --zenoh-listen without --pki")
     p.add_argument("--step-us", type=int, default=1000, help="drive model step period while in SAFE-OP/OP")
     p.add_argument("--stale-us", type=int, default=1800,
                    help="frames older than this are dropped, never answered late (0: answer all)")
@@ -122,9 +123,18 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     zenoh_parts = None
     if args.zenoh_connect or args.zenoh_listen:
+        exposed = exposed_endpoints(args.zenoh_listen)
+        if exposed and not args.pki and not args.insecure:
+            print(refusal("ecat-sim", exposed, "drives-pki issue DIR NAME --role testbed"), file=sys.stderr)
+            return 2
         channel = QueuedControl()
         loop.controls.append(channel)
-        zenoh_parts = _zenoh_control(args, args.name, args.drives, channel)
+        try:
+            zenoh_parts = _zenoh_control(args, args.name, args.drives, channel)
+        except ValueError as exc:  # ZenohConfigError: a bad --pki/--identity
+            print(f"ecat-sim: {exc}", file=sys.stderr)
+            loop.close()
+            return 2
 
     def on_signal(signum, frame):
         loop.stop()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Sequence
 
@@ -70,6 +71,10 @@ _GLOBALS: tuple[tuple[tuple[str, ...], dict[str, Any]], ...] = (
     (("--group",), dict(action="append", default=[], metavar="NAME=H/A,H/A",
                         help="define a local group usable as @NAME")),
     (("-v", "--verbose"), dict(action="count", default=0, help="more detail (agent cycle figures; -vv logs)")),
+    (("--pki",), dict(default=None, metavar="DIR",
+                      help="drives-pki directory: mutual TLS, commands as --identity (default $DRIVES_PKI)")),
+    (("--identity",), dict(default=None, metavar="NAME",
+                           help="your principal in --pki (default $DRIVES_IDENTITY)")),
 )
 _POST = "post_"
 
@@ -146,12 +151,29 @@ def check_syntax(args: argparse.Namespace) -> None:
     local_groups(args.group)
 
 
+def security_of(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """``--pki``/``--identity``, else ``$DRIVES_PKI``/``$DRIVES_IDENTITY``; both or neither."""
+    pki = args.pki or os.environ.get("DRIVES_PKI") or None
+    identity = args.identity or os.environ.get("DRIVES_IDENTITY") or None
+    if (pki is None) != (identity is None):
+        raise UsageError("--pki and --identity go together (or $DRIVES_PKI and $DRIVES_IDENTITY): "
+                         f"got pki {pki!r}, identity {identity!r}")
+    return pki, identity
+
+
+def identity_text(args: argparse.Namespace) -> str:
+    """Who drivectl acted as, for its reports."""
+    pki, identity = security_of(args)
+    return f"{identity} (tls, {pki})" if identity else "anonymous (insecure)"
+
+
 @contextmanager
 def open_fleet(args: argparse.Namespace) -> Iterator[Fleet]:
     """The Fleet of the global options, with at least one agent alive (else NoAgentError, exit 3)."""
     connect = args.connect or list(DEFAULT_CONNECT)
+    pki, identity = security_of(args)
     with Fleet(connect=connect, name=args.name, mode=args.mode, groups=local_groups(args.group),
-               discovery_timeout_s=args.discovery) as fleet:
+               discovery_timeout_s=args.discovery, pki=pki, identity=identity) as fleet:
         if not fleet.hosts():
             # Agents may be reachable an instant after the router: wait for the discovery window.
             fleet.wait_for_agents(1, timeout_s=args.discovery)
@@ -164,11 +186,13 @@ def open_fleet(args: argparse.Namespace) -> Iterator[Fleet]:
 def emit_report(args: argparse.Namespace, console: Console, report: Report | CommandResult) -> int:
     """Print a result (table or JSON) and return its exit code."""
     if isinstance(report, Report) and not report.final and not report.ok and not args.json:
-        console.print(f"{report.action} FAILED: {report.reason}", style="bold red")
+        console.print(f"{report.action} FAILED: {report.reason} (as {identity_text(args)})", style="bold red")
         return EXIT_FAILED
     if args.json:
-        print(json.dumps(report.to_dict(), indent=1))
+        print(json.dumps({**report.to_dict(), "identity": security_of(args)[1]}, indent=1))
     else:
         from ..watch import print_report
         print_report(console, report)
+        if not report.ok:
+            console.print(f"as {identity_text(args)}", style="dim")
     return EXIT_OK if report.ok else EXIT_FAILED

@@ -130,8 +130,12 @@ class MultiHostRun:
     """The whole stack on a bed of ``hosts`` host namespaces plus a ``sup`` namespace."""
 
     def __init__(self, hosts: int = 2, drives: int = 3, groups: dict[str, list[str]] | None = None,
-                 prefix: str | None = None) -> None:
+                 prefix: str | None = None, pki: str | None = None) -> None:
         self.prefix = prefix or f"zm{os.getpid() % 100000}"
+        #: A drives-pki directory holding router certificates ``r-<host>`` (SAN: the host's
+        #: address) and agent certificates ``<host>``: every link TLS, every router with the ACL.
+        #: None: the plain bed (routers --insecure: they listen on the bed's addresses).
+        self.pki = pki
         self.drives = drives
         self.groups = groups or {}
         self.bed: MultiHostBed = multihost_plan(self.prefix, hosts, extra=("sup",))
@@ -147,7 +151,11 @@ class MultiHostRun:
         return [h.name for h in self.bed.hosts if h.ecat_master]
 
     def router_endpoint(self, host: str) -> str:
-        return f"tcp/{self.bed.host(host).address}:{ROUTER_PORT}"
+        return f"{'tls' if self.pki else 'tcp'}/{self.bed.host(host).address}:{ROUTER_PORT}"
+
+    def security(self, identity: str) -> list[str]:
+        """Command-line options of a process of ``identity`` (none on the plain bed)."""
+        return ["--pki", self.pki, "--identity", identity] if self.pki else []
 
     def spawn(self, cls: type, name: str, host: str, argv: Sequence[str], **kw: Any) -> Any:
         proc = cls(name, self.bed.host(host).exec_argv(*argv), **kw)
@@ -168,7 +176,8 @@ class MultiHostRun:
             for other in hosts[:hosts.index(h)]:
                 connect += ["--connect", self.router_endpoint(other)]
             self.routers[h] = self.spawn(Proc, f"router {h}", h, [
-                py, "-m", "bus_agent.router", "--listen", self.router_endpoint(h), *connect],
+                py, "-m", "bus_agent.router", "--listen", self.router_endpoint(h), *connect,
+                *(self.security(f"r-{h}") or ["--insecure"])],
                 ready_marker="drives-router ready")
         for h in hosts:
             self.sims[h].expect_ready(ready_timeout_s)
@@ -187,19 +196,23 @@ class MultiHostRun:
         cfg.write_text("\n".join(lines) + "\n")
         return self.spawn(Proc, f"bus-agent {host}", host, [
             sys.executable, "-m", "bus_agent.cli", "--config", str(cfg), "--ifname", hb.ecat_master or "",
-            "--host", host, "--connect", self.router_endpoint(host), "--log-level", "WARNING"],
+            "--host", host, "--connect", self.router_endpoint(host), "--log-level", "WARNING", *self.security(host)],
             ready_marker="bus-agent ready")
 
     def start_supervisor(self, ns: str, connect_host: str, name: str, ready_timeout_s: float = 20.0) -> SupervisorProc:
+        """A Fleet named ``name`` (on a secure bed: authenticated as principal ``name``)."""
         sup = self.spawn(SupervisorProc, f"supervisor {name}", ns, [
             sys.executable, str(Path(__file__).resolve()), "supervisor",
-            "--connect", self.router_endpoint(connect_host), "--name", name])
+            "--connect", self.router_endpoint(connect_host), "--name", name, *self.security(name)])
         sup.expect_ready(ready_timeout_s)
         return sup
 
-    def drivectl(self, ns: str, connect_host: str, *args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess:
+    def drivectl(self, ns: str, connect_host: str, *args: str, timeout_s: float = 30.0,
+                 identity: str | None = None) -> subprocess.CompletedProcess:
+        """``drivectl`` in namespace ``ns`` (on a secure bed as ``identity``)."""
         argv = self.bed.host(ns).exec_argv(sys.executable, "-m", "supervisor.cli", "--connect",
-                                           self.router_endpoint(connect_host), *args)
+                                           self.router_endpoint(connect_host),
+                                           *(self.security(identity) if identity else []), *args)
         return subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT, env=_env())
 
     def link(self, host: str, up: bool) -> None:
@@ -238,6 +251,8 @@ def _supervisor_main(argv: Sequence[str]) -> int:
     p = argparse.ArgumentParser(prog="multihost.py supervisor")
     p.add_argument("--connect", action="append", required=True)
     p.add_argument("--name", required=True)
+    p.add_argument("--pki")
+    p.add_argument("--identity")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     out_lock = threading.Lock()
@@ -247,7 +262,8 @@ def _supervisor_main(argv: Sequence[str]) -> int:
             print(json.dumps(msg), flush=True)
 
     signal.signal(signal.SIGTERM, lambda *_: sys.stdin.close())
-    with Fleet(connect=args.connect, name=args.name, mode="client", connect_timeout_s=10.0) as fleet:
+    with Fleet(connect=args.connect, name=args.name, mode="client", connect_timeout_s=10.0, pki=args.pki,
+               identity=args.identity) as fleet:
         fleet.on("arrival", lambda host: emit({"event": "arrival", "host": host, "t": time.monotonic()}))
         fleet.on("departure", lambda host: emit({"event": "departure", "host": host, "t": time.monotonic()}))
         print("supervisor ready", flush=True)

@@ -196,7 +196,8 @@ def test_drives_router_relays_between_clients_and_stops_cleanly_on_sigterm(tmp_p
 @pytest.mark.parametrize("argv, code, match", [
     (["--listen", "nonsense"], 2, "not a zenoh locator"),
     (["--config", "/nonexistent/router.json5"], 2, "router config"),
-    (["--listen", "tcp/192.0.2.254:7447"], 3, "cannot open"),  # TEST-NET address: not on this host
+    (["--insecure", "--listen", "tcp/192.0.2.254:7447"], 3, "cannot open"),  # TEST-NET address: not on this host
+    (["--listen", "tcp/192.0.2.254:7447"], 2, "--insecure"),  # off loopback without --pki: refused first
 ])
 def test_drives_router_bad_input_is_a_clear_error(argv, code, match):
     proc = subprocess.run([sys.executable, "-m", "bus_agent.router", *argv], capture_output=True, text=True,

@@ -1,0 +1,99 @@
+"""``drives-pki``: the drive network's certificate authority in three commands.
+
+    drives-pki init DIR                                  # DIR/ca.pem, DIR/ca.key (0600), principals.toml
+    drives-pki issue DIR NAME --role ROLE [--role ROLE] [--days N] [--san NAME|IP]... [--replace]
+    drives-pki list DIR [--json]
+    drives-pki remove DIR NAME
+
+Roles: router, agent (NAME = its host name), operator, maintenance, viewer, testbed (see
+``bus_agent.security.roles.ROLES``). Certificates hold ``localhost`` and ``127.0.0.1`` as
+subjectAltNames; ``--san`` adds the names and addresses clients dial (a router's). Routers
+compile their ACL from DIR/principals.toml at start: restart them after issue or remove.
+
+Exit codes: 0 done; 2 bad arguments or a refused operation (nothing written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any, Sequence
+
+from bus_agent.security import pki
+from bus_agent.security.principals import PrincipalsError
+from bus_agent.security.roles import ROLES, allowed_ops
+
+EXIT_OK, EXIT_USAGE = 0, 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="drives-pki", description="Certificates and roles for a secure drive network "
+                                "(mutual TLS, ACL compiled from roles).")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    i = sub.add_parser("init", help="create the CA in DIR")
+    i.add_argument("dir", metavar="DIR")
+    i.add_argument("--days", type=int, default=pki.DEFAULT_CA_DAYS, help="CA validity (default %(default)s)")
+    i.add_argument("--name", default="zenoh-drives CA", help="the CA's common name")
+    s = sub.add_parser("issue", help="issue NAME's certificate and key, recorded in DIR/principals.toml")
+    s.add_argument("dir", metavar="DIR")
+    s.add_argument("name", metavar="NAME", help="principal: the certificate's CN (an agent's host name)")
+    s.add_argument("--role", action="append", required=True, choices=sorted(ROLES),
+                   help="role (repeatable): " + "; ".join(f"{k}: {v}" for k, v in ROLES.items()))
+    s.add_argument("--days", type=int, default=pki.DEFAULT_DAYS, help="validity (default %(default)s)")
+    s.add_argument("--san", action="append", default=[], metavar="NAME|IP",
+                   help="a name or address clients dial, added to localhost and 127.0.0.1 (repeatable)")
+    s.add_argument("--replace", action="store_true", help="re-issue an existing principal (new key)")
+    ls = sub.add_parser("list", help="the principals of DIR")
+    ls.add_argument("dir", metavar="DIR")
+    ls.add_argument("--json", action="store_true")
+    r = sub.add_parser("remove", help="drop NAME from principals.toml and delete its files")
+    r.add_argument("dir", metavar="DIR")
+    r.add_argument("name", metavar="NAME")
+    return p
+
+
+def _list(d: str, as_json: bool) -> int:
+    infos = pki.inspect(d)
+    rows: list[dict[str, Any]] = [{"name": c.principal.name, "roles": list(c.principal.roles),
+             "ops": list(allowed_ops(c.principal.roles)),
+             "not_after": c.not_after.strftime("%Y-%m-%dT%H:%M:%SZ") if c.not_after else None,
+             "expired": c.expired, "cert": c.cert_present,
+             "key_mode": None if c.key_mode is None else f"{c.key_mode:o}", "sans": list(c.principal.sans)}
+            for c in infos]
+    if as_json:
+        print(json.dumps(rows, indent=1))
+        return EXIT_OK
+    print(f"{'name':<20} {'roles':<22} {'not after':<21} {'key':<5} sans")
+    for row in rows:
+        status = "EXPIRED" if row["expired"] else (row["not_after"] or "no certificate")
+        print(f"{row['name']:<20} {','.join(row['roles']):<22} {status:<21} {row['key_mode'] or '-':<5} "
+              f"{','.join(row['sans'])}")
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.cmd == "init":
+            path = pki.init(args.dir, name=args.name, days=args.days)
+            print(f"drives-pki: CA created: {path} (key {args.dir}/{pki.CA_KEY}, mode 600: keep it off the "
+                  "plant network)")
+        elif args.cmd == "issue":
+            p = pki.issue(args.dir, args.name, args.role, days=args.days, sans=args.san, replace=args.replace)
+            files = pki.paths(args.dir, p.name)
+            print(f"drives-pki: issued {p.name} ({', '.join(p.roles)}) until {p.not_after}: {files.cert}, {files.key}; "
+                  f"sans {', '.join(p.sans)}. Restart the routers to load the new principals.toml.")
+        elif args.cmd == "list":
+            return _list(args.dir, args.json)
+        elif args.cmd == "remove":
+            pki.remove(args.dir, args.name)
+            print(f"drives-pki: removed {args.name}. Copy principals.toml to the routers and restart them.")
+    except (pki.PkiError, PrincipalsError, OSError) as exc:
+        print(f"drives-pki: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

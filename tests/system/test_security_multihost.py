@@ -1,0 +1,101 @@
+"""The secure fleet's positive path across two routers on two namespaced hosts (root).
+
+Bed (``tests/system/multihost.py`` with ``pki``): hosts h1 and h2 as network namespaces, each
+with ``ecat-sim`` (real EtherCAT frames over a veth pair), ``drives-router --pki`` (certificate
+``r-<host>`` naming the host's address; h2's router dials h1's over mutual TLS) and ``bus-agent
+--pki`` (certificate ``<host>``); principals alice (operator), mia (maintenance), vic (viewer) on
+a station namespace ``sup``. alice commands through h1's router, vic watches through h2's: every
+command and status crosses both routers and both ACLs. Drive states are read on the drive side.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+from bus_agent.security import pki
+from bus_agent.sim.child import wait_for
+from tests.conftest import require, require_root
+from tests.system.multihost import MultiHostRun, SupervisorProc
+
+pytestmark = [pytest.mark.timeout(180), pytest.mark.root, pytest.mark.slow]
+
+DRIVES = 2
+ENABLED = "operation_enabled"
+
+
+@pytest.fixture(scope="module")
+def run() -> Iterator[MultiHostRun]:
+    require_root()
+    require(shutil.which("ip") is not None, "iproute2 (`ip`)", "install iproute2")
+    d = Path(tempfile.mkdtemp(prefix="secure-pki-"))
+    # Its own namespace names (zs<pid>), apart from the plain bed's (zm<pid>).
+    bed = MultiHostRun(hosts=2, drives=DRIVES, prefix=f"zs{os.getpid() % 100000}", pki=str(d))
+    try:
+        pki.init(d)
+        for h in bed.host_names:
+            pki.issue(d, f"r-{h}", ["router"], sans=[bed.bed.host(h).address])
+            pki.issue(d, h, ["agent"])
+        for name, role in (("alice", "operator"), ("mia", "maintenance"), ("vic", "viewer")):
+            pki.issue(d, name, [role])
+        bed.start()
+        yield bed
+    except BaseException:
+        print(bed.diagnostics())
+        raise
+    finally:
+        bed.close()
+        shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def vic(run: MultiHostRun) -> SupervisorProc:
+    return run.start_supervisor("sup", "h2", "vic")
+
+
+def _drivectl(run: MultiHostRun, identity: str, *args: str, via: str = "h1") -> tuple[int, str]:
+    proc = run.drivectl("sup", via, "--json", *args, identity=identity)
+    return proc.returncode, proc.stdout + proc.stderr
+
+
+def test_operator_enables_maintenance_resets_viewer_watches_across_two_routers(run: MultiHostRun,
+                                                                                vic: SupervisorProc) -> None:
+    got = vic.call("wait_agents", hosts=["h1", "h2"], drives=2 * DRIVES, timeout_s=20.0)
+    assert got["ok"], got
+    every = [f"{h}/axis{i}" for h in ("h1", "h2") for i in range(DRIVES)]
+
+    # The viewer may not: denied at once, naming its identity; nothing moves.
+    code, out = _drivectl(run, "vic", "enable", "*/*", via="h2")
+    assert code == 1 and '"denied"' in out and "'vic'" in out, out
+    assert all(ENABLED not in run.controls[h].drive_states() for h in ("h1", "h2"))
+
+    # The operator enables every drive on both hosts through h1's router.
+    code, out = _drivectl(run, "alice", "enable", "*/*")
+    assert code == 0, out
+    assert json.loads(out)["identity"] == "alice"
+    for h in ("h1", "h2"):
+        wait_for(lambda: run.controls[h].drive_states() == [ENABLED] * DRIVES, 3.0, f"{h}'s drives enabled")
+    # ...and the viewer, behind h2's router, watches it happen.
+    wait_for(lambda: all(v["state"] == ENABLED for k, v in vic.call("drives").items() if k in every), 3.0,
+             "the viewer seeing every drive enabled")
+
+    # A fault on h2/axis0; the operator may not reset it, maintenance (through h1's router) does.
+    assert run.controls["h2"].request("fault", slave=0, error_code=0x7500)["ok"]
+    wait_for(lambda: vic.call("drives")["h2/axis0"]["state"] == "fault", 3.0, "the viewer seeing the fault")
+    code, out = _drivectl(run, "alice", "fault-reset", "h2/axis0")
+    assert code == 1 and '"denied"' in out, out
+    assert run.controls["h2"].drive_states()[0] == "fault"
+    code, out = _drivectl(run, "mia", "fault-reset", "h2/axis0")
+    assert code == 0, out
+    wait_for(lambda: run.controls["h2"].drive_states()[0] == "switch_on_disabled", 3.0, "h2/axis0 reset")
+    wait_for(lambda: vic.call("drives")["h2/axis0"]["state"] == "switch_on_disabled", 3.0,
+             "the viewer seeing the reset")
+    # The other drives kept running.
+    assert run.controls["h1"].drive_states() == [ENABLED] * DRIVES
+    assert run.controls["h2"].drive_states()[1:] == [ENABLED] * (DRIVES - 1)
