@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import sys
@@ -18,7 +19,9 @@ def test_pyflakes_clean():
 
 
 def test_mypy_clean():
-    cache = Path(tempfile.gettempdir()) / f"zenoh-drives-mypy-{os.getuid()}"  # outside the tree, per user
+    # outside the tree, per user and per checkout: two checkouts sharing one cache corrupt it
+    tree = hashlib.sha1(str(ROOT).encode()).hexdigest()[:10]
+    cache = Path(tempfile.gettempdir()) / f"zenoh-drives-mypy-{os.getuid()}-{tree}"
     done = subprocess.run([sys.executable, "-m", "mypy", "--no-error-summary", "--cache-dir", str(cache)],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
