@@ -231,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="simulated slaves' SM watchdog (default 5 s: a starved 2-core box must not drop slaves)")
     p.add_argument("--gets", type=int, default=200, help="bare get round trips to time (default 200)")
     p.add_argument("--no-fanin", action="store_true", help="skip the status fan-in watcher")
-    p.add_argument("--output", default=str(RESULTS))
+    p.add_argument("--out", "--output", dest="output", default=str(RESULTS), help="JSON file")
     args = p.parse_args(argv)
     sizes = []
     for s in args.sizes.split(","):

@@ -170,6 +170,7 @@ class Agent:
             cycle_us=cfg.cycle_us, groups={g: tuple(ms) for g, ms in cfg.groups.items()},
             lease_reaction={d.axis: d.policy.lease_reaction for d in drives},
             lease_ttl_s={d.axis: d.policy.lease_ttl_s for d in drives},
+            has_connect=bool(cfg.zenoh.connect),
             secure=bool(cfg.zenoh.pki),
         )
 

@@ -85,6 +85,7 @@ class CycleEvent:
     to_state: str = "unknown"
     error_code: int = 0
     request_id: str = ""
+    requester: str = ""  # who sent the command (kind "command")
 
 
 @dataclass(frozen=True)

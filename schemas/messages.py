@@ -67,7 +67,8 @@ NMT_COMMANDS = ("start", "stop", "preop", "reset_comm", "reset_node")
 #: Terminal outcomes of a command, one per addressed drive.
 OUTCOMES = ("done", "failed", "timeout", "rejected", "busy")
 #: Event kinds.
-EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning")
+EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning",
+               "command", "conflict")
 #: EtherCAT AL states by name (register 0x0130 low nibble).
 AL_STATES = ("init", "preop", "boot", "safeop", "op", "none")
 AGENT_STATES = ("starting", "running", "stopping", "stopped", "error")
@@ -179,6 +180,8 @@ class AgentStatus:
     al_states: dict = _f({}, keys=NAME, values=AL_STATE, doc="axis -> AL state name")
     leases: dict = _f({}, keys=NAME, values=NAME, doc="axis -> lease holder, for leased axes")
     groups: dict = _f({}, keys=NAME, values=Meta(list, {"items": MEMBER}), doc="group name -> list of member keys 'host/axis'")
+    instance: str = _f("", max_len=64, doc="this agent process' random id, new at every start: two ids under one host name are a conflict")
+    conflict: str = _f("", max_len=400, doc="another agent publishes under this host name ('' if none): commands are refused by supervisors")
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,7 @@ class Event:
     to_state: str = _f("unknown", choices=DRIVE_STATES, doc="CiA 402 state after (transition)")
     error_code: int = _f(0, range=U16, doc="0x603F error code (fault), 0 = none")
     request_id: str = _f("", max_len=128, doc="request the event belongs to ('' if none)")
+    requester: str = _f("", max_len=128, doc="who sent the command (kind command; '' = anonymous)")
 
 
 @dataclass(frozen=True)

@@ -44,8 +44,9 @@ from schemas.messages import (
     encode,
 )
 
+from .fleetfile import ExpectedFleet, load as load_fleet
 from .orchestration import ordered_shutdown, two_phase_enable
-from .results import CommandResult, DriveResult, aggregate
+from .results import CommandResult, DriveResult, Report, aggregate, single
 from .selectors import (
     DriveRef,
     QueryPlan,
@@ -54,6 +55,7 @@ from .selectors import (
     parse_selector,
     plan_queries,
     resolve,
+    unknown_selector_problems,
 )
 
 log = logging.getLogger(__name__)
@@ -63,6 +65,9 @@ DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 REPLY_MARGIN_S = 1.0
 DEFAULT_TIMEOUT_S = 5.0
 DEFAULT_LEASE_TTL_S = 3.0
+#: Two agent instances seen under one host name within this window are a conflict (agents
+#: publish their status every second).
+CONFLICT_HOLD_S = 3.5
 #: Depth of the status subscriber's FIFO (samples): a few status bursts of a 1024-drive fleet.
 STATUS_FIFO = 65536
 
@@ -169,6 +174,7 @@ class Fleet:
         connect_timeout_s: float = 2.0,
         discovery_timeout_s: float = 1.0,
         lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
+        expected: "ExpectedFleet | str | os.PathLike[str] | Mapping[str, Any] | None" = None,
         pki: str | os.PathLike[str] | None = None,
         identity: str | None = None,
     ) -> None:
@@ -183,6 +189,10 @@ class Fleet:
         self.pki = None if pki is None else str(pki)
         self.identity = identity
         self.name = keys.validate_name(name or default_name(), "supervisor name")
+        #: The expected fleet (``supervisor.fleetfile``): absent drives are selectable, listed as
+        #: offline and reported ``missing``; hosts outside it are flagged. None: only what is seen.
+        self.expected: ExpectedFleet | None = (expected if expected is None or isinstance(expected, ExpectedFleet)
+                                               else load_fleet(expected))
         self.mode = mode
         self.connect = tuple(connect)
         self.listen = tuple(listen)
@@ -194,6 +204,8 @@ class Fleet:
         self._agents: dict[str, AgentInfo] = {}
         self._drives: dict[DriveRef, DriveStatus] = {}
         self._missed: dict[DriveRef, int] = {}
+        # host -> agent instance id -> (last seen monotonic, the agent's own conflict text)
+        self._instances: dict[str, dict[str, tuple[float, str]]] = {}
         self._status_count = 0
         self._supervisors: set[str] = set()
         self._listeners: dict[str, list[Listener]] = {}
@@ -375,6 +387,7 @@ class Fleet:
                     self._missed.pop(ref, None)
             elif not alive and was:
                 info.gone_monotonic = now
+                self._instances.pop(host, None)  # a restarted agent is not a second one
             self._lock.notify_all()
         if alive and not was:
             log.info("agent %s arrived", host)
@@ -436,6 +449,8 @@ class Fleet:
             log.warning("supervisor %s: bad agent status on %s: %s", self.name, sample.key_expr, exc)
             return
         with self._lock:
+            if st.instance:
+                self._instances.setdefault(st.host, {})[st.instance] = (time.monotonic(), st.conflict)
             info = self._agents.get(st.host)
             if info is None:
                 # Status before the liveliness token: known, not yet counted alive.
@@ -499,9 +514,45 @@ class Fleet:
                     refs.update(DriveRef(h, ax) for ax in st.axes)
             return sorted(refs)
 
+    def conflicts(self) -> dict[str, str]:
+        """Hosts whose name two agents use (two instance ids within :data:`CONFLICT_HOLD_S`, or an
+        agent saying so), with what is known. Commands to them are refused (``rejected``)."""
+        now = time.monotonic()
+        out: dict[str, str] = {}
+        with self._lock:
+            for host, seen in self._instances.items():
+                recent = {i: c for i, (t, c) in seen.items() if now - t < CONFLICT_HOLD_S}
+                said = [c for c in recent.values() if c]
+                if len(recent) > 1:
+                    out[host] = (f"host name {host} is used by {len(recent)} agents (instances "
+                                 f"{', '.join(sorted(recent))}): not commanded until one stops")
+                elif said:
+                    out[host] = said[0]
+        return out
+
+    def expected_drives(self) -> list[DriveRef]:
+        """Drives of the expected fleet ([] without one)."""
+        return [DriveRef(h, a) for h, a in self.expected.refs()] if self.expected else []
+
+    def known_drives(self) -> list[DriveRef]:
+        """What selectors resolve against: the live roster plus the expected fleet."""
+        return sorted(set(self.roster()) | set(self.expected_drives()))
+
+    def absent(self) -> list[DriveRef]:
+        """Expected drives that no live agent reports (their agent is offline, or lacks them)."""
+        present = set(self.roster())
+        return [r for r in self.expected_drives() if r not in present]
+
+    def unexpected_hosts(self) -> list[str]:
+        """Live hosts the expected fleet does not list ([] without an expected fleet)."""
+        if self.expected is None:
+            return []
+        return [h for h in self.hosts() if not self.expected.expects(h)]
+
     def groups(self) -> dict[str, list[str]]:
-        """Named groups: the agents' (AgentStatus.groups) merged, then the local table on top."""
-        out: dict[str, list[str]] = {}
+        """Named groups: the expected fleet's, the agents' (AgentStatus.groups) merged, then the
+        local table on top."""
+        out: dict[str, list[str]] = {g: list(ms) for g, ms in (self.expected.groups if self.expected else {}).items()}
         with self._lock:
             for a in self._agents.values():
                 if a.alive and a.status is not None:
@@ -534,13 +585,21 @@ class Fleet:
 
     # ---- selection -----------------------------------------------------------------------
 
+    def check_known(self, *selectors: str) -> None:
+        """Raise :class:`SelectorError` with "did you mean" hints when a selector names a drive
+        that is neither live nor expected (a concrete name :meth:`select` would address and
+        report ``missing``). For front ends that want a typo to be an error (drivectl)."""
+        problems = unknown_selector_problems(selectors, self.known_drives(), self.groups())
+        if problems:
+            raise SelectorError("; ".join(problems))
+
     def select(self, *selectors: str, allow_empty: bool = False) -> Selection:
-        """Resolve selectors against the live roster; raise :class:`SelectorError` (nothing sent)."""
+        """Resolve selectors against the live roster and the expected fleet; raise
+        :class:`SelectorError` (nothing sent)."""
         if len(selectors) == 1 and not isinstance(selectors[0], str):
             selectors = tuple(selectors[0])  # a list passed as one argument
         parsed = [parse_selector(s) for s in selectors]
-        roster = self.roster()
-        drives = resolve(parsed, roster, self.groups(), allow_empty=allow_empty)
+        drives = resolve(parsed, self.known_drives(), self.groups(), allow_empty=allow_empty)
         return Selection(tuple(s.text for s in parsed), tuple(drives),
                          plan_queries(parsed, drives, self.host_axes()))
 
@@ -654,9 +713,20 @@ class Fleet:
         fan-out query per planned key expression, one result per selected drive."""
         sel = self._as_selection(target)
         req = CommandRequest(self._request_id(op), op, dict(args or {}), float(timeout_s), self.name)
+        conflicts = self.conflicts()
+        refused = [DriveResult(r.host, r.axis, "rejected", error=f"not sent: {conflicts[r.host]}")
+                   for r in sel.drives if r.host in conflicts]
+        if refused:
+            log.error("supervisor %s: %s not sent to %s: host name conflict", self.name, op,
+                      ", ".join(sorted({r.host for r in refused})))
+            sel = self.selection_of([r for r in sel.drives if r.host not in conflicts])
         if not sel.drives:
-            return CommandResult(op, req.request_id, ())
-        return self._query(sel.plan.keyexprs(op, self.identity), req, sel.drives, timeout_s + REPLY_MARGIN_S)
+            return CommandResult(op, req.request_id, tuple(refused))
+        res = self._query(sel.plan.keyexprs(op, self.identity), req, sel.drives, timeout_s + REPLY_MARGIN_S)
+        if refused:
+            res = dataclasses.replace(res, results=tuple(sorted((*res.results, *refused),
+                                                                key=lambda r: (r.host, r.axis))))
+        return res
 
     def enable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S,
                stages: Sequence[Sequence[str]] | None = None,
@@ -665,9 +735,24 @@ class Fleet:
         return two_phase_enable(self, selectors or ("**",), timeout_s=timeout_s, stages=stages,
                                 before_phase=before_phase)
 
-    def shutdown(self, stages: Sequence[Sequence[str] | str], *, op: str = "disable", timeout_s: float = DEFAULT_TIMEOUT_S):
-        """Ordered shutdown, last stage first (see :func:`supervisor.orchestration.ordered_shutdown`)."""
+    def take_down(self, stages: Sequence[Sequence[str] | str], *, op: str = "disable",
+                  timeout_s: float = DEFAULT_TIMEOUT_S) -> Report:
+        """Ordered take-down, last stage first, each stage with ``op`` (default ``disable``: to
+        Switch on disabled). See :func:`supervisor.orchestration.ordered_shutdown`."""
         return ordered_shutdown(self, stages, op=op, timeout_s=timeout_s)
+
+    def shutdown(self, *selectors: str, stages: Sequence[Sequence[str] | str] | None = None,
+                 timeout_s: float = DEFAULT_TIMEOUT_S) -> Report:
+        """The CiA 402 Shutdown command (transitions 2, 6, 8: to Ready to switch on), as ``drivectl
+        shutdown``: to the selected drives, or stage by stage, last stage first. For the take-down
+        to Switch on disabled use :meth:`disable` or :meth:`take_down`."""
+        if any(not isinstance(s, str) for s in selectors):
+            raise TypeError("Fleet.shutdown(*selectors, stages=...) sends the CiA 402 shutdown (to Ready to "
+                            "switch on); for the ordered take-down to Switch on disabled use "
+                            "Fleet.take_down(stages)")
+        if stages:
+            return ordered_shutdown(self, stages, op="shutdown", timeout_s=timeout_s)
+        return single("shutdown", self.command("shutdown", selectors or "**", timeout_s=timeout_s))
 
     def switch_on(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
         return self.command("switch_on", selectors or "**", timeout_s=timeout_s)
@@ -701,7 +786,8 @@ class Fleet:
         One result per agent (``axis`` '')."""
         if command not in NMT_COMMANDS:
             raise ValueError(f"nmt command {command!r} is not one of {', '.join(NMT_COMMANDS)}")
-        live = self.hosts()
+        conflicts = self.conflicts()
+        live = [h for h in self.hosts() if h not in conflicts]
         addressed: set[str] = set()
         keyexprs: list[str] = []
         for h in hosts:
@@ -710,6 +796,8 @@ class Fleet:
                 raise SelectorError(f"host selector {h!r} may not contain '/'")
             matched = [x for x in live if sel.matches(DriveRef(x, "x"))]
             if not sel.has_wildcards:
+                if h in conflicts:
+                    raise SelectorError(f"host {h}: {conflicts[h]}")
                 matched = [h]
             if not matched:
                 raise SelectorError(f"host selector {h!r} matches no live agent")

@@ -15,7 +15,9 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 
-from .results import CommandResult, Report, final_results
+from schemas.error_codes import describe
+
+from .results import MISSING, CommandResult, DriveResult, Report, final_results
 from .selectors import DriveRef, SelectorError
 
 
@@ -33,6 +35,7 @@ class Fleet(Protocol):
     def select(self, *selectors: str, allow_empty: bool = False) -> Any: ...
     def selection_of(self, refs: Iterable[DriveRef]) -> Any: ...
     def roster(self) -> list[DriveRef]: ...
+    def conflicts(self) -> Mapping[str, str]: ...
     def hosts(self) -> list[str]: ...
     def drives(self) -> Mapping[DriveRef, Any]: ...
     def fetch_status(self, target: Any, timeout_s: float = 2.0) -> Mapping[DriveRef, Any]: ...
@@ -54,7 +57,7 @@ def _describe(results: Sequence) -> str:
         if r.state and r.state != "unknown":
             bits.append(f"in {r.state}")
         if r.error_code:
-            bits.append(f"error 0x{r.error_code:04X}")
+            bits.append(f"error 0x{r.error_code:04X} {describe(r.error_code)}")
         if r.error:
             bits.append(r.error)
         if r.lease_holder and r.outcome == "busy":
@@ -72,6 +75,28 @@ def _stage_selections(fleet: "Fleet", stages: Sequence[Sequence[str] | str]) -> 
         own = [d for d in sel.drives if d not in seen]
         seen.update(own)
         out.append(sel if len(own) == len(sel.drives) else fleet.selection_of(own))
+    return out
+
+
+def enable_blockers(selected: Sequence[DriveRef], roster: Iterable[DriveRef],
+                    statuses: Mapping[DriveRef, Any], conflicts: Mapping[str, str] | None = None) -> list[DriveResult]:
+    """The selected drives that stop an enable before anything is sent, each as a result:
+    ``missing`` (not present: agent gone or unknown drive) or ``rejected`` (in Fault, in Fault
+    reaction active, or lost: faults are never reset implicitly; or its host name is used by two
+    agents)."""
+    present = set(roster)
+    conflicts = conflicts or {}
+    out = []
+    for ref in selected:
+        st = statuses.get(ref)
+        if ref.host in conflicts:
+            out.append(DriveResult(ref.host, ref.axis, "rejected", error=f"not enabling: {conflicts[ref.host]}"))
+        elif ref not in present:
+            out.append(DriveResult(ref.host, ref.axis, MISSING, error="not present (agent gone or unknown drive)"))
+        elif st is not None and (st.state in _BLOCKING_STATES or st.lost):
+            why = "slave lost" if st.lost else f"in {st.state}: fault_reset first (never implicit)"
+            out.append(DriveResult(ref.host, ref.axis, "rejected", st.state, st.error_code,
+                                   f"not enabling: {why}"))
     return out
 
 
@@ -101,19 +126,12 @@ def two_phase_enable(fleet: "Fleet", selectors: Sequence[str], *, timeout_s: flo
     # been dropped), and skipping phase 1 for a drive wrongly believed enabled would enable it
     # straight from Switch on disabled.
     statuses = {**fleet.drives(), **fleet.fetch_status(everything)}
-    blockers = []
-    for ref in everything.drives:
-        st = statuses.get(ref)
-        if ref not in roster:
-            blockers.append(f"{ref}: not present (agent gone or unknown drive)")
-        elif st is not None and (st.state in _BLOCKING_STATES or st.lost):
-            what = "lost" if st.lost else st.state
-            code = f" error 0x{st.error_code:04X} {st.error_text}".rstrip() if st.error_code else ""
-            blockers.append(f"{ref}: {what}{code}")
+    blockers = enable_blockers(everything.drives, roster, statuses, fleet.conflicts())
     if blockers:
-        reason = "not enabling, nothing sent: " + "; ".join(blockers)
+        reason = "not enabling, nothing sent: " + _describe(blockers)
         log.warning("enable: %s", reason)
-        return Report("enable", False, (), reason, ())
+        # The blocking drives are the failures: a caller looping over report.failures sees them.
+        return Report("enable", False, (), reason, tuple(blockers))
 
     before = {ref: (statuses[ref].state if ref in statuses else "unknown") for ref in everything.drives}
     # A drive whose state is unknown gets phase 1 too: switch_on never enables.
@@ -184,4 +202,4 @@ def ordered_shutdown(fleet: "Fleet", stages: Sequence[Sequence[str] | str], *, o
     final = final_results(steps)
     failures = [r for r in final if not r.ok]
     reason = f"{op} failed: " + _describe(failures) if failures else ""
-    return Report("shutdown", not failures, tuple(steps), reason, final)
+    return Report(op, not failures, tuple(steps), reason, final)

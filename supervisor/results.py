@@ -129,7 +129,7 @@ def aggregate(
             results.append(DriveResult.from_reply(reply))
             continue
         if ref.host in gone:
-            why = f"no reply: agent {ref.host} is gone"
+            why = f"no reply: agent {ref.host} is gone or offline"
         elif denied_reason:
             results.append(DriveResult(ref.host, ref.axis, DENIED, error=denied_reason, elapsed_s=elapsed_s))
             continue

@@ -19,6 +19,7 @@ expression can say "these and no others").
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass
 from typing import Iterable, Mapping, Sequence
 
@@ -201,3 +202,52 @@ def plan_queries(
             else:
                 pairs.extend((host, a) for a in axes)
     return QueryPlan(tuple(pairs))
+
+
+def _close(word: str, candidates: Iterable[str], n: int = 3) -> list[str]:
+    return difflib.get_close_matches(word, sorted(set(candidates)), n=n, cutoff=0.6)
+
+
+def unknown_selector_problems(selectors: Iterable[str], universe: Iterable[DriveRef],
+                              groups: Mapping[str, Iterable[str]] | None = None) -> list[str]:
+    """Why each selector names no known drive, with "did you mean" hints (pure).
+
+    ``universe``: the drives that exist or are expected (live roster plus the expected fleet).
+    A concrete ``host/axis`` outside it, or a wildcard matching none of it, is a problem: a bare
+    axis name given as a host (``axis1`` -> ``*/axis1``), a misspelt name (closest names), an
+    unknown group. Returns one message per problem; empty when every selector is known.
+    """
+    universe = sorted(set(universe))
+    hosts = {r.host for r in universe}
+    axes = {r.axis for r in universe}
+    problems = []
+    for text in selectors:
+        sel = parse_selector(text)
+        if sel.group is not None:
+            if groups is not None and sel.group not in groups:
+                hint = _close(sel.group, groups)
+                problems.append(f"unknown group {sel.text!r}" + (f"; did you mean {', '.join('@' + g for g in hint)}?"
+                                                                 if hint else f" (known: {', '.join(sorted(groups)) or 'none'})"))
+            continue
+        if any(sel.matches(r) for r in universe):
+            continue
+        host, axis = sel.chunks
+        hints: list[str] = []
+        if "/" not in sel.text and axis == "*" and sel.text in axes:
+            hints.append(f"*/{sel.text}")  # an axis name given alone reads as a host name
+        if not any(c in host for c in "*?["):
+            if host in hosts:
+                on_host = sorted(r.axis for r in universe if r.host == host)
+                hints += [f"{host}/{a}" for a in _close(axis, on_host)]
+                what = f"{host} has no axis {axis!r} (its axes: {', '.join(on_host)})"
+            else:
+                hints += [f"{h}/{axis}" for h in _close(host, hosts)]
+                what = f"no host {host!r} (known: {', '.join(sorted(hosts)) or 'none'})"
+        else:
+            hints += [f"{host}/{a}" for a in _close(axis, axes)] if axis != "*" else []
+            what = "matches no known drive"
+        msg = f"selector {sel.text!r}: {what}"
+        if hints:
+            msg += f"; did you mean {', '.join(repr(h) for h in dict.fromkeys(hints))}?"
+        problems.append(msg)
+    return problems

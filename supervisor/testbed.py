@@ -63,10 +63,11 @@ def start_agent(host: str, n_drives: int, router: str, *, cycle_us: int = 1000,
     return start_agents([host], n_drives, router, cycle_us=cycle_us, ready_timeout_s=ready_timeout_s)
 
 
-def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: float = 60.0) -> Proc:
+def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: float = 60.0,
+                    log_level: str = "WARNING") -> Proc:
     """The real command line: ``python -m bus_agent.cli --sim N --host H --listen .. --connect ROUTER``."""
     argv = [sys.executable, "-m", "bus_agent.cli", "--sim", str(n_drives), "--host", host,
-            "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, "--log-level", "WARNING"]
+            "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, "--log-level", log_level]
     p = spawn(f"bus-agent {host}", argv, ready_marker="bus-agent ready")
     if not p.wait_ready(ready_timeout_s):
         out = p.output()

@@ -7,15 +7,18 @@ at most :data:`MAX_REDRAW_HZ` redraws per second. Nothing polls the agents.
 
 from __future__ import annotations
 
+import json
+import queue
 import threading
 import time
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from schemas.error_codes import describe
 from schemas.messages import DriveStatus
 
 from .fleet import Fleet
@@ -39,19 +42,28 @@ _MODE_ABBR = {1: "pp", 3: "pv", 4: "pt", 6: "hm", 7: "ip", 8: "csp", 9: "csv", 1
 
 
 def status_rows(fleet: Fleet, selectors: Sequence[str] = ()) -> list[dict[str, Any]]:
-    """One row per known drive (filtered by ``selectors``), with its agent's liveliness."""
+    """One row per known or expected drive (filtered by ``selectors``), with its agent's
+    liveliness: ``agent`` is ``up``, ``gone`` (seen, then left), ``offline`` (expected, never
+    seen by this Fleet) or ``conflict``; ``expected`` is False for a drive outside the expected
+    fleet (always True without one)."""
     parsed = [parse_selector(s) for s in selectors]
     groups = fleet.groups() if any(p.group for p in parsed) else {}
     alive = set(fleet.hosts())
+    seen = set(fleet.agents())
+    conflicts = fleet.conflicts()
+    exp = fleet.expected
     rows = []
     known = fleet.drives()
-    for ref in sorted(set(known) | set(fleet.roster())):
+    for ref in sorted(set(known) | set(fleet.roster()) | set(fleet.expected_drives())):
         if parsed and not any(
             (p.group and str(ref) in groups.get(p.group, ())) or (not p.group and p.matches(ref)) for p in parsed
         ):
             continue
         st = known.get(ref)
-        row: dict[str, Any] = {"host": ref.host, "axis": ref.axis, "agent_alive": ref.host in alive}
+        agent = ("conflict" if ref.host in conflicts else "up" if ref.host in alive
+                 else "gone" if ref.host in seen else "offline")
+        row: dict[str, Any] = {"host": ref.host, "axis": ref.axis, "agent_alive": ref.host in alive,
+                               "agent": agent, "expected": exp is None or exp.expects(ref.host, ref.axis)}
         if st is not None:
             row.update(
                 state=st.state, goal=st.goal, mode=st.mode_display, position=st.position,
@@ -60,33 +72,78 @@ def status_rows(fleet: Fleet, selectors: Sequence[str] = ()) -> list[dict[str, A
                 statusword=st.statusword, halt=st.halt,
             )
         else:
-            row.update(state="unknown")
+            row.update(state="offline" if ref.host not in alive else "unknown")
         rows.append(row)
     return rows
 
 
+_AGENT_STYLE = {"up": "green", "gone": "bold red", "offline": "bold red", "conflict": "bold red reverse"}
+
+
 def status_table(rows: Iterable[dict[str, Any]], title: str = "drives") -> Table:
-    """A table of status rows: host, axis, state, mode, position, error code and text, lease."""
+    """A table of status rows: host, axis, state, mode, position, error code and text, the
+    EtherCAT AL state when it is not OP (and ``lost``), lease, agent liveliness."""
     t = Table(title=title, expand=False)
-    for col in ("host", "axis", "state", "mode", "position", "error", "lease", "agent"):
+    for col in ("host", "axis", "state", "mode", "position", "error", "AL", "lease", "agent"):
         t.add_column(col, justify="right" if col == "position" else "left")
     for r in rows:
         state = r.get("state", "unknown")
-        if r.get("lost"):
-            state_text = Text("lost", style="bold red")
-        else:
-            state_text = Text(state, style=_STATE_STYLE.get(state, ""))
         mode = r.get("mode")
         code = r.get("error_code") or 0
         err = f"0x{code:04X} {r.get('error_text', '')}".strip() if code else r.get("error_text", "")
+        al = r.get("al_state", "op")
+        al_text = " ".join(x for x in ("" if al == "op" else al.upper(), "lost" if r.get("lost") else "") if x)
+        agent = r.get("agent", "up" if r["agent_alive"] else "gone")
+        if not r.get("expected", True):
+            agent += " unexpected"
         t.add_row(
-            r["host"], r["axis"], state_text,
+            r["host"], r["axis"], Text(state, style=_STATE_STYLE.get(state, "bold red")),
             "" if mode is None else _MODE_ABBR.get(mode, str(mode)),
             "" if r.get("position") is None else str(r["position"]),
             Text(err, style="red" if code else ""),
+            Text(al_text, style="bold red" if al_text else ""),
             r.get("lease_holder", "") or "",
-            Text("up", style="green") if r["agent_alive"] else Text("gone", style="bold red"),
+            Text(agent, style=_AGENT_STYLE.get(agent, "bold yellow")),
         )
+    return t
+
+
+def agent_rows(fleet: Fleet) -> dict[str, dict[str, Any]]:
+    """One JSON-ready entry per known or expected agent: liveliness, state, cycle figures."""
+    out: dict[str, dict[str, Any]] = {}
+    exp = fleet.expected
+    conflicts = fleet.conflicts()
+    infos = fleet.agents()
+    for h in sorted(set(infos) | set(exp.hosts if exp else ())):
+        a = infos.get(h)
+        st = a.status if a else None
+        out[h] = {"alive": bool(a and a.alive), "expected": exp is None or exp.expects(h),
+                  "conflict": conflicts.get(h, ""),
+                  "state": st.state if st else ("offline" if a is None else None),
+                  "backend": st.backend if st else None, "axes": list(st.axes) if st else None,
+                  "groups": dict(st.groups) if st else {}, "leases": dict(st.leases) if st else {},
+                  "cycle_us": st.cycle_us if st else None, "period_p99_us": st.period_p99_us if st else None,
+                  "period_max_us": st.period_max_us if st else None, "overruns": st.overruns if st else None,
+                  "wkc_errors": st.wkc_errors if st else None, "cycles": st.cycles if st else None}
+    return out
+
+
+def agent_table(agents: dict[str, dict[str, Any]]) -> Table:
+    """Agents and their cycle figures (``drivectl -v``)."""
+    t = Table(title="agents")
+    for col in ("host", "agent", "state", "backend", "cycle us", "period p99 us", "max us", "overruns",
+                "WKC errors"):
+        t.add_column(col, justify="left" if col in ("host", "agent", "state", "backend") else "right")
+    for h, a in agents.items():
+        live = "conflict" if a["conflict"] else "up" if a["alive"] else "offline" if a["state"] == "offline" else "gone"
+        if not a["expected"]:
+            live += " unexpected"
+
+        def num(v: Any, fmt: str = "{}") -> str:
+            return "" if v is None else fmt.format(v)
+        t.add_row(h, Text(live, style=_AGENT_STYLE.get(live, "bold yellow")), a["state"] or "", a["backend"] or "",
+                  num(a["cycle_us"]), num(a["period_p99_us"], "{:.1f}"), num(a["period_max_us"], "{:.1f}"),
+                  num(a["overruns"]), num(a["wkc_errors"]))
     return t
 
 
@@ -96,7 +153,7 @@ def result_table(results: Iterable[DriveResult], title: str) -> Table:
     for col in ("drive", "outcome", "state", "error", "elapsed s"):
         t.add_column(col, justify="right" if col == "elapsed s" else "left")
     for r in results:
-        err = " ".join(x for x in (f"0x{r.error_code:04X}" if r.error_code else "", r.error,
+        err = " ".join(x for x in (f"0x{r.error_code:04X} {describe(r.error_code)}" if r.error_code else "", r.error,
                                    f"(leased by {r.lease_holder})" if r.outcome == "busy" and r.lease_holder else "") if x)
         t.add_row(r.name, Text(r.outcome, style="green" if r.ok else "bold red"), r.state, err, f"{r.elapsed_s:.3f}")
     return t
@@ -155,4 +212,73 @@ def run_watch(fleet: Fleet, selectors: Sequence[str] = (), *, console: Console |
     return 0
 
 
-__all__ = ["status_rows", "status_table", "result_table", "print_report", "run_watch", "DriveRef", "DriveStatus"]
+#: Status fields whose change makes a ``watch --json`` line.
+JSON_FIELDS = ("state", "goal", "error_code", "error_text", "lost", "al_state", "lease_holder", "mode_display")
+
+
+def _json_line(st: DriveStatus) -> dict[str, Any]:
+    return {"event": "status", "host": st.host, "axis": st.axis, "time_ns": st.time_ns,
+            **{f: getattr(st, f) for f in JSON_FIELDS}}
+
+
+def run_watch_json(fleet: Fleet, selectors: Sequence[str] = (), *, duration_s: float | None = None,
+                   out: Callable[[str], None] = print) -> int:
+    """``watch --json``: one JSON object per line, first the current status of each selected
+    drive, then one line per change of :data:`JSON_FIELDS` and per agent arrival, departure or
+    host name conflict, until Ctrl-C (or ``duration_s``)."""
+    parsed = [parse_selector(s) for s in selectors]
+
+    def wanted(host: str, axis: str) -> bool:
+        if not parsed:
+            return True
+        groups = fleet.groups()
+        ref = DriveRef(host, axis)
+        return any((p.group and str(ref) in groups.get(p.group, ())) or (not p.group and p.matches(ref))
+                   for p in parsed)
+
+    items: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+    fleet.on("status", lambda st: items.put(("status", st)))
+    fleet.on("arrival", lambda h: items.put(("arrival", h)))
+    fleet.on("departure", lambda h: items.put(("departure", h)))
+    fleet.on("agent", lambda a: items.put(("agent", a)))
+    last: dict[DriveRef, tuple] = {}
+    conflicts: dict[str, str] = {}
+
+    def status(st: DriveStatus) -> None:
+        key = tuple(getattr(st, f) for f in JSON_FIELDS)
+        ref = DriveRef(st.host, st.axis)
+        if wanted(st.host, st.axis) and last.get(ref) != key:
+            last[ref] = key
+            out(json.dumps(_json_line(st)))
+
+    for st in sorted(fleet.drives().values(), key=lambda st: (st.host, st.axis)):
+        status(st)
+    for ref in fleet.absent():
+        if wanted(ref.host, ref.axis):
+            out(json.dumps({"event": "offline", "host": ref.host, "axis": ref.axis}))
+    end = None if duration_s is None else time.monotonic() + duration_s
+    try:
+        while True:
+            left = None if end is None else end - time.monotonic()
+            if left is not None and left <= 0:
+                break
+            try:
+                kind, item = items.get(timeout=left)
+            except queue.Empty:
+                continue
+            if kind == "status":
+                status(item)
+            elif kind in ("arrival", "departure"):
+                out(json.dumps({"event": kind, "host": item}))
+            now = fleet.conflicts()
+            if now != conflicts:
+                for h in sorted(set(now) | set(conflicts)):
+                    if now.get(h) != conflicts.get(h):
+                        out(json.dumps({"event": "conflict", "host": h, "conflict": now.get(h, "")}))
+                conflicts = now
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+__all__ = ["run_watch_json", "status_rows", "status_table", "agent_rows", "agent_table", "result_table", "print_report", "run_watch", "DriveRef", "DriveStatus"]

@@ -261,6 +261,8 @@ class _FaultReset:
 
 
 _FAULT_STATES = (State.FAULT_REACTION_ACTIVE, State.FAULT)
+#: Reason of a ``disabled`` goal reached in Fault (no torque, fault not reset).
+DISABLED_IN_FAULT = "already without torque: drive in fault (fault_reset clears it)"
 _INDY7_GOALS = frozenset({Goal.READY, Goal.SWITCHED_ON, Goal.ENABLED})
 _HOLD_TARGET_MODES = frozenset({int(Mode.CYCLIC_SYNC_POSITION), int(Mode.CYCLIC_SYNC_VELOCITY)})
 
@@ -488,6 +490,11 @@ class DriveController:
                 events.append(ControllerEvent(EventKind.GOAL_REACHED, state, state, self.goal.value))
             elif resetting:
                 pass  # the requested reset is the way out of the fault; judge the goal after it
+            elif state is State.FAULT and self.goal is Goal.DISABLED:
+                # Fault is already without torque (the power stage is off): what disable is for.
+                # Reached, and said so; the fault itself stays until a fault_reset command.
+                self._phase = _GoalPhase.REACHED
+                events.append(ControllerEvent(EventKind.GOAL_REACHED, state, state, DISABLED_IN_FAULT))
             elif state in _FAULT_STATES:
                 self._fail(events, state, f"{self.goal.value}: drive in {state.value} (0x{statusword:04X})")
             elif state is State.UNKNOWN:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 from bus_agent.bus.base import ALState, Bus, BusError, SlaveALStatus, SlaveInfo, al_status_text
-from bus_agent.cia402.controller import (ControllerConfig, ControllerEvent, DriveController, EventKind,
+from bus_agent.cia402.controller import (DISABLED_IN_FAULT, ControllerConfig, ControllerEvent, DriveController, EventKind,
                                          Goal)
 from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
@@ -854,7 +854,11 @@ class Cycle:
             terminal = OUTCOME_OF_EVENT.get((p.kind, k))
             if terminal is not None:
                 outcome, default_reason = terminal
-                self._resolve(d, outcome, "" if outcome == "done" else ev.reason or default_reason, now_ns)
+                if outcome == "done":
+                    reason = ev.reason if ev.reason == DISABLED_IN_FAULT else ""
+                else:
+                    reason = ev.reason or default_reason
+                self._resolve(d, outcome, reason, now_ns)
 
     def _auto_reset(self, d: _Drive, now_ns: int) -> None:
         a = d.cfg.policy.auto_reset

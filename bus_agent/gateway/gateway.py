@@ -34,9 +34,11 @@ from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 import zenoh
 
 from bus_agent import runtime as rt
+from bus_agent.gateway.hostclaim import ConflictTracker, check_host_free, new_instance
 from bus_agent.gateway.leases import EndedLease, LeaseDecision, LeaseResult, LeaseTable
 from schemas import keys
 from schemas import messages as m
+from schemas.error_codes import describe
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +63,8 @@ MOTION_FIELDS = ("position", "velocity", "torque")
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
+#: Ops an agent refuses while another agent uses its host name (lowering ops still work).
+CONFLICT_REFUSED_OPS = frozenset({"enable", "switch_on", "fault_reset", "set_mode", "nmt"})
 #: Request-id memory: size and time to live of finished requests.
 DEDUP_SIZE = 1024
 DEDUP_TTL_S = 300.0
@@ -197,6 +201,7 @@ class _Request:
         self.deadline_s = now_s + req.timeout_s + OUTCOME_GRACE_S
         self.replies: dict[str, m.CommandReply] = {}
         self.waiting: list[tuple[zenoh.Query, set[str]]] = []
+        self.requester = "anonymous"
 
     @property
     def done(self) -> bool:
@@ -260,6 +265,9 @@ class GatewaySettings:
     groups: Mapping[str, Sequence[str]] = field(default_factory=dict)   # name -> "host/axis"
     lease_reaction: Mapping[str, str] = field(default_factory=dict)     # axis -> LEASE_REACTION_OPS key
     lease_ttl_s: Mapping[str, float] = field(default_factory=dict)      # axis -> default ttl
+    instance: str = ""              # this agent process' id ('' = a new random one)
+    check_host: bool = True         # refuse to start while another agent holds the host name
+    has_connect: bool = False       # the session has connect endpoints (wait for a link first)
     secure: bool = False  # --pki: serve only authenticated command keys (requester from the key)
 
 
@@ -286,6 +294,10 @@ class Gateway:
         self.host = settings.host
         self.axes = tuple(settings.axes)
         self.agent_state_override: str | None = None
+        self.instance = settings.instance or new_instance()
+        # Other agents under our host name; a conflict ends after three silent status periods.
+        self._conflicts = ConflictTracker(self.host, self.instance, max(1.0, 3 * settings.agent_period_s))
+        self._conflict_text = ""
         # cycle -> publisher
         self._latest: rt.CycleSnapshot | None = None
         self._events: collections.deque[tuple[rt.CycleEvent, int, int]] = collections.deque(maxlen=8192)
@@ -346,7 +358,11 @@ class Gateway:
     # ---- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
+        """Check that the host name is free (:class:`~bus_agent.gateway.hostclaim.HostNameTaken`
+        otherwise, nothing declared), then declare everything, commands last."""
         s = self.session
+        if self.s.check_host:
+            check_host_free(s, self.host, has_connect=self.s.has_connect)
         # A cycle already running (behind the process bridge) has a snapshot: drive status goes
         # out in the first publish pass, before the agent status that lists the axes.
         self._latest = self._latest or getattr(self.cycle, "latest", None)
@@ -366,6 +382,8 @@ class Gateway:
             keys.agent_status(self.host), lambda q: enqueue((self._on_agent_query, (q,)))))
         self._other_decls.append(s.liveliness().declare_subscriber(
             keys.ALL_SUPERVISORS, lambda smp: enqueue((self._on_supervisor_token, (smp,))), history=True))
+        self._other_decls.append(s.declare_subscriber(
+            keys.agent_status(self.host), lambda smp: enqueue((self._on_own_host_status, (smp,)))))
         remote_hosts = sorted({r.host for r in self._remotes})
         for host in remote_hosts:
             self._other_decls.append(s.declare_subscriber(
@@ -511,7 +529,7 @@ class Gateway:
             state=d.state if d.state in m.DRIVE_STATES else "unknown", statusword=d.statusword,
             controlword=d.controlword, goal=d.goal, halt=d.halt, mode=d.mode, mode_display=d.mode_display,
             position=d.position, velocity=d.velocity, torque=d.torque, error_code=d.error_code,
-            error_text=d.error_text[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
+            error_text=(d.error_text or describe(d.error_code))[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
         )
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
@@ -525,13 +543,16 @@ class Gateway:
             log.debug("event for unknown axis %r dropped: %s", ev.axis, ev)
             return
         self._event_seq[ev.axis] = self._event_seq.get(ev.axis, 0) + 1
+        detail = ev.detail
+        if ev.kind == "fault" and ev.error_code and describe(ev.error_code) not in detail:
+            detail = f"{detail}: {describe(ev.error_code)}" if detail else describe(ev.error_code)
         try:
             msg = m.Event(
                 host=self.host, axis=ev.axis, seq=self._event_seq[ev.axis], time_ns=time_ns, cycle=cycle,
-                kind=ev.kind, detail=ev.detail[:400],
+                kind=ev.kind, detail=detail[:400],
                 from_state=ev.from_state if ev.from_state in m.DRIVE_STATES else "unknown",
                 to_state=ev.to_state if ev.to_state in m.DRIVE_STATES else "unknown",
-                error_code=ev.error_code, request_id=ev.request_id[:128],
+                error_code=ev.error_code, request_id=ev.request_id[:128], requester=ev.requester[:128],
             )
             pub.put(m.encode(msg))
         except m.SchemaError as exc:
@@ -549,6 +570,7 @@ class Gateway:
             overruns=st.overruns, wkc_errors=st.wkc_errors, expected_wkc=st.expected_wkc,
             axes=list(self.axes), al_states={d.axis: d.al_state for d in snap.drives} if snap else {},
             leases=dict(self._lease_holders), groups={g: list(ms) for g, ms in self.s.groups.items()},
+            instance=self.instance, conflict=self._conflict_text[:400],
         )
 
     # ---- command thread ---------------------------------------------------------------------
@@ -581,6 +603,8 @@ class Gateway:
         return t
 
     def _timers(self, now: float) -> None:
+        if self._conflicts.expire(now):
+            self._conflict_changed()
         ended = self.leases.expire(now)
         if ended:
             self._leases_ended(ended)
@@ -622,28 +646,58 @@ class Gateway:
     def _on_agent_cmd(self, query: zenoh.Query) -> None:
         self._command(query, str(query.key_expr), agent=True)
 
+    def _requester(self, key: str, request: m.CommandRequest | None) -> str:
+        """Who is asking, for the audit trail: the requester :func:`requester` decided for a parsed
+        request (the key's authenticated principal, else the declared ``supervisor``); for a
+        refused one, the key's principal if it names one; '' -> anonymous."""
+        if request is not None:
+            return request.supervisor or "anonymous"
+        try:
+            return keys.command_principal(key) or "anonymous"
+        except keys.InvalidKey:
+            return "anonymous"
+
+    def _audit(self, key: str, request: m.CommandRequest | None, axes: Sequence[str], requester: str,
+               outcome: str, reason: str = "") -> None:
+        """Log (INFO) and publish (event kind ``command``) one accepted or refused command."""
+        rid = request.request_id if request is not None else ""
+        op = request.op if request is not None else key.split("/cmd/", 1)[-1].split("/", 1)[0]
+        log.info("agent %s: command %s op %s axes %s from %s: %s%s", self.host, rid or "-", op,
+                 ",".join(axes) or "-", requester, outcome, f": {reason}" if reason else "")
+        detail = f"{op} {outcome} from {requester}" + (f": {reason}" if reason else "")
+        for axis in axes or ("",):
+            self._emit(rt.CycleEvent(axis, "command", detail=detail, request_id=rid, requester=requester))
+
     def _command(self, query: zenoh.Query, key: str, agent: bool) -> None:
+        key_axes = () if agent else (axes_in_key(key, self.host, self.axes)
+                                     or axes_in_key(key, self.host, self.axes, principal="*"))
         if not self._accepting:
+            self._audit(key, None, key_axes, self._requester(key, None), "refused", "shutting down")
             _reply_err(query, f"agent {self.host} is shutting down: no new commands")
             return
         try:
             parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent, secure=self.s.secure)
         except RequestError as exc:
-            log.info("agent %s: command on %s refused: %s", self.host, key, exc)
+            self._audit(key, None, key_axes, self._requester(key, None), "refused", str(exc))
             _reply_err(query, f"{self.host}: {exc}")
             return
+        requester = self._requester(key, parsed.request)
         now = time.monotonic()
         self._forget_old(now)
         rid = parsed.request.request_id
         first = self._requests.get(rid)
         if first is not None:
             if not first.same_command(parsed):
-                _reply_err(query, f"{self.host}: request_id {rid!r} was already used for op {first.op} on "
-                                  f"{', '.join(first.axes) or 'the agent'}: use a new request_id")
+                reason = (f"request_id {rid!r} was already used for op {first.op} on "
+                          f"{', '.join(first.axes) or 'the agent'}: use a new request_id")
+                self._audit(key, parsed.request, parsed.axes, requester, "refused", reason)
+                _reply_err(query, f"{self.host}: {reason}")
                 return
             first.attach(query)  # the first outcome(s), now or when they come: no second action
             return
+        self._audit(key, parsed.request, parsed.axes, requester, "accepted")
         req = _Request(parsed, self.host, now)
+        req.requester = requester
         self._requests[rid] = req
         self._pending.add(req)
         req.attach(query)
@@ -654,6 +708,11 @@ class Gateway:
 
     def _submit(self, req: _Request, parsed: ParsedCommand) -> None:
         r = parsed.request
+        if self._conflict_text and r.op in CONFLICT_REFUSED_OPS:
+            # Another agent may obey the same command: nothing that raises power or clears a fault.
+            for axis in parsed.axes or ("",):
+                self._outcome(req, rt.Outcome(axis, "rejected", state=self._state(axis), reason=self._conflict_text))
+            return
         on_outcome = functools.partial(self._outcome_from_cycle, req)
         if not parsed.axes:  # agent command
             blocked = self._blocking_leases(r.supervisor, [parsed.args["axis"]] if parsed.args.get("axis") else self.axes)
@@ -712,6 +771,8 @@ class Gateway:
                                      error_code=reply.error_code, request_id=req.request_id))
         if req.done:
             self._pending.discard(req)
+            log.info("agent %s: command %s op %s from %s finished: %s", self.host, req.request_id, req.op,
+                     req.requester, ", ".join(f"{a or 'agent'}={r.outcome}" for a, r in sorted(req.replies.items())))
 
     def _reply(self, req: _Request, o: rt.Outcome) -> m.CommandReply:
         return m.CommandReply(
@@ -827,6 +888,26 @@ class Gateway:
             log.error("agent %s: %s reaction %s for %s could not be queued (inbox full); retrying",
                       self.host, why, ops[0], ", ".join(axes))
             threading.Timer(0.01, lambda: self._inbox.put((self._run_internal, (ops, axes, why)))).start()
+
+    # -- one agent per host name
+
+    def _on_own_host_status(self, sample: zenoh.Sample) -> None:
+        try:
+            st = m.decode(sample.payload.to_bytes(), m.AgentStatus)
+        except m.SchemaError:
+            return
+        if self._conflicts.seen(st.instance, time.monotonic()):
+            self._conflict_changed()
+
+    def _conflict_changed(self) -> None:
+        self._conflict_text = self._conflicts.text
+        if self._conflict_text:
+            log.error("agent %s: %s", self.host, self._conflict_text)
+        else:
+            log.warning("agent %s: host name conflict over (no other instance for %.0f s)", self.host,
+                        self._conflicts.hold_s)
+        self._emit(rt.CycleEvent("", "conflict", detail=self._conflict_text or "host name conflict over"))
+        self._next_agent_s = 0.0  # say it in the agent status now
 
     # -- cross-host groups
 

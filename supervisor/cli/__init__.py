@@ -96,7 +96,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.verbose < 2:
         logging.getLogger("supervisor").setLevel(logging.ERROR)  # the report says it all
         logging.getLogger("zenoh").setLevel(logging.ERROR)
-    console = Console(stderr=False)
+    # Piped output (scripts, logs) keeps whole texts instead of wrapping them at 80 columns.
+    console = Console(stderr=False, width=None if sys.stdout.isatty() else 240)
     try:
         return run(args, console)
     except (SelectorError, UsageError, ValueError) as exc:

@@ -17,8 +17,9 @@ from typing import Any, Callable, Iterator, Sequence
 from rich.console import Console
 
 from ..fleet import DEFAULT_CONNECT, Fleet, NoAgentError
+from ..fleetfile import FLEET_ENV, load as load_fleet
 from ..results import CommandResult, Report
-from ..selectors import parse_selector
+from ..selectors import SelectorError, parse_selector
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_NO_AGENT = 0, 1, 2, 3
 EXIT_TEXT = "exit codes: 0 every addressed drive reached its goal, 1 some did not (listed), " \
@@ -70,6 +71,9 @@ _GLOBALS: tuple[tuple[tuple[str, ...], dict[str, Any]], ...] = (
     (("--name",), dict(default=None, help="supervisor name (default sup-<host>-<pid>)")),
     (("--group",), dict(action="append", default=[], metavar="NAME=H/A,H/A",
                         help="define a local group usable as @NAME")),
+    (("--fleet",), dict(default=None, metavar="FILE",
+                        help="expected fleet (TOML; default $DRIVES_FLEET): absent drives show as offline "
+                             "and are reported missing")),
     (("-v", "--verbose"), dict(action="count", default=0, help="more detail (agent cycle figures; -vv logs)")),
     (("--pki",), dict(default=None, metavar="DIR",
                       help="drives-pki directory: mutual TLS, commands as --identity (default $DRIVES_PKI)")),
@@ -171,16 +175,36 @@ def identity_text(args: argparse.Namespace) -> str:
 def open_fleet(args: argparse.Namespace) -> Iterator[Fleet]:
     """The Fleet of the global options, with at least one agent alive (else NoAgentError, exit 3)."""
     connect = args.connect or list(DEFAULT_CONNECT)
+    fleet_file = args.fleet or os.environ.get(FLEET_ENV) or None
+    expected = load_fleet(fleet_file) if fleet_file else None  # FleetFileError: exit 2
     pki, identity = security_of(args)
     with Fleet(connect=connect, name=args.name, mode=args.mode, groups=local_groups(args.group),
-               discovery_timeout_s=args.discovery, pki=pki, identity=identity) as fleet:
+               discovery_timeout_s=args.discovery, pki=pki, identity=identity, expected=expected) as fleet:
         if not fleet.hosts():
             # Agents may be reachable an instant after the router: wait for the discovery window.
             fleet.wait_for_agents(1, timeout_s=args.discovery)
-        if not fleet.hosts():
+        if not fleet.hosts() and expected is None:
             raise NoAgentError(f"no bus agent answered through {', '.join(fleet.connect)} within "
-                               f"{args.discovery:g} s")
-        yield fleet
+                               f"{args.discovery:g} s; check that the agents run and reach that router")
+        if fleet.hosts() or args.verb in ("status", "watch"):
+            yield fleet  # with an expected fleet, status shows every host offline
+        else:
+            raise NoAgentError(f"no bus agent answered through {', '.join(fleet.connect)} within "
+                               f"{args.discovery:g} s (expected: {', '.join(expected.hosts) if expected else '-'})")
+
+
+def known_targets(fleet: Fleet, selectors: Sequence[str]) -> list[str]:
+    """``selectors`` when each names a live or expected drive; else exit 2 with hints (and a
+    word about the shell when a selector is the name of a file here: an unquoted ``*``)."""
+    try:
+        fleet.check_known(*selectors)
+    except SelectorError as exc:
+        files = [s for s in selectors if os.path.exists(s)]
+        if files:
+            raise SelectorError(f"{exc}; {', '.join(files[:3])} {'is a file' if len(files) == 1 else 'are files'} "
+                                "here: did the shell expand an unquoted '**' or '*'? Quote selectors: '**'") from None
+        raise
+    return list(selectors)
 
 
 def emit_report(args: argparse.Namespace, console: Console, report: Report | CommandResult) -> int:

@@ -12,7 +12,7 @@ from schemas.messages import MODES
 
 from ..fleet import Fleet
 from ..results import CommandResult, Report, single
-from .common import MODE_NAMES, UsageError, emit_report, open_fleet, stages_of
+from .common import MODE_NAMES, UsageError, emit_report, known_targets, open_fleet, stages_of
 
 #: Verbs that move drives need an explicit target; ``**`` is there for "all".
 _REQUIRED = {"enable", "disable", "shutdown", "switch-on", "halt", "mode", "fault-reset"}
@@ -32,30 +32,37 @@ def mode_value(text: str) -> int:
     return value
 
 
-def targets(args: argparse.Namespace) -> list[str]:
-    """The verb's selectors; ``**`` for verbs that may default to every drive."""
+def targets(args: argparse.Namespace, fleet: Fleet | None = None) -> list[str]:
+    """The verb's selectors (each naming a live or expected drive when ``fleet`` is given: exit 2
+    with hints otherwise); ``**`` for verbs that may default to every drive."""
     sels = list(getattr(args, "selectors", None) or [])
     if not sels and args.verb in _REQUIRED and not getattr(args, "stage", None):
         raise UsageError(f"{args.verb}: name the drives (a selector, or '**' for every drive)")
-    return sels or ["**"]
+    sels = sels or ["**"]
+    return known_targets(fleet, sels) if fleet is not None else sels
 
 
 def _enable(fleet: Fleet, args: argparse.Namespace) -> Report | CommandResult:
-    return fleet.enable(*targets(args), timeout_s=args.timeout, stages=stages_of(args.stage) or None)
+    for stage in stages_of(args.stage):
+        known_targets(fleet, stage)
+    return fleet.enable(*targets(args, fleet), timeout_s=args.timeout, stages=stages_of(args.stage) or None)
 
 
 def _down(op: str) -> Callable[[Fleet, argparse.Namespace], Report | CommandResult]:
     def run(fleet: Fleet, args: argparse.Namespace) -> Report | CommandResult:
         if args.stage:
-            return fleet.shutdown(stages_of(args.stage), op=op, timeout_s=args.timeout)
-        return single(op, fleet.command(op, fleet.select(*targets(args)), timeout_s=args.timeout))
+            stages = stages_of(args.stage)
+            for stage in stages:
+                known_targets(fleet, stage)
+            return fleet.take_down(stages, op=op, timeout_s=args.timeout)
+        return single(op, fleet.command(op, fleet.select(*targets(args, fleet)), timeout_s=args.timeout))
     return run
 
 
 def _simple(op: str, args_of: Callable[[argparse.Namespace], dict] = lambda a: {}
             ) -> Callable[[Fleet, argparse.Namespace], Report | CommandResult]:
     def run(fleet: Fleet, args: argparse.Namespace) -> Report | CommandResult:
-        res = fleet.command(op, fleet.select(*targets(args)), args_of(args), timeout_s=args.timeout)
+        res = fleet.command(op, fleet.select(*targets(args, fleet)), args_of(args), timeout_s=args.timeout)
         return single(args.verb, res)
     return run
 
@@ -73,8 +80,8 @@ def register(add_verb: Callable[..., argparse.ArgumentParser]) -> None:
              stages=True)
     add_verb("disable", "disable operation, shutdown, disable voltage (-> Switch on disabled)",
              _handler(_down("disable")), stages=True)
-    add_verb("shutdown", "CiA 402 shutdown command (transitions 2/6/8 -> Ready to switch on; "
-             "Fleet.shutdown is the ordered take-down, `disable` here)", _handler(_down("shutdown")), stages=True)
+    add_verb("shutdown", "CiA 402 shutdown (transitions 2, 6, 8 -> Ready to switch on), as Fleet.shutdown",
+             _handler(_down("shutdown")), stages=True)
     add_verb("switch-on", "switch on (-> Switched on)", _handler(_simple("switch_on")))
     add_verb("quick-stop", "quick stop (default: every drive)", _handler(_simple("quick_stop")))
     h = add_verb("halt", "set halt (controlword bit 8)", _handler(_simple("halt", lambda a: {"on": not a.off})))

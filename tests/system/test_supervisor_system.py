@@ -101,7 +101,7 @@ def test_two_phase_enable_then_ordered_shutdown(fleet: Fleet) -> None:
                     reached.append(st.host)
 
     fleet.on("status", on_status)
-    report = fleet.shutdown([["h1/*"], ["h2/*"], ["h3/*"]])
+    report = fleet.take_down([["h1/*"], ["h2/*"], ["h3/*"]])
     assert report.ok, report.reason
     assert [label for label, _ in report.steps] == ["disable:stage3", "disable:stage2", "disable:stage1"]
     assert fleet.wait_until(lambda f: _all_in(f, f.roster(), "switch_on_disabled"), 5), _states(fleet)

@@ -173,6 +173,19 @@ def test_enable_of_faulted_drive_fails_and_fault_reset_is_explicit(h):
     assert h.outcomes[r3][0].outcome == "done" and "not in fault" in h.outcomes[r3][0].reason
 
 
+def test_disable_of_faulted_drive_is_done_and_says_so_without_resetting(h):
+    h.bus.inject_fault(1, 0x2310)
+    h.ticks(30)
+    assert h.state(1) == State.FAULT
+    rid = h.cmd("disable", "axis1")
+    h.until(h.done(rid))
+    o = h.outcomes[rid][0]
+    assert (o.outcome, o.state, o.error_code) == ("done", "fault", 0x2310)
+    assert "without torque" in o.reason and "fault" in o.reason
+    h.ticks(100)
+    assert h.state(1) == State.FAULT  # disable never resets a fault
+
+
 def test_unknown_axis_and_bad_args_rejected(h):
     rid = h.cmd("enable", "nope")
     h.until(h.done(rid))

@@ -1,0 +1,154 @@
+"""The benchmark summary (bench/summary.py, bench/run_all.py): only this invocation's runs show
+figures; failed and skipped runs show none; stale JSON is marked; targets decide honestly."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from bench import run_all
+from bench import summary as s
+
+FAKE = textwrap.dedent('''
+    import json, sys
+    args = sys.argv[1:]
+    out = args[args.index("--out") + 1]
+    mode = args[0]
+    if mode == "ok":
+        json.dump({"time": "now", "loadavg": [1.5, 1, 1], "value": 7}, open(out, "w"))
+    elif mode == "fail":
+        json.dump({"time": "now", "value": 666}, open(out, "w"))  # figures of a failed run
+        sys.exit(3)
+    # "silent": exit 0 without writing anything
+''')
+
+
+def figures(r):
+    return {"value": r["value"]}
+
+
+def headline(r):
+    return f"value {r['value']}"
+
+
+def targets(r):
+    return [s.Target("value", r["value"], "<= 10", r["value"] <= 10)]
+
+
+def bench(name: str, mode: str) -> run_all.Benchmark:
+    return run_all.Benchmark(name, f"fake {mode}", "fake_bench", (mode,), (mode,), False, figures, headline, targets)
+
+
+@pytest.fixture
+def fake(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    (tmp_path / "mods").mkdir()
+    (tmp_path / "mods" / "fake_bench.py").write_text(FAKE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "mods"))
+    out = tmp_path / "results"
+    out.mkdir()
+    return out
+
+
+def rows_of(summary: dict) -> dict[str, dict]:
+    return {r["name"]: r for r in summary["rows"]}
+
+
+def test_only_this_invocations_runs_show_figures(fake: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in ("good", "bad", "silent", "skipped"):  # figures left on disk by an earlier invocation
+        (fake / f"bench_{name}.json").write_text(json.dumps({"time": "earlier", "value": 1}))
+    root_bench = run_all.Benchmark("skipped", "needs root", "fake_bench", ("ok",), ("ok",), True, figures, headline,
+                                   targets)
+    monkeypatch.setattr(run_all, "BENCHMARKS", (bench("good", "ok"), bench("bad", "fail"), bench("silent", "silent"),
+                                                root_bench))
+    monkeypatch.setattr(run_all.os, "geteuid", lambda: 1000)
+    summary = run_all.collect(quick=False, only=None, summarize_only=False, out=fake)
+    rows = rows_of(summary)
+    assert rows["good"]["status"] == "ok"
+    assert rows["good"]["figures"] == {"value": 7} and rows["good"]["targets"][0]["met"] is True
+    assert rows["good"]["loadavg"] == [1.5, 1, 1] and rows["good"]["run"]["finished"].endswith("Z")
+    assert rows["bad"]["status"] == "failed (exit 3)"
+    assert rows["silent"]["status"] == "failed: exit 0 but no JSON written by this run"
+    assert rows["skipped"]["status"] == "skipped: needs root"
+    for name in ("bad", "silent", "skipped"):
+        assert "figures" not in rows[name] and "targets" not in rows[name], rows[name]
+    assert summary["targets"] == {"met": 1, "not_met": 0, "undecided": 0}
+    assert summary["time"].endswith("Z") and len(summary["loadavg_start"]) == 3 and len(summary["loadavg_end"]) == 3
+    table = s.render_markdown(summary)
+    assert "| bad: fake fail | failed (exit 3) |" in table and "666" not in table
+    assert "| value 7 | value: 7 (target <= 10): met |" in table
+
+
+def test_rows_not_run_are_stale_with_their_time_and_do_not_count(fake: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (fake / "bench_old.json").write_text(json.dumps({"time": "2026-11-22T02:22:00", "value": 99}))
+    monkeypatch.setattr(run_all, "BENCHMARKS", (bench("old", "ok"), bench("never", "ok"), bench("new", "ok")))
+    summary = run_all.collect(quick=False, only={"new"}, summarize_only=False, out=fake)
+    rows = rows_of(summary)
+    assert rows["old"]["status"] == "stale" and rows["old"]["time"] == "2026-11-22T02:22:00"
+    assert rows["old"]["run"]["json_written"].endswith("Z")
+    assert rows["old"]["targets"][0]["met"] is False  # shown, but not counted
+    assert rows["never"]["status"] == "not run" and "figures" not in rows["never"]
+    assert rows["new"]["status"] == "ok"
+    assert summary["targets"] == {"met": 1, "not_met": 0, "undecided": 0}
+    assert "| old: fake ok | stale |" in s.render_markdown(summary)
+
+
+def test_main_exit_status_and_unknown_names(fake: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(run_all, "BENCHMARKS", (bench("good", "ok"), bench("bad", "fail")))
+    monkeypatch.setattr(run_all, "RESULTS", fake)
+    assert run_all.main(["--only", "good"]) == 0
+    assert run_all.main(["--only", "bad"]) == 1
+    assert rows_of(json.loads((fake / "summary.json").read_text()))["good"]["status"] == "stale"
+    with pytest.raises(SystemExit):
+        run_all.main(["--only", "nope"])
+
+
+def _agent(bare: dict, gp: dict, bare_overruns: int, gp_overruns: int) -> dict:
+    def phase(j: dict, o: int) -> dict:
+        return {"jitter_us": j, "period_us": {"max": 1000 + j["max"]}, "overruns": o, "cycles": 1000,
+                "wkc_errors": 0, "cpu_pct": 10.0}
+    return {"phases": {"bare": phase(bare, bare_overruns), "gateway_process": phase(gp, gp_overruns)}, "ratios": {}}
+
+
+def test_agent_jitter_targets_at_p999_and_max_with_absolute_figures() -> None:
+    t = s.agent_targets(_agent({"p99": 0.0, "p999": 10.0, "max": 100.0}, {"p99": 3.0, "p999": 12.0, "max": 200.0}, 0, 0))
+    assert [x.name.split(",")[0] for x in t] == ["jitter p99.9", "jitter max", "overruns with the gateway process under load"]
+    assert t[0].measured == {"gateway_process": 12.0, "bare": 10.0, "ratio": 1.2} and t[0].met is True
+    assert t[1].measured["ratio"] == 2.0 and t[1].met is False
+    assert t[2].met is True
+
+
+def test_agent_no_ratio_against_a_zero_baseline() -> None:
+    t = s.agent_targets(_agent({"p99": 0.0, "p999": 0.0, "max": 5.0}, {"p99": 0.1, "p999": 0.4, "max": 5.0}, 0, 0))
+    assert t[0].measured["ratio"] is None and t[0].met is None and "no ratio" in t[0].note
+
+
+@pytest.mark.parametrize("bare_o, gp_o, met", [(0, 0, True), (0, 2, False), (5, 2, None), (5, 0, True)])
+def test_agent_overrun_target_is_undecided_when_the_host_stalled(bare_o: int, gp_o: int, met: bool | None) -> None:
+    j = {"p99": 1.0, "p999": 2.0, "max": 3.0}
+    (*_, overruns) = s.agent_targets(_agent(j, j, bare_o, gp_o))
+    assert overruns.met is met
+    assert ("host stalls" in overruns.note) is (met is None)
+
+
+def _sup(**fanin) -> dict:
+    base = {"commands_ok": True, "drives_seen": 64, "state_changes_seen": 384, "missed_by_seq": 0,
+            "supervisor_missed_by_seq": 0}
+    ok_round = {"enable": {"ok": True}, "disable": {"ok": True}}
+    return {"sizes": [{"agents": 4, "drives": 64, "cycle_us": 1000, "rounds": [ok_round], "fanin": {**base, **fanin}}]}
+
+
+@pytest.mark.parametrize("change, met", [
+    ({}, True),
+    ({"commands_ok": False}, False),
+    ({"state_changes_seen": 127}, False),   # fewer than 2 per drive
+    ({"drives_seen": 63}, False),
+    ({"missed_by_seq": 1}, False),
+    ({"supervisor_missed_by_seq": 1}, False),
+])
+def test_fanin_target_needs_commands_ok_state_changes_and_nothing_missed(change: dict, met: bool) -> None:
+    rounds, fanin = s.supervisor_targets(_sup(**change))
+    assert rounds.met is True and rounds.measured == "1/1"
+    assert fanin.met is met and fanin.name == "4x16: status fan-in"
