@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import threading
@@ -213,9 +214,18 @@ class Twin:
         # wait_ready also wakes at EOF, which a dying child may reach just before it is reaped
         return p.wait_ready(timeout_s) and any(p.ready_marker in line for line in p.lines)
 
+    @staticmethod
+    def _not_ready(p: ChildProcess, what: str) -> TwinError:
+        try:
+            code = p.popen.wait(2)  # a child that closed its output is about to exit: name its code
+        except subprocess.TimeoutExpired:
+            code = None
+        return TwinError(f"twin: {p.name} did not {what} ({'still running' if code is None else f'exit {code}'}):\n"
+                         f"{p.output(20)}")
+
     def _expect_ready(self, p: ChildProcess) -> None:
         if not self._ready(p, self._deadline_left()):
-            raise TwinError(f"twin: {p.name} did not become ready (exit {p.popen.poll()}):\n{p.output(20)}")
+            raise self._not_ready(p, "become ready")
 
     def _children(self) -> list[ChildProcess]:
         with self._lock:
@@ -336,7 +346,7 @@ class Twin:
         with self._lock:
             self.agents[host] = p
         if not self._ready(p, timeout_s):
-            raise TwinError(f"twin: {p.name} did not restart (exit {p.popen.poll()}):\n{p.output(20)}")
+            raise self._not_ready(p, "restart")
         self.wait_answering([host], timeout_s)
 
     def kill_router(self) -> None:
@@ -354,7 +364,7 @@ class Twin:
         with self._lock:
             self.router = p
         if not self._ready(p, timeout_s):
-            raise TwinError(f"twin: {p.name} did not restart (exit {p.popen.poll()}):\n{p.output(20)}")
+            raise self._not_ready(p, "restart")
         self.wait_answering(self.expected.hosts, timeout_s)
 
     def pids(self) -> dict[str, int]:
