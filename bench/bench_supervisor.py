@@ -40,6 +40,7 @@ import zenoh
 from schemas import keys
 from supervisor.fleet import Fleet
 from supervisor.results import CommandResult, Report
+from bench.common import proc_cpu_s
 from supervisor.testbed import Proc, spawn, start_agents, start_router
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_supervisor.json"
@@ -48,6 +49,7 @@ WATCHER = r"""
 import json, os, sys, threading, time
 from supervisor.fleet import Fleet
 ep, n_drives = sys.argv[1], int(sys.argv[2])
+pki = sys.argv[3] if len(sys.argv) > 3 else None  # with a PKI the watcher is principal bench-watcher
 changes = {}
 lock = threading.Lock()
 def on_status(st):
@@ -56,7 +58,7 @@ def on_status(st):
         last = changes.get(key)
         if last is None or last[0] != st.state:
             changes[key] = (st.state, (last[1] + 1) if last else 0)
-with Fleet(connect=[ep], name="bench-watcher") as f:
+with Fleet(connect=[ep], name="bench-watcher", pki=pki, identity="bench-watcher" if pki else None) as f:
     f.on("status", on_status)
     assert f.wait_until(lambda f: len(f.roster()) >= n_drives, 60), len(f.roster())
     for line in sys.stdin:
@@ -140,28 +142,43 @@ def get_rtt(session: zenoh.Session, key: str, n: int) -> dict[str, Any]:
             "max_ms": round(1e3 * max(times), 3)}
 
 
-def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool) -> dict[str, Any]:
+#: Principals of a secure run (``run_size(pki=...)``): the router, the supervisor and the watcher
+#: (agents are their host names, ``host_names``).
+SECURE_PRINCIPALS = {"bench-router": "router", "bench-sup": "operator", "bench-watcher": "viewer"}
+
+
+def host_names(n_agents: int) -> list[str]:
+    return [f"b{i:02d}" for i in range(n_agents)]
+
+
+def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool,
+             pki: str | None = None) -> dict[str, Any]:
+    """One size on one transport: plain TCP, or with ``pki`` mutual TLS and the routers' ACL
+    (the PKI must hold SECURE_PRINCIPALS and an agent certificate per host name). Without a PKI
+    the bare get goes to an echo queryable; with one (its key is outside every role) it is left out."""
     total = n_agents * n_drives
     cycle_us = args.cycle_us or (1000 if total <= 64 else 20000)
-    router, ep = start_router()
+    router, ep = start_router(pki=pki, identity="bench-router")
     procs: list[Proc] = []
-    hosts = [f"b{i:02d}" for i in range(n_agents)]
-    out: dict[str, Any] = {"agents": n_agents, "drives_per_agent": n_drives, "drives": total, "cycle_us": cycle_us,
+    hosts = host_names(n_agents)
+    out: dict[str, Any] = {"transport": "tls+acl" if pki else "tcp", "agents": n_agents, "drives_per_agent": n_drives, "drives": total, "cycle_us": cycle_us,
                            "agents_per_process": args.per_process, "sm_watchdog_s": args.sm_watchdog_s,
                            "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
     try:
         t0 = time.monotonic()
         for i in range(0, n_agents, args.per_process):
             procs.append(start_agents(hosts[i:i + args.per_process], n_drives, ep, cycle_us=cycle_us,
-                                      sm_watchdog_s=args.sm_watchdog_s, ready_timeout_s=180))
-        with Fleet(connect=[ep], name="bench-sup") as fleet:
+                                      sm_watchdog_s=args.sm_watchdog_s, ready_timeout_s=180, pki=pki))
+        with Fleet(connect=[ep], name="bench-sup", pki=pki, identity="bench-sup" if pki else None) as fleet:
             assert fleet.wait_for_agents(n_agents, 60, drives=total), (len(fleet.hosts()), len(fleet.roster()))
             out["startup_s"] = round(time.monotonic() - t0, 2)
-            echo = spawn("echo", [sys.executable, "-c", ECHO, ep], ready_marker="echo ready")
-            procs.append(echo)
-            assert echo.wait_ready(30), echo.output()
-            list(fleet.session.get("bench/echo", timeout=2.0))  # routes in place
-            out["get_rtt_bare"] = get_rtt(fleet.session, "bench/echo", args.gets)
+            cpu0 = proc_cpu_s(router.pid)
+            if not pki:
+                echo = spawn("echo", [sys.executable, "-c", ECHO, ep], ready_marker="echo ready")
+                procs.append(echo)
+                assert echo.wait_ready(30), echo.output()
+                list(fleet.session.get("bench/echo", timeout=2.0))  # routes in place
+                out["get_rtt_bare"] = get_rtt(fleet.session, "bench/echo", args.gets)
             out["get_rtt_drive_status"] = get_rtt(fleet.session, keys.drive_status(hosts[0], "axis0"), args.gets)
             t = time.perf_counter()
             replies = list(fleet.session.get(keys.ALL_DRIVE_STATUS, target=zenoh.QueryTarget.ALL,
@@ -182,7 +199,8 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
                 out["disable_wall_s_median"] = statistics.median(r["disable"]["wall_s"] for r in ok_rounds)
                 out["disable_overhead_s_median"] = statistics.median(r["disable"]["overhead_s"] for r in ok_rounds)
             if fanin:
-                out["fanin"] = run_fanin(fleet, ep, total)
+                out["fanin"] = run_fanin(fleet, ep, total, pki)
+            out["router_cpu_s"] = round(proc_cpu_s(router.pid) - cpu0, 3)
     finally:
         for p in procs:
             p.stop(timeout_s=60)
@@ -190,12 +208,13 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
     return out
 
 
-def run_fanin(fleet: Fleet, ep: str, total: int) -> dict[str, Any]:
+def run_fanin(fleet: Fleet, ep: str, total: int, pki: str | None = None) -> dict[str, Any]:
     import subprocess
 
     from supervisor.testbed import _env
 
-    w = subprocess.Popen([sys.executable, "-c", WATCHER, ep, str(total)], stdin=subprocess.PIPE,
+    w = subprocess.Popen([sys.executable, "-c", WATCHER, ep, str(total), *([pki] if pki else [])],
+                         stdin=subprocess.PIPE,
                          stdout=subprocess.PIPE, text=True, env=_env())
     try:
         assert w.stdin is not None and w.stdout is not None

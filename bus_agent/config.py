@@ -129,7 +129,7 @@ class CanConfig:
     channel: str
     interface: str = "socketcan"
     nodes: tuple[CanNode, ...] = ()
-    heartbeat_ms: int = 100
+    heartbeat_ms: int = 200
 
 
 @dataclass(frozen=True)
@@ -324,7 +324,7 @@ def _can(t: _Table) -> CanConfig:
                              tpdo=tuple(tuple(p) for p in n.get("tpdo", list, [])), startup_sdos=tuple(sdos)))
         n.done()
     cfg = CanConfig(channel=t.get("channel", str), interface=t.get("interface", str, "socketcan"),
-                    nodes=tuple(nodes), heartbeat_ms=t.get("heartbeat_ms", int, 100))
+                    nodes=tuple(nodes), heartbeat_ms=t.get("heartbeat_ms", int, 200))
     t.done()
     return cfg
 

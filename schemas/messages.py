@@ -68,7 +68,7 @@ NMT_COMMANDS = ("start", "stop", "preop", "reset_comm", "reset_node")
 OUTCOMES = ("done", "failed", "timeout", "rejected", "busy")
 #: Event kinds.
 EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning",
-               "command", "conflict")
+               "command", "conflict", "emcy")
 #: EtherCAT AL states by name (register 0x0130 low nibble).
 AL_STATES = ("init", "preop", "boot", "safeop", "op", "none")
 AGENT_STATES = ("starting", "running", "stopping", "stopped", "error")

@@ -1,8 +1,11 @@
 """A loopback test bed for the supervisor's tests and benchmark: a Zenoh router and bus agents
 on simulated buses, each in its own process (spawned, so every one opens its own session).
 
-    python -m supervisor.testbed router tcp/127.0.0.1:PORT    # a router until SIGTERM
-    python -m supervisor.testbed agents ROUTER h1,h2 N [CYCLE_US [SM_WATCHDOG_S]]   # N sim drives each
+    python -m supervisor.testbed router tcp/127.0.0.1:PORT [PKI IDENTITY]    # a router until SIGTERM
+    python -m supervisor.testbed agents ROUTER h1,h2 N [CYCLE_US [SM_WATCHDOG_S [PKI]]]   # N sim drives each
+
+With a PKI (a ``drives-pki`` directory), the router runs with ``--pki`` (mutual TLS, the ACL)
+and each agent authenticates as its host name.
 
 ``agents`` runs several :class:`bus_agent.agent.Agent` in one process, each with its own Zenoh
 session (peer, connected to ROUTER), and prints ``ready`` once all are running; SIGTERM runs
@@ -31,10 +34,12 @@ def spawn(name: str, argv: Sequence[str], ready_marker: str = "") -> Proc:
     return ChildProcess(name, argv, ready_marker=ready_marker)
 
 
-def start_router(port: int | None = None) -> tuple[Proc, str]:
-    """A Zenoh router on 127.0.0.1 in a child process; returns it and its endpoint."""
-    ep = f"tcp/127.0.0.1:{port or free_port()}"
-    p = spawn("router", [sys.executable, "-m", "supervisor.testbed", "router", ep], ready_marker="router ready")
+def start_router(port: int | None = None, *, pki: str | None = None, identity: str | None = None) -> tuple[Proc, str]:
+    """A Zenoh router on 127.0.0.1 in a child process; returns it and its endpoint (``tls/``
+    with ``pki`` and the router's ``identity`` in it)."""
+    ep = f"{'tls' if pki else 'tcp'}/127.0.0.1:{port or free_port()}"
+    secure = [pki, identity or ""] if pki else []
+    p = spawn("router", [sys.executable, "-m", "supervisor.testbed", "router", ep, *secure], ready_marker="router ready")
     if not p.wait_ready(20):
         p.stop()
         raise RuntimeError(f"router did not start:\n{p.output()}")
@@ -42,13 +47,14 @@ def start_router(port: int | None = None) -> tuple[Proc, str]:
 
 
 def start_agents(hosts: Sequence[str], n_drives: int, router: str, *, cycle_us: int = 1000,
-                 sm_watchdog_s: float = 0.1, ready_timeout_s: float = 60.0) -> Proc:
+                 sm_watchdog_s: float = 0.1, ready_timeout_s: float = 60.0, pki: str | None = None) -> Proc:
     """One process running an agent per host (own Zenoh session each) on ``n_drives`` sim drives.
 
     ``sm_watchdog_s``: the simulated slaves' SM watchdog (100 ms like real ones); benchmarks on a
-    starved machine raise it so late cycles do not drop slaves to SAFE-OP mid-measurement."""
+    starved machine raise it so late cycles do not drop slaves to SAFE-OP mid-measurement.
+    ``pki``: each agent authenticates as its host name (a certificate per host in it)."""
     argv = [sys.executable, "-m", "supervisor.testbed", "agents", router, ",".join(hosts), str(n_drives),
-            str(cycle_us), str(sm_watchdog_s)]
+            str(cycle_us), str(sm_watchdog_s), *([pki] if pki else [])]
     p = spawn(f"agents {','.join(hosts)}", argv, ready_marker="ready")
     if not p.wait_ready(ready_timeout_s):
         out = p.output()
@@ -76,7 +82,8 @@ def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: f
     return p
 
 
-def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int, sm_watchdog_s: float) -> int:
+def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int, sm_watchdog_s: float,
+                 pki: str | None = None) -> int:
     import logging
 
     from bus_agent.agent import Agent
@@ -91,7 +98,7 @@ def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int
     try:
         for h in hosts:
             a = Agent(AgentConfig(host=h, sim_drives=n_drives, cycle_us=cycle_us,
-                                  zenoh=ZenohConfig(mode="peer", connect=(router,))),
+                                  zenoh=ZenohConfig(mode="peer", connect=(router,), pki=pki)),
                       bus=SimBus(n_drives, segment_name=h, sm_watchdog_s=sm_watchdog_s))
             a.start()
             agents.append(a)
@@ -103,17 +110,18 @@ def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int
     return 0
 
 
-def _router_main(endpoint: str) -> int:
+def _router_main(endpoint: str, pki: str | None = None, identity: str | None = None) -> int:
     from bus_agent.router import main as router_main  # prints "drives-router ready ..."
-    return router_main(["--listen", endpoint])
+    return router_main(["--listen", endpoint, *(["--pki", pki, "--identity", identity or ""] if pki else [])])
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "router":
-        sys.exit(_router_main(sys.argv[2]))
-    if len(sys.argv) in (5, 6, 7) and sys.argv[1] == "agents":
+    if len(sys.argv) in (3, 5) and sys.argv[1] == "router":
+        sys.exit(_router_main(*sys.argv[2:]))
+    if len(sys.argv) in (5, 6, 7, 8) and sys.argv[1] == "agents":
         sys.exit(_agents_main(sys.argv[2], sys.argv[3].split(","), int(sys.argv[4]),
                               int(sys.argv[5]) if len(sys.argv) >= 6 else 1000,
-                              float(sys.argv[6]) if len(sys.argv) == 7 else 0.1))
+                              float(sys.argv[6]) if len(sys.argv) >= 7 else 0.1,
+                              sys.argv[7] if len(sys.argv) == 8 else None))
     print(__doc__, file=sys.stderr)
     sys.exit(2)

@@ -182,6 +182,11 @@ class Cycle:
         self._inbox_lock = threading.Lock()
         self._triggers: collections.deque[tuple[str, str]] = collections.deque(maxlen=INBOX_MAX)
         self._events: list[CycleEvent] = []
+        # Optional bus hooks (the CANopen backend): EMCY frames as (slave, error code, register,
+        # text), and the text of the last emergency per slave as {slave: (error code, text)}.
+        self._take_emergencies: Callable[[], list[tuple[int, int, int, str]]] | None = \
+            getattr(bus, "take_emergencies", None)
+        self._error_texts: dict[int, tuple[int, str]] = getattr(bus, "error_texts", {})
         self._lost_origins: list[tuple[str, str]] = []
         self._ordered_stop = True
         self._desired_al: dict[int, ALState] = {}
@@ -515,6 +520,12 @@ class Cycle:
 
         for d in self.drives:
             d.inputs = bus.inputs(d.slave)
+        if self._take_emergencies is not None:
+            for slave, code, register, text in self._take_emergencies():
+                for d in self.drives:
+                    if d.slave == slave:
+                        self._event(d.axis, "emcy", f"EMCY 0x{code:04X} {text} (error register 0x{register:02X})",
+                                    error_code=code)
 
         # Reflex origins are detected on the fresh statusword, before any controller step, so the
         # other members get their new goal in this very cycle.
@@ -970,7 +981,7 @@ class Cycle:
                 n.phase = "to_target"
             else:
                 for s in n.slaves:
-                    n.ticket = mgmt.request_state(s, ALState.INIT)
+                    n.ticket = mgmt.request_state(s, ALState.INIT, nmt=n.command)  # CAN: reset node / comm.
                 n.phase = "to_init"
             return
         if self._al_ticket < n.ticket:
@@ -1034,8 +1045,13 @@ class Cycle:
                 controlword=d.controlword, goal=c.goal.value, halt=c.halt, mode=c.mode,
                 mode_display=i.modes_of_operation_display, position=i.position_actual,
                 velocity=i.velocity_actual, torque=i.torque_actual, error_code=i.error_code,
-                error_text="", al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost))
+                error_text=self._error_text(d.slave, i.error_code), al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost))
         return tuple(out)
+
+    def _error_text(self, slave: int, error_code: int) -> str:
+        """The text of the bus's last emergency of ``slave`` when it is about this error code."""
+        t = self._error_texts.get(slave) if error_code else None
+        return t[1] if t is not None and t[0] == error_code else ""
 
     def _update_stats(self) -> None:
         ps = sorted(self._periods)

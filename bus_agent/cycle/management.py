@@ -49,7 +49,7 @@ class Management:
         # cycle -> management (written by the cycle thread only)
         self.fast = False
         self.recover_set: frozenset[tuple[int, int]] = frozenset()  # (slave, epoch)
-        self.requests: collections.deque[tuple[int, int | None, ALState]] = collections.deque()
+        self.requests: collections.deque[tuple[int, int | None, ALState, str]] = collections.deque()
         self.tickets = 0
         self._poll_asap = True
         # management -> cycle
@@ -71,10 +71,11 @@ class Management:
     def wake(self) -> None:
         self._wake.set()
 
-    def request_state(self, slave: int | None, state: ALState) -> int:
-        """Queue an AL control write (one slave or all); returns its ticket."""
+    def request_state(self, slave: int | None, state: ALState, nmt: str = "") -> int:
+        """Queue an AL control write (one slave or all); returns its ticket. ``nmt``: the agent's
+        NMT command it serves, for a bus that has its own (``bus.request_nmt``, CANopen)."""
         self.tickets += 1
-        self.requests.append((self.tickets, slave, state))
+        self.requests.append((self.tickets, slave, state, nmt))
         self.kick()
         return self.tickets
 
@@ -116,9 +117,13 @@ class Management:
         """Due work: queued AL requests, then an AL status read, then recover steps."""
         bus = self.bus
         while self.requests:
-            ticket, slave, state = self.requests.popleft()
+            ticket, slave, state, nmt = self.requests.popleft()
+            request_nmt = getattr(bus, "request_nmt", None) if nmt else None
             try:
-                bus.request_al_state(slave, state)
+                if request_nmt is not None:
+                    request_nmt(slave, nmt)
+                else:
+                    bus.request_al_state(slave, state)
             except Exception as e:
                 log.warning("host %s: AL %s request for %s failed: %s", self.host, state.wire_name,
                             "all slaves" if slave is None else f"slave {slave}", e)

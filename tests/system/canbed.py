@@ -38,6 +38,7 @@ class CanBed:
         subprocess.run(["ip", "-n", self.netns, "link", "set", "lo", "multicast", "on"], check=True)
         subprocess.run(["ip", "-n", self.netns, "route", "add", "224.0.0.0/4", "dev", "lo"], check=True)
         self.children: list[ChildProcess] = []
+        self.sockets: list[str] = []
 
     def argv(self, *argv: str) -> list[str]:
         return ["ip", "netns", "exec", self.netns, *argv]
@@ -62,12 +63,37 @@ class CanBed:
 
         return subprocess.run(self.argv(*argv), capture_output=True, text=True, timeout=timeout_s, env=child_env())
 
+    def unix_endpoint(self, name: str) -> str:
+        """A Zenoh endpoint on a UNIX socket: the file system is shared with the test process, so
+        it reaches into the namespace without any network route."""
+        path = f"/tmp/{self.netns}-{name}.sock"
+        if os.path.exists(path):
+            os.unlink(path)
+        self.sockets.append(path)
+        return f"unixsock-stream/{path}"
+
+    def drivectl(self, endpoint: str, *args: str) -> tuple[int, str]:
+        """``drivectl --connect EP ...`` inside the namespace: (exit code, stdout + stderr)."""
+        r = self.run(sys.executable, "-m", "supervisor.cli", "--connect", endpoint, *args)
+        return r.returncode, r.stdout + r.stderr
+
+    def states(self, endpoint: str) -> dict[str, dict]:
+        """``drivectl --json status`` as {"host/axis": row}."""
+        rc, out = self.drivectl(endpoint, "--json", "status")
+        assert rc == 0, out
+        doc = json.loads(out)
+        rows = doc["drives"] if isinstance(doc, dict) else doc
+        return {f"{r['host']}/{r['axis']}": r for r in rows}
+
     def close(self) -> None:
         for p in reversed(self.children):
             p.stop(10)
             if not isinstance(p, FrameLog):  # shown by pytest when a test failed
                 print(f"---- {p.name} (exit {p.popen.poll()}):\n{p.output(60)}")
         netns_del(self.netns)
+        for path in self.sockets:
+            if os.path.exists(path):
+                os.unlink(path)
 
 
 class FrameLog(ChildProcess):
@@ -81,11 +107,11 @@ class FrameLog(ChildProcess):
                 out.append((f["id"], bytes.fromhex(f["data"])))
         return out
 
-    def wait_frame(self, cob_id: int, data: bytes, after: int = 0, timeout_s: float = 15) -> int:
-        """Index of the first frame (cob_id, data) at or after index ``after``."""
+    def wait_frame(self, cob_id: int, data: bytes | None, after: int = 0, timeout_s: float = 15) -> int:
+        """Index of the first frame (cob_id, data) at or after index ``after`` (any data: None)."""
         def find() -> int | None:
             for i, fr in enumerate(self.frames()[after:], start=after):
-                if fr == (cob_id, data):
+                if fr[0] == cob_id and (data is None or fr[1] == data):
                     return i + 1
             return None
-        return wait_for(find, timeout_s, f"frame 0x{cob_id:03X} {data.hex()}") - 1
+        return wait_for(find, timeout_s, f"frame 0x{cob_id:03X} {data.hex() if data is not None else '*'}") - 1

@@ -133,7 +133,9 @@ class MultiHostRun:
                  prefix: str | None = None, pki: str | None = None) -> None:
         self.prefix = prefix or f"zm{os.getpid() % 100000}"
         #: A drives-pki directory holding router certificates ``r-<host>`` (SAN: the host's
-        #: address) and agent certificates ``<host>``: every link TLS, every router with the ACL.
+        #: address), agent certificates ``<host>`` and testbed certificates ``sim-<host>`` (each
+        #: ecat-sim then also serves its Zenoh control through its host's router): every link
+        #: TLS, every router with the ACL.
         #: None: the plain bed (routers --insecure: they listen on the bed's addresses).
         self.pki = pki
         self.drives = drives
@@ -169,9 +171,10 @@ class MultiHostRun:
         for h in hosts:  # everything starts in parallel; readiness is awaited below
             hb = self.bed.host(h)
             sock = os.path.join(self.workdir, f"{h}.sock")
+            zenoh_control = ["--zenoh-connect", self.router_endpoint(h), *self.security(f"sim-{h}")] if self.pki else []
             self.sims[h] = self.spawn(Proc, f"ecat-sim {h}", h, [
                 py, "-m", "bus_agent.sim.cli", "--ifname", hb.ecat_sim, "--drives", str(self.drives),
-                "--name", h, "--control", sock, "--rt-priority", "20"], ready_marker="ecat-sim ready")
+                "--name", h, "--control", sock, "--rt-priority", "20", *zenoh_control], ready_marker="ecat-sim ready")
             connect: list[str] = []
             for other in hosts[:hosts.index(h)]:
                 connect += ["--connect", self.router_endpoint(other)]

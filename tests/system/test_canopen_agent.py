@@ -1,83 +1,154 @@
-"""The CANopen backend for real: ``canopen-sim`` and ``bus-agent --can`` as separate processes
-exchanging CAN frames (python-can udp_multicast) in a namespace of their own, ``drivectl`` over
-Zenoh, and a plain python-can listener checking the NMT frames on the bus (COB-ID 0x000)."""
+"""The CANopen backend for real: ``canopen-sim`` (3 nodes) and ``bus-agent`` with a ``[can]``
+configuration as separate processes exchanging CAN frames (python-can udp_multicast) in a
+namespace of their own (only ``lo``: no frame leaves it). ``drivectl`` runs in the namespace over
+TCP; the test's own supervisor (``Fleet``) and fault injection reach in over UNIX sockets.
+
+Covered: the three PDO policies (node, explicit, default) each carry a drive to Operation
+enabled; NMT stop/pre-operational/start/reset communication/reset node as frames on COB-ID
+0x000 seen by a plain python-can listener; a node's heartbeat lost and back (lost, the group
+reacts; back to operational, never re-enabled); an EMCY to fault with its error text.
+"""
 
 from __future__ import annotations
 
-import json
-import sys
+import time
 from typing import Iterator
 
 import pytest
+import zenoh
 
+from bus_agent.bus.canopen import mapping as m
+from bus_agent.gateway.zenoh_config import make_zenoh_config
 from bus_agent.sim.child import free_port, wait_for
+from bus_agent.sim.control import sim_inject
+from supervisor.fleet import Fleet
 from tests.conftest import require_root
 from tests.system.canbed import CHANNEL, CanBed
 
 pytestmark = [pytest.mark.root, pytest.mark.slow]
 
+# node 2: its own layout, PDO 1 and 2 regrouped (written by the agent at start-up and after a reset)
+EXPLICIT_RPDO = [[m.mapping_value((0x6040, 0, 16)), m.mapping_value((0x6060, 0, 8))],
+                 [m.mapping_value((0x607A, 0, 32)), m.mapping_value((0x60FF, 0, 32))]]
+EXPLICIT_TPDO = [[m.mapping_value((0x6041, 0, 16)), m.mapping_value((0x6061, 0, 8)), m.mapping_value((0x603F, 0, 16))],
+                 [m.mapping_value((0x6064, 0, 32)), m.mapping_value((0x606C, 0, 32))]]
+AXES = ("c2/axis0", "c2/axis1", "c2/axis2")
+
+
+def _toml(listen: list[str]) -> str:
+    return f"""
+host = "c2"
+cycle_us = 10000
+[zenoh]
+listen = {listen!r}
+[defaults]
+fault_reset_retries = 10
+[can]
+channel = "{CHANNEL}"
+interface = "udp_multicast"
+heartbeat_ms = 200
+nodes = [{{ id = 1, pdo = "node" }},
+         {{ id = 2, pdo = "explicit", rpdo = {EXPLICIT_RPDO}, tpdo = {EXPLICIT_TPDO} }},
+         {{ id = 3, pdo = "default", sdo = [{{ index = 0x605A, value = 2, size = 2 }}] }}]
+[groups]
+pair = ["c2/axis0", "c2/axis1"]
+""".replace("'", '"')
+
+
+class Bed:
+    def __init__(self, can: CanBed, tcp: str, fleet: Fleet, sim: zenoh.Session) -> None:
+        self.can, self.tcp, self.fleet, self.sim = can, tcp, fleet, sim
+
+    def row(self, axis: str):
+        st = self.fleet.fetch_status(axis)
+        assert len(st) == 1, st
+        return next(iter(st.values()))
+
+    def inject(self, position: int, action: str, **args: object) -> None:
+        sim_inject(self.sim, "cansim", position, action, timeout_s=10, **args)
+
 
 @pytest.fixture(scope="module")
-def bed() -> Iterator[tuple[CanBed, str]]:
+def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bed]:
     require_root()
     b = CanBed("a")
     try:
+        sim_ep = b.unix_endpoint("sim")
         b.module("canopen-sim", "bus_agent.sim.canopen.cli", "--channel", CHANNEL, "--interface", "udp_multicast",
-                 "--nodes", "2", ready="canopen-sim ready")
-        ep = f"tcp/127.0.0.1:{free_port()}"
-        b.module("agent c1", "bus_agent.cli", "--host", "c1", "--can", CHANNEL, "--can-interface", "udp_multicast",
-                 "--nodes", "1,2", "--cycle-us", "4000", "--listen", ep, ready="bus-agent ready", timeout_s=60)
-        yield b, ep
+                 "--nodes", "3", "--name", "cansim", "--zenoh-listen", sim_ep, ready="canopen-sim ready")
+        tcp, unix = f"tcp/127.0.0.1:{free_port()}", b.unix_endpoint("agent")
+        cfg = tmp_path_factory.mktemp("can") / "agent.toml"
+        cfg.write_text(_toml([tcp, unix]))
+        b.module("agent c2", "bus_agent.cli", "--config", str(cfg), ready="bus-agent ready", timeout_s=60)
+        sim = zenoh.open(make_zenoh_config("client", (), [sim_ep]))
+        with Fleet(connect=[unix], name="cantest") as fleet:
+            assert fleet.wait_for_agents(["c2"], 20, drives=3)
+            yield Bed(b, tcp, fleet, sim)
+        sim.close()
     finally:
         b.close()
 
 
-def drivectl(bed: CanBed, ep: str, *args: str) -> tuple[int, str]:
-    r = bed.run(sys.executable, "-m", "supervisor.cli", "--connect", ep, *args)
-    return r.returncode, r.stdout + r.stderr
-
-
-def states(bed: CanBed, ep: str) -> dict[str, dict]:
-    rc, out = drivectl(bed, ep, "--json", "status")
+def test_pdo_policies_and_drivectl_enable_disable(bed: Bed) -> None:
+    agent = next(c for c in bed.can.children if c.name == "agent c2")
+    text = agent.output(300)
+    assert "node 1: configured, PDO policy node: rpdo 0x201[6040:0,607A:0,6060:0] 0x301[60FF:0,6071:0]" in text
+    assert ("node 2: configured, PDO policy explicit: rpdo 0x202[6040:0,6060:0] 0x302[607A:0,60FF:0]; "
+            "tpdo 0x182[6041:0,6061:0,603F:0] 0x282[6064:0,606C:0]") in text
+    assert "node 3: configured, PDO policy default" in text
+    assert all(bed.row(a).state == "switch_on_disabled" for a in AXES)   # nobody asked: nothing enabled
+    rc, out = bed.can.drivectl(bed.tcp, "enable", "c2/*")
     assert rc == 0, out
-    doc = json.loads(out)
-    rows = doc["drives"] if isinstance(doc, dict) else doc
-    return {f"{r['host']}/{r['axis']}": r for r in rows}
-
-
-def test_enable_and_disable_through_drivectl(bed: tuple[CanBed, str]) -> None:
-    b, ep = bed
-    before = states(b, ep)
-    assert set(before) == {"c1/axis0", "c1/axis1"}
-    assert all(r["state"] == "switch_on_disabled" for r in before.values()), before
-    rc, out = drivectl(b, ep, "enable", "c1/*")
+    assert all(bed.row(a).state == "operation_enabled" and bed.row(a).al_state == "op" for a in AXES)
+    rc, out = bed.can.drivectl(bed.tcp, "disable", "c2/*")
     assert rc == 0, out
-    assert all(r["state"] == "operation_enabled" and r["al_state"] == "op" for r in states(b, ep).values())
-    rc, out = drivectl(b, ep, "disable", "**")
-    assert rc == 0, out
-    assert all(r["state"] == "switch_on_disabled" for r in states(b, ep).values())
+    assert all(bed.row(a).state == "switch_on_disabled" for a in AXES)
 
 
-def test_nmt_frames_on_the_bus(bed: tuple[CanBed, str]) -> None:
-    b, ep = bed
-    log = b.listener()
-    # (drivectl nmt command, NMT command specifier, AL state reported afterwards)
+def test_nmt_frames_on_the_bus(bed: Bed) -> None:
+    log = bed.can.listener()
+    # (nmt command, NMT command specifier on 0x000, AL state reported afterwards)
     for command, specifier, al in (("stop", 0x02, "safeop"), ("preop", 0x80, "preop"), ("start", 0x01, "op"),
-                                   ("reset_comm", 0x82, "preop")):
+                                   ("reset_comm", 0x82, "preop"), ("reset_node", 0x81, "op")):
         mark = len(log.frames())
-        rc, out = drivectl(b, ep, "nmt", command)
-        assert rc == 0, f"nmt {command}: {out}"
-        for node in (1, 2):
+        result = bed.fleet.nmt(command, ["c2"], timeout_s=20)
+        assert result.ok, f"nmt {command}: {result.failures}"
+        for node in (1, 2, 3):
             log.wait_frame(0x000, bytes((specifier, node)), after=mark)
-        if command == "reset_comm":  # the node reboots its communication: boot-up message
-            for node in (1, 2):
+            if command.startswith("reset"):  # the node reboots (its communication): boot-up message
                 log.wait_frame(0x700 + node, b"\x00", after=mark)
-        wait_for(lambda: all(r["al_state"] == al for r in states(b, ep).values()), 15, f"al_state {al} after {command}")
-    rc, out = drivectl(b, ep, "nmt", "start")
-    assert rc == 0, out
-    # back in operational: SYNC and TPDOs flow again, and a drive enables
+        wait_for(lambda: all(bed.row(a).al_state == al for a in AXES), 20, f"al_state {al} after nmt {command}")
+    assert bed.fleet.nmt("start", ["c2"], timeout_s=20).ok
     mark = len(log.frames())
-    log.wait_frame(0x080, b"", after=mark)
-    rc, out = drivectl(b, ep, "enable", "c1/axis1")
-    assert rc == 0, out
-    assert drivectl(b, ep, "disable", "**")[0] == 0
+    log.wait_frame(0x080, b"", after=mark)            # SYNC flows again
+    log.wait_frame(0x182, None, after=mark)           # and node 2's TPDO, mapped again after its reset
+    assert bed.fleet.enable("c2/axis1", timeout_s=20).ok
+    assert bed.fleet.disable("c2/*", timeout_s=20).ok
+
+
+def test_heartbeat_loss_and_return(bed: Bed) -> None:
+    assert bed.fleet.enable("c2/axis0", "c2/axis1", timeout_s=20).ok
+    bed.inject(1, "unplug")                           # node 2 falls silent: no heartbeat, no TPDO
+    wait_for(lambda: bed.row("c2/axis1").lost, 20, "axis1 lost")
+    assert bed.row("c2/axis1").al_state == "none"
+    # its group partner is taken out of Operation enabled by the reflex (quick stop)
+    wait_for(lambda: bed.row("c2/axis0").state in ("switch_on_disabled", "quick_stop_active"), 20,
+             "axis0 stopped by the group reflex")
+    bed.inject(1, "plug")                             # boots again (boot-up), pre-operational
+    wait_for(lambda: not bed.row("c2/axis1").lost and bed.row("c2/axis1").al_state == "op", 30,
+             "axis1 back in operational")
+    deadline = time.monotonic() + 1.5
+    while time.monotonic() < deadline:                # never re-enabled without a command
+        assert bed.row("c2/axis1").state != "operation_enabled"
+    assert bed.fleet.enable("c2/axis1", timeout_s=20).ok  # a new command enables it again
+    assert bed.fleet.disable("c2/*", timeout_s=20).ok
+
+
+def test_emcy_to_fault_with_error_text(bed: Bed) -> None:
+    assert bed.fleet.enable("c2/axis2", timeout_s=20).ok
+    bed.inject(2, "fault", error_code=0x2310)
+    wait_for(lambda: bed.row("c2/axis2").state == "fault", 20, "axis2 in fault")
+    row = bed.row("c2/axis2")
+    assert row.error_code == 0x2310 and row.error_text == "continuous over current"
+    assert bed.fleet.fault_reset("c2/axis2", timeout_s=20).ok
+    assert bed.row("c2/axis2").state == "switch_on_disabled"

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -20,7 +22,7 @@ from typing import Iterator
 import pytest
 
 from bus_agent.security import pki
-from bus_agent.sim.child import wait_for
+from bus_agent.sim.child import ROOT, child_env, wait_for
 from tests.conftest import require, require_root
 from tests.system.multihost import MultiHostRun, SupervisorProc
 
@@ -42,7 +44,8 @@ def run() -> Iterator[MultiHostRun]:
         for h in bed.host_names:
             pki.issue(d, f"r-{h}", ["router"], sans=[bed.bed.host(h).address])
             pki.issue(d, h, ["agent"])
-        for name, role in (("alice", "operator"), ("mia", "maintenance"), ("vic", "viewer")):
+            pki.issue(d, f"sim-{h}", ["testbed"])
+        for name, role in (("alice", "operator"), ("mia", "maintenance"), ("vic", "viewer"), ("tb", "testbed")):
             pki.issue(d, name, [role])
         bed.start()
         yield bed
@@ -57,6 +60,28 @@ def run() -> Iterator[MultiHostRun]:
 @pytest.fixture(scope="module")
 def vic(run: MultiHostRun) -> SupervisorProc:
     return run.start_supervisor("sup", "h2", "vic")
+
+
+INJECT = """
+import sys
+from bus_agent.gateway.zenoh_config import make_zenoh_config
+from bus_agent.sim.control import SimControlError, sim_inject
+import zenoh
+ep, pki, identity = sys.argv[1:4]
+with zenoh.open(make_zenoh_config("client", [], [ep], pki=pki, identity=identity)) as s:
+    try:
+        print("injected", sim_inject(s, "h2", 1, "fault", timeout_s=3.0, error_code=0x7500))
+    except SimControlError as exc:
+        print("refused", exc)
+"""
+
+
+def _inject(run: MultiHostRun, identity: str) -> str:
+    """A fault on h2's slave 1 through ecat-sim's Zenoh control, asked from sup via h1's router."""
+    argv = run.bed.host("sup").exec_argv(sys.executable, "-c", INJECT, run.router_endpoint("h1"), str(run.pki), identity)
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, cwd=ROOT, env=child_env())
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc.stdout
 
 
 def _drivectl(run: MultiHostRun, identity: str, *args: str, via: str = "h1") -> tuple[int, str]:
@@ -99,3 +124,13 @@ def test_operator_enables_maintenance_resets_viewer_watches_across_two_routers(r
     # The other drives kept running.
     assert run.controls["h1"].drive_states() == [ENABLED] * DRIVES
     assert run.controls["h2"].drive_states()[1:] == [ENABLED] * (DRIVES - 1)
+
+
+def test_only_testbed_reaches_ecat_sims_zenoh_control_across_routers(run: MultiHostRun) -> None:
+    """ecat-sim --pki: its control (drives/@sim/h2/...) behind h2's router, asked via h1's."""
+    out = _inject(run, "alice")
+    assert out.startswith("refused") and "no simulator answered" in out, out
+    assert run.controls["h2"].drive_states()[1] != "fault"
+    out = _inject(run, "tb")
+    assert out.startswith("injected"), out
+    wait_for(lambda: run.controls["h2"].drive_states()[1] == "fault", 3.0, "h2/axis1 in fault (testbed's inject)")

@@ -39,7 +39,7 @@ from bus_agent.config import CanConfig
 log = logging.getLogger(__name__)
 
 INTERFACES = ("socketcan", "udp_multicast")
-DEFAULT_HEARTBEAT_MS = 100
+DEFAULT_HEARTBEAT_MS = 200
 #: Consumer time as a multiple of the producer time (CiA 301 leaves it to the integrator).
 HEARTBEAT_TIMEOUT_FACTOR = 3.0
 BOOT_TIMEOUT_S = 5.0
@@ -109,6 +109,9 @@ class CanopenBus:
         self._by_id = {c.node_id: i for i, c in enumerate(cfgs)}
         self.heartbeats = HeartbeatConsumer(tuple(ids), heartbeat_ms / 1000.0 * HEARTBEAT_TIMEOUT_FACTOR)
         self.emergencies: collections.deque[emcy_mod.Emergency] = collections.deque(maxlen=256)
+        self._emcy_new: collections.deque[tuple[int, int, int, str]] = collections.deque(maxlen=256)
+        #: position -> (error code, text) of its last EMCY (read by the cycle for error_text)
+        self.error_texts: dict[int, tuple[int, str]] = {}
         self.frames_sent = 0
         self.exchanges = 0
         self._network: Any = None
@@ -135,6 +138,9 @@ class CanopenBus:
         pos = self._by_id.get(e.node_id)
         if pos is not None:
             self._nodes[pos].last_emcy = e
+            if not e.reset:
+                self.error_texts[pos] = (e.error_code, e.text)
+            self._emcy_new.append((pos, e.error_code, e.error_register, e.text))
         self.emergencies.append(e)
         log.warning("CAN %s node %d: EMCY 0x%04X (%s), error register 0x%02X", self.channel, e.node_id,
                     e.error_code, e.text, e.error_register)
@@ -328,6 +334,20 @@ class CanopenBus:
             else:
                 self.send_nmt(command, self._node(position).cfg.node_id)
 
+    def request_nmt(self, position: int | None, command: str) -> None:
+        """The agent's NMT command (cia402.md §5) as the CANopen one: ``reset_node`` is NMT reset
+        node (0x81), the rest as :meth:`request_al_state` (reset_comm: reset communication)."""
+        if command == "reset_node":
+            with self._lock:
+                self.send_nmt(NmtCommand.RESET_NODE,
+                              BROADCAST if position is None else self._node(position).cfg.node_id)
+            return
+        state = {"start": ALState.OP, "stop": ALState.SAFEOP, "preop": ALState.PREOP,
+                 "reset_comm": ALState.INIT}.get(command)
+        if state is None:
+            raise BusError(f"CAN {self.channel}: unknown NMT command {command!r}")
+        self.request_al_state(position, state)
+
     def recover(self, position: int) -> bool:
         """One step: a silent node -> nothing; a node that booted -> configure it again; not
         operational -> NMT start. True once its heartbeat says operational. Its drive stays
@@ -361,6 +381,14 @@ class CanopenBus:
     def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
         node = self._node(position)
         sdo_mod.write(node.remote.sdo, node.cfg.node_id, index, subindex, data)
+
+    def take_emergencies(self) -> list[tuple[int, int, int, str]]:
+        """EMCY frames since the last call as (position, error code, register, text). Cycle-safe."""
+        out = []
+        q = self._emcy_new
+        while q:
+            out.append(q.popleft())
+        return out
 
     def last_emergency(self, position: int) -> emcy_mod.Emergency | None:
         return self._node(position).last_emcy

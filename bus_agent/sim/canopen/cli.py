@@ -90,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
         if session is not None:
             session.close()
         bus.shutdown()
-        logging.getLogger(__name__).info("frames in %d out %d", segment.frames_in, segment.frames_out)
+        print(f"canopen-sim stopped frames_in={segment.frames_in} frames_out={segment.frames_out} "
+              f"max_lag_ms={segment.max_lag_s * 1000:.1f}", flush=True)
     return 0
 
 

@@ -45,6 +45,7 @@ class Segment:
         self.frames_in = 0
         self.frames_out = 0
         self.send_errors = 0
+        self.max_lag_s = 0.0
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -74,6 +75,10 @@ class Segment:
             with self.lock:
                 if msg is not None and not msg.is_remote_frame and not msg.is_error_frame:
                     self.frames_in += 1
+                    if msg.timestamp:  # kernel receive time (wall clock): how far behind the bus we are
+                        lag = time.time() - msg.timestamp
+                        if lag > self.max_lag_s:
+                            self.max_lag_s = lag
                     cob, data = msg.arbitration_id, bytes(msg.data)
                     for node in self.nodes:
                         out = node.on_frame(cob, data, now)
