@@ -69,6 +69,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("supervisor", "two-phase enable/disable of 4x16 and 32x32 drives; status fan-in", "bench.bench_supervisor",
               (), ("--sizes", "4x16", "--rounds", "1", "--gets", "50"), False,
               s.supervisor_figures, s.supervisor_headline, s.supervisor_targets),
+    Benchmark("security", "mutual TLS + ACL against plain TCP in the same run: 16-drive enable, status fan-in",
+              "bench.bench_security", ("--rounds", "50", "--fanin", "8x32"), ("--quick",), False,
+              s.security_figures, s.security_headline, s.security_targets),
 )
 
 

@@ -263,3 +263,31 @@ def render_markdown(summary: Mapping[str, Any]) -> str:
         lines.append(f"| {r['name']}: {r['what']} | {r['status']} | {when}{load_s} | {r.get('headline') or '-'} "
                      f"| {targets} |")
     return "\n".join(lines) + "\n"
+
+
+def security_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {"enable": r.get("enable"), "fanin": r.get("fanin"), "summary": r.get("summary")}
+
+
+def security_headline(r: Mapping[str, Any]) -> str:
+    e, f, sm = r.get("enable", {}), r.get("fanin", {}), r.get("summary", {})
+    tcp, tls = e.get("tcp", {}), e.get("tls", {})
+    drives = (f.get("tcp") or [{}])[0].get("drives")
+    return (f"enable 16 drives p50 tcp {tcp.get('wall_ms_p50')} / tls {tls.get('wall_ms_p50')} ms "
+            f"({sm.get('enable_wall_p50_ratio')} x); fan-in {drives} drives: missed {sm.get('fanin_missed')}, "
+            f"watcher CPU per message {sm.get('fanin_watcher_cpu_per_msg_ratio')} x, "
+            f"router CPU {sm.get('fanin_router_cpu_ratio')} x")
+
+
+def security_targets(r: Mapping[str, Any]) -> list[Target]:
+    sm = r.get("summary", {})
+    limit = sm.get("target_ratio_max", 1.2)
+    out = []
+    for key, name in (("enable_wall_p50_ratio", "TLS+ACL / TCP: 16-drive enable wall p50"),
+                      ("fanin_watcher_cpu_per_msg_ratio", "TLS+ACL / TCP: fan-in watcher CPU per message")):
+        v = sm.get(key)
+        out.append(Target(name, v, f"<= {limit}", None if v is None else v <= limit))
+    missed = sm.get("fanin_missed", {})
+    out.append(Target("fan-in missed, both transports", missed, 0,
+                      bool(missed) and all(m == 0 for ms in missed.values() for m in ms)))
+    return out

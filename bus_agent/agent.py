@@ -30,6 +30,7 @@ from enum import Enum
 from typing import Any, Callable
 
 from bus_agent.gateway.bridge import BridgeError, GatewayProcess
+from bus_agent.gateway.zenoh_config import zenoh_error_text
 from bus_agent.bus.base import Bus, BusError
 from bus_agent.config import AgentConfig, ConfigError
 from bus_agent.cycle.cycle import Cycle
@@ -109,7 +110,7 @@ class Agent:
     def _zenoh_error(self, exc: object) -> AgentError:
         z = self.config.zenoh
         return AgentError(f"agent {self.config.host}: zenoh session failed (listen {', '.join(z.listen) or '-'}, "
-                          f"connect {', '.join(z.connect) or '-'}): {exc}")
+                          f"connect {', '.join(z.connect) or '-'}): {zenoh_error_text(exc)}")
 
     def _start_process_gateway(self) -> None:
         assert self.cycle is not None and self.bus is not None

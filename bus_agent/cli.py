@@ -34,11 +34,19 @@ log = logging.getLogger("bus_agent.cli")
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_STARTUP = 0, 1, 2, 3
+EXIT_CODES_HELP = """exit codes:
+  0  stopped cleanly (SIGINT/SIGTERM: ordered shutdown of every drive, then AL INIT)
+  1  the cycle or the gateway process failed while running (same ordered shutdown)
+  2  bad command line or configuration (nothing started)
+  3  start-up failed: bus, slave identity, AL state, zenoh session, or the host name is held
+     by another running agent (one agent per host name)"""
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bus-agent", description="Run a bus agent: an EtherCAT segment of CiA 402 "
-                                "drives (or simulated drives) served over Zenoh.")
+                                "drives (or simulated drives) served over Zenoh. Flags override the --config "
+                                "file; defaults are those of deploy/agent.example.toml.",
+                                epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", metavar="TOML", help="agent configuration file (see deploy/agent.example.toml)")
     p.add_argument("--host", help="host name in the key space (default: from the config, else this machine's name)")
     backend = p.add_mutually_exclusive_group()
@@ -48,10 +56,11 @@ def _parser() -> argparse.ArgumentParser:
                          "(SocketCAN interface, or a udp_multicast group; docs/canopen.md)")
     p.add_argument("--can-interface", choices=CAN_INTERFACES, help="python-can interface of --can (default socketcan)")
     p.add_argument("--nodes", metavar="IDS", help="CANopen node ids of --can, e.g. 1,2,3 (slave positions in that order)")
-    p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile")
-    p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds")
-    p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period")
-    p.add_argument("--listen", action="append", metavar="EP", help="zenoh listen endpoint (repeatable)")
+    p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile (default generic)")
+    p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds (default 1000)")
+    p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period (default 1.0 s)")
+    p.add_argument("--listen", action="append", metavar="EP", help="zenoh listen endpoint (repeatable; default "
+                   f"{DEFAULT_LISTEN} when neither --config nor --connect is given, else none)")
     p.add_argument("--connect", action="append", metavar="EP", help="zenoh connect endpoint, e.g. a router (repeatable)")
     p.add_argument("--mode", choices=ZENOH_MODES, help="zenoh session mode (default peer)")
     p.add_argument("--pki", metavar="DIR", help="drives-pki directory: mutual TLS on every link, ACL on what it "
@@ -60,10 +69,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--insecure", action="store_true", default=None,
                    help="allow listening on a non-loopback address without --pki")
     p.add_argument("--rt-priority", type=int, metavar="N",
-                   help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; 0 = off)")
+                   help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; default 0 = off)")
     p.add_argument("--gateway-thread", action="store_true",
                    help="run the Zenoh gateway as threads of this process (debugging) instead of a child process")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="default INFO (the audit trail of commands is logged at INFO)")
     return p
 
 

@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import zenoh
 
+from bus_agent.gateway.zenoh_config import zenoh_error_text
 from schemas import keys
 from schemas.messages import (
     AgentStatus,
@@ -140,11 +141,6 @@ def zenoh_config(mode: str, connect: Sequence[str], listen: Sequence[str] = (),
     if mode == "peer":
         conf["listen"] = {"endpoints": list(listen)}
     return zenoh.Config.from_json5(json.dumps(conf))
-
-
-def zenoh_error_text(exc: BaseException) -> str:
-    """A zenoh error without the library's source location (``... at /root/.cargo/...rs:388.``)."""
-    return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 Listener = Callable[..., None]

@@ -34,10 +34,11 @@ from typing import Any, Callable, Mapping
 import tomli_w
 
 from bus_agent.sim.child import ChildProcess, free_port
+from bus_agent.sim.control import sim_inject
 from supervisor.fleet import Fleet, FleetError
 from supervisor.fleetfile import ExpectedFleet, load
 from supervisor.selectors import DriveRef
-from supervisor.simctl import inject
+from supervisor.simctl import sim_targets
 from schemas.messages import DriveStatus
 
 from .ecat import EcatHost, ecat_down, ecat_plan, ecat_up, prerequisites
@@ -292,9 +293,11 @@ class Twin:
     def inject(self, ref: str, action: str, **args: Any) -> str:
         """Any simulator action on drive ``ref`` (``fault``, ``unplug``, ``plug``, ``wkc_fault``;
         with ecat also ``drop_frames``, ``delay_frames``); returns the simulator's detail."""
-        host, axis = parse_ref(self.expected, ref)
+        parse_ref(self.expected, ref)
         try:
-            return inject(self.fleet.session, self.fleet.drives(), DriveRef(host, axis), action, **args)
+            # the slave position as the drive's agent published it; any action the simulator serves
+            (target,) = sim_targets(self.fleet, [ref])
+            return "; ".join(sim_inject(self.fleet.session, target.segment, target.slave, action, **args))
         except Exception as exc:
             raise TwinError(f"drive {ref}: {action} refused: {exc}") from None
 

@@ -1,7 +1,7 @@
 """One place that turns the project's few Zenoh settings into a ``zenoh.Config``.
 
 Used by the bus agent, the supervisor and the tests, so every session of the project has the
-same defaults (see shared/docs/zenoh.md):
+same defaults (docs/deployment.md):
 
 - multicast scouting off (it only works on one L2 segment and leaks between test runs);
 - a short link lease (``transport/link/tx/lease``, default 10 s in zenoh) so a cut network is
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -39,6 +40,11 @@ DEFAULT_KEEP_ALIVE = 4
 DEFAULT_CLIENT_CONNECT_TIMEOUT_MS = 5000
 #: Background reconnection back-off of peers and routers.
 CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 2000, "period_increase_factor": 2}
+
+
+def zenoh_error_text(exc: object) -> str:
+    """A zenoh error without the library's source locations (``... at /root/.cargo/...rs:61.``)."""
+    return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 class ZenohConfigError(ValueError):

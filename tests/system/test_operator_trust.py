@@ -219,3 +219,104 @@ def test_verbose_status_shows_agent_cycle_figures(bed: Bed) -> None:
     r = drivectl(bed.ep, "status", "-v")
     assert r.returncode == 0, r.stderr
     assert "period p99 us" in r.stdout and "WKC errors" in r.stdout and "overruns" in r.stdout
+
+
+def test_sim_verbs_inject_by_axis_name(bed: Bed) -> None:
+    r = drivectl(bed.ep, "--json", "sim", "fault", "t1/axis1", "0x4310")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert json.loads(r.stdout)["results"][0]["slave"] == 1
+    with Fleet(connect=[bed.ep]) as f:
+        assert f.wait_until(lambda f: (st := f.status("t1/axis1")) is not None and st.state == "fault"
+                            and st.error_text == "excess drive temperature", 10)
+        assert drivectl(bed.ep, "sim", "unplug", "t1/axis0").returncode == 0
+        assert f.wait_until(lambda f: f.status("t1/axis0").lost, 10)
+        assert drivectl(bed.ep, "sim", "plug", "t1/axis0").returncode == 0
+        assert f.wait_until(lambda f: not f.status("t1/axis0").lost and f.status("t1/axis0").al_state == "op", 20)
+        wkc = f.agents()["t1"].status.wkc_errors
+        assert drivectl(bed.ep, "sim", "wkc-fault", "on", "t1/axis0").returncode == 0
+        assert f.wait_until(lambda f: f.agents()["t1"].status.wkc_errors > wkc, 10)
+        assert drivectl(bed.ep, "sim", "wkc-fault", "off", "t1/axis0").returncode == 0
+        assert f.wait_until(lambda f: not f.status("t1/axis0").lost, 20)
+    # bad input: exit 2, nothing injected
+    for args in (("sim", "fault", "t1/axis1"), ("sim", "fault", "t1/axis1", "hot"), ("sim", "wkc-fault", "maybe"),
+                 ("sim", "unplug", "t1/axis7"), ("sim", "explode", "t1/axis0")):
+        r = drivectl(bed.ep, *args)
+        assert r.returncode == 2 and r.stderr.strip(), (args, r.stdout, r.stderr)
+    # a segment with no simulator: exit 1, with what to check
+    r = drivectl(bed.ep, "sim", "unplug", "t1/axis0", "--segment", "seg9", "--timeout", "1")
+    assert r.returncode == 1 and "seg9" in r.stdout, r.stdout + r.stderr
+    _reset(bed.ep, "t1/axis1")
+
+
+def test_lease_verb_holds_until_interrupted_and_release_gives_back(bed: Bed) -> None:
+    import signal
+    p = subprocess.Popen([sys.executable, "-m", "supervisor.cli", "--connect", bed.ep, "--name", "holder", "lease",
+                          "t2/*", "--ttl", "3", "--json"], stdout=subprocess.PIPE, text=True, env=_env())
+    try:
+        assert p.stdout is not None
+        line = json.loads(p.stdout.readline())
+        assert line == {"event": "leased", "holder": "holder", "drives": ["t2/axis0", "t2/axis1"]}
+        r = drivectl(bed.ep, "--name", "other", "--json", "switch-on", "t2/axis0")
+        assert r.returncode == 1 and json.loads(r.stdout)["final"][0]["outcome"] == "busy"
+        p.send_signal(signal.SIGINT)
+        assert p.wait(30) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    with Fleet(connect=[bed.ep]) as f:  # released on exit: no holder, no lease reaction
+        assert f.wait_until(lambda f: not f.status("t2/axis0").lease_holder, 10)
+    with Fleet(connect=[bed.ep], name="keeper") as keeper:
+        assert keeper.wait_for_agents(HOSTS, 10)
+        assert keeper.lease("t2/axis1", ttl_s=60).ok
+        r = drivectl(bed.ep, "--name", "keeper", "--json", "release", "t2/axis1")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert json.loads(r.stdout)["final"][0]["outcome"] == "done"
+        assert keeper.wait_until(lambda f: not f.status("t2/axis1").lease_holder, 10)
+
+
+def test_one_agent_per_host_name(bed: Bed) -> None:
+    """A second agent under a taken host name refuses to start (exit 3) before declaring
+    anything; two that meet later (a partition healing) both say so, and supervisors refuse to
+    command that host."""
+    from bus_agent.sim.child import ChildProcess, free_port
+
+    second = start_cli_agent_raw(bed.ep, "t1")
+    assert second.popen.wait(60) == 3, second.output()
+    assert "host name 't1' is taken" in second.output()
+    # A partition: c1 runs on the bed's router; another c1 comes up behind a router that is not
+    # there yet (nothing to see at its start), then that router appears and links to the bed's.
+    bed.start("c1", 1)
+    far = f"tcp/127.0.0.1:{free_port()}"
+    late = start_cli_agent_raw(far, "c1", ready=True)
+    bridge = ChildProcess("bridge-router", [sys.executable, "-m", "bus_agent.router", "--listen", far, "--connect",
+                                            bed.ep], ready_marker="drives-router ready")
+    try:
+        bridge.expect_ready(20)
+        with Fleet(connect=[bed.ep]) as f:
+            assert f.wait_until(lambda f: "c1" in f.conflicts(), 20), f.agents().get("c1")
+            assert f.wait_until(lambda f: all(a.status and a.status.conflict for a in [f.agents()["c1"]]), 10)
+            res = f.command("switch_on", "c1/*")
+            assert [(r.outcome, "not sent" in r.error) for r in res.results] == [("rejected", True)]
+            report = f.enable("c1/axis0")
+            assert not report.ok and report.failures[0].outcome == "rejected"
+            assert {st.state for st in f.fetch_status("c1/*").values()} == {"switch_on_disabled"}
+        r = drivectl(bed.ep, "status", "c1")
+        assert r.returncode == 1 and "conflict" in r.stdout.lower(), r.stdout
+        log = wait_for(lambda: [ln for ln in late.lines if "also used by agent instance" in ln], 10, "conflict log")
+        assert "ERROR" in log[0]
+    finally:
+        bridge.stop()
+        late.stop()
+        bed.agents.pop("c1").stop()
+
+
+def start_cli_agent_raw(router: str, host: str, ready: bool = False) -> Proc:
+    from bus_agent.sim.child import ChildProcess, free_port
+
+    p = ChildProcess(f"bus-agent {host}", [sys.executable, "-m", "bus_agent.cli", "--sim", "1", "--host", host,
+                                           "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router],
+                     ready_marker="bus-agent ready")
+    if ready:
+        p.expect_ready(60)
+    return p

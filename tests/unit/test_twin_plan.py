@@ -1,13 +1,9 @@
-"""The twin's plan (twin/plan.py): agent configurations from a fleet file, and drive-name resolution
-for fault injection (supervisor/simctl.py). Pure."""
+"""The twin's plan (twin/plan.py): agent configurations from a fleet file, and drive refs. Pure."""
 
 import pytest
 
 from bus_agent.config import config_from_dict
-from schemas.messages import DriveStatus
 from supervisor.fleetfile import parse
-from supervisor.selectors import DriveRef, SelectorError
-from supervisor.simctl import sim_target
 from twin.plan import PlanError, agent_toml, check_host, parse_ref, plan
 
 FLEET = {
@@ -83,21 +79,3 @@ def test_refs_are_checked_against_the_fleet(ref, needle):
     assert check_host(parse(FLEET), "conv") == "conv"
     with pytest.raises(PlanError, match="no host 'x'"):
         check_host(parse(FLEET), "x")
-
-
-def _status(host: str, axis: str, slave: int) -> DriveStatus:
-    return DriveStatus(host=host, axis=axis, seq=1, time_ns=1, cycle=1, state="switch_on_disabled",
-                       statusword=0x40, controlword=0, goal="disabled", halt=False, mode=8, mode_display=8, position=0,
-                       velocity=0, torque=0, error_code=0, slave=slave)
-
-
-def test_sim_target_takes_the_position_the_agent_published():
-    statuses = {DriveRef("h1", "x"): _status("h1", "x", 0), DriveRef("h1", "y"): _status("h1", "y", 3)}
-    assert sim_target(statuses, "h1/y") == ("h1", 3)
-    assert sim_target(statuses, DriveRef("h1", "x")) == ("h1", 0)
-    with pytest.raises(SelectorError, match=r"drive h1/z: no status seen.*known on h1: h1/x, h1/y"):
-        sim_target(statuses, "h1/z")
-    with pytest.raises(SelectorError, match="no drive of host h2 is known"):
-        sim_target(statuses, "h2/x")
-    with pytest.raises(SelectorError, match="host/axis"):
-        sim_target(statuses, "h1")
