@@ -50,6 +50,9 @@ log = logging.getLogger(__name__)
 READY_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 15.0
 MONITOR_PERIOD_S = 0.2
+#: SCHED_FIFO priority of each ecat-sim (as the test beds run it): on a loaded machine the
+#: simulated slaves must answer pysoem's start-up reads in time.
+SIM_RT_PRIORITY = 20
 
 
 class TwinError(RuntimeError):
@@ -200,7 +203,7 @@ class Twin:
         spec = self.expected.hosts[host]
         argv = [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", e.sim, "--drives", str(len(spec.axes)),
                 "--name", host, "--zenoh-connect", f"unixsock-stream/{self.router_socket}",
-                "--log-level", self.log_level]
+                "--rt-priority", str(SIM_RT_PRIORITY), "--log-level", self.log_level]
         if spec.profile:
             argv += ["--profile", spec.profile]
         return ChildProcess(f"ecat-sim {host}", self._argv(host, *argv), ready_marker="ecat-sim ready")
