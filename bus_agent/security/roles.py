@@ -30,10 +30,16 @@ class RoleError(ValueError):
     """An unknown role or a role combination that makes no sense."""
 
 
-#: Drive ops (``.../drive/<axis>/cmd/<op>``) each commanding role may send.
+#: The motion ops (issue 10: ``bus_agent/motion``), granted here ahead of the agents that serve
+#: them: a grant for an op nobody serves opens nothing.
+MOTION_OPS = ("move", "jog", "home", "stop")
+#: Drive ops (``.../drive/<axis>/cmd/<op>``) each commanding role may send. Every op of the
+#: contract must appear here (tests/unit/test_security_roles.py): a new op is denied to everyone
+#: until somebody decides who may send it.
 ROLE_DRIVE_OPS: Mapping[str, tuple[str, ...]] = {
-    "operator": ("enable", "switch_on", "shutdown", "disable", "quick_stop", "halt", "set_mode", "lease", "release"),
-    "maintenance": ("fault_reset", "quick_stop", "disable", "set_mode"),
+    "operator": ("enable", "switch_on", "shutdown", "disable", "quick_stop", "halt", "set_mode", "lease", "release",
+                 *MOTION_OPS),
+    "maintenance": ("fault_reset", "quick_stop", "disable", "set_mode", "stop"),
 }
 #: Agent ops (``.../agent/cmd/<op>``) each commanding role may send.
 ROLE_AGENT_OPS: Mapping[str, tuple[str, ...]] = {
@@ -42,12 +48,18 @@ ROLE_AGENT_OPS: Mapping[str, tuple[str, ...]] = {
 #: What a role may read: "all" (status, events, agent status, agent and supervisor tokens) or
 #: "status" (the same without the supervisors' tokens).
 ROLE_READ: Mapping[str, str] = {"operator": "all", "maintenance": "all", "viewer": "status"}
+
+
+def _ops_text(role: str) -> str:
+    return ", ".join((*ROLE_DRIVE_OPS.get(role, ()), *ROLE_AGENT_OPS.get(role, ())))
+
+
 #: Roles and what they are for (``drives-pki issue --role``).
 ROLES: Mapping[str, str] = {
     "router": "a drives-router: links to other routers, forwards everything it was let in",
     "agent": "a bus agent; its principal name is its host name: publishes, serves and holds a token only there",
-    "operator": "enable, switch_on, shutdown, disable, quick_stop, halt, set_mode, lease, release; reads everything",
-    "maintenance": "fault_reset, quick_stop, disable, nmt, set_mode; reads everything",
+    "operator": f"{_ops_text('operator')}; reads everything",
+    "maintenance": f"{_ops_text('maintenance')}; reads everything",
     "viewer": "reads drive status, events and agent status only",
     "testbed": "simulator fault injection: serves and queries drives/@sim/** (test beds only)",
 }
