@@ -70,6 +70,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="allow listening on a non-loopback address without --pki")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread (needs root/CAP_SYS_NICE; default 0 = off)")
+    p.add_argument("--record-s", type=float, metavar="S",
+                   help="flight recorder ring length in seconds (default 10, 0 = off; [recorder] in the config)")
     p.add_argument("--gateway-thread", action="store_true",
                    help="run the Zenoh gateway as threads of this process (debugging) instead of a child process")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
@@ -90,6 +92,7 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile, can=can,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
                      listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
+                     record_s=args.record_s,
                      pki=args.pki, identity=args.identity, insecure=args.insecure,
                      gateway="thread" if args.gateway_thread else None)
     if args.config:

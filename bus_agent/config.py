@@ -111,6 +111,15 @@ class DriveConfig:
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    """``[recorder]``: the flight recorder (bus_agent/cycle/recorder.py); ``seconds = 0`` turns it off."""
+
+    seconds: float = 10.0               # ring length: the last seconds of every cycle
+    pre_s: float = 5.0                  # a frozen window: before its trigger
+    post_s: float = 1.0                 # ... and after it
+
+
+@dataclass(frozen=True)
 class CanNode:
     """``[[can.nodes]]``: one CANopen node (slave position = its place in the list)."""
 
@@ -147,6 +156,7 @@ class AgentConfig:
     default_policy: DrivePolicy = DrivePolicy()
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
+    recorder: RecorderConfig = RecorderConfig()
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
 
     def __post_init__(self) -> None:
@@ -173,12 +183,17 @@ class AgentConfig:
     def with_overrides(self, **overrides: Any) -> "AgentConfig":
         """A copy with CLI flags applied (``host``, ``ifname``, ``sim_drives``, ``sim_profile``,
         ``cycle_us``, ``reflex``, ``heartbeat_s``, ``zenoh_mode``, ``listen``, ``connect``,
-        ``scouting``, ``pki``, ``identity``, ``insecure``, ``gateway``, ``rt_priority``); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
+        ``scouting``, ``pki``, ``identity``, ``insecure``, ``gateway``, ``rt_priority``, ``record_s``: the
+        recorder's ring length); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
         o = {k: v for k, v in overrides.items() if v is not None}
         zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting",
                  "pki": "pki", "identity": "identity", "insecure": "insecure"}
         top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s", "gateway",
                "rt_priority", "can"}
+        record_s = o.pop("record_s", None)
+        if record_s is not None:
+            o["recorder"] = dataclasses.replace(self.recorder, seconds=record_s)
+            top = top | {"recorder"}
         unknown = set(o) - top - set(zkeys)
         if unknown:
             raise ConfigError(f"unknown override(s): {', '.join(sorted(unknown))}")
@@ -241,6 +256,10 @@ def _validate(c: AgentConfig) -> None:
         raise ConfigError(f"gateway: {c.gateway!r} is not one of {', '.join(GATEWAY_MODES)}")
     if isinstance(c.rt_priority, bool) or not isinstance(c.rt_priority, int) or not 0 <= c.rt_priority <= 99:
         raise ConfigError(f"cycle.rt_priority: {c.rt_priority!r} must be 0 (off) or a SCHED_FIFO priority 1..99")
+    r = c.recorder
+    if r.seconds and not (0 <= r.pre_s and 0 <= r.post_s and r.pre_s + r.post_s < r.seconds <= 600):
+        raise ConfigError(f"recorder: need 0 <= pre_s + post_s < seconds <= 600 (got pre_s {r.pre_s:g}, "
+                          f"post_s {r.post_s:g}, seconds {r.seconds:g}); seconds = 0 turns it off")
     _validate_policy(c.default_policy, "defaults")
     slaves: dict[int, int] = {}
     axes: dict[str, int] = {}
@@ -435,6 +454,10 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     cy = t.table("cycle")
     rt_priority = cy.get("rt_priority", int, 0)
     cy.done()
+    rc = t.table("recorder")
+    recorder = RecorderConfig(seconds=rc.get("seconds", _NUM, 10.0), pre_s=rc.get("pre_s", _NUM, 5.0),
+                              post_s=rc.get("post_s", _NUM, 1.0))
+    rc.done()
     defaults_t = t.table("defaults")
     defaults = _policy(defaults_t, DrivePolicy())
     defaults_t.done()
@@ -478,6 +501,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         default_policy=defaults,
         gateway=t.get("gateway", str, "process"),
         rt_priority=rt_priority,
+        recorder=recorder,
         can=_can(t.table("can")) if "can" in t.data else None,
     )
     t.done()

@@ -227,6 +227,7 @@ class KeyKind(str, Enum):
     DRIVE_EVENT = "drive_event"
     DRIVE_CMD = "drive_cmd"
     SUPERVISOR = "supervisor"
+    AGENT_RECORDING = "agent_recording"
 
 
 @dataclass(frozen=True)
@@ -254,6 +255,11 @@ def agent_cmd(host: str, op: str, principal: str | None = None) -> str:
     """Key of agent command ``op`` on ``host`` (a query; op ``nmt``); with ``principal``, the
     authenticated form ending in ``@sup/<principal>``."""
     return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent/cmd/{zenoh_chunk(op, 'op')}{_by(principal)}"
+
+
+def agent_recording(host: str) -> str:
+    """Key of the flight recorder of ``host`` (a query with a ``recording_request``)."""
+    return f"{ROOT}/{zenoh_chunk(host, 'host')}/agent/recording"
 
 
 def alive(host: str) -> str:
@@ -326,6 +332,8 @@ def _parse_host_key(key: str, rest: list[str]) -> ParsedKey:
     tail = rest[1:]
     if tail == ["agent"]:
         return ParsedKey(KeyKind.AGENT_STATUS, host=host)
+    if tail == ["agent", "recording"]:
+        return ParsedKey(KeyKind.AGENT_RECORDING, host=host)
     if tail == ["alive"]:
         return ParsedKey(KeyKind.ALIVE, host=host)
     if len(tail) == 3 and tail[:2] == ["agent", "cmd"]:
@@ -392,6 +400,9 @@ KEY_TABLE: tuple[KeyInfo, ...] = (
             "agent status: AL states, cycle statistics, leases", "put (periodic)", "agent_status"),
     KeyInfo(f"{ROOT}/<host>/agent/cmd/<op>", KeyKind.AGENT_CMD.value,
             "agent commands; op: nmt", "queryable", "command_request -> command_reply"),
+    KeyInfo(f"{ROOT}/<host>/agent/recording", KeyKind.AGENT_RECORDING.value,
+            "flight recorder: the last seconds of every cycle, or a window frozen around a trigger",
+            "queryable", "recording_request -> recording"),
     KeyInfo(f"{ROOT}/<host>/alive", KeyKind.ALIVE.value,
             "liveliness token of the agent", "liveliness token"),
     KeyInfo(f"{ROOT}/<host>/drive/<axis>/status", KeyKind.DRIVE_STATUS.value,

@@ -75,6 +75,33 @@ AGENT_STATES = ("starting", "running", "stopping", "stopped", "error")
 
 MODES = (1, 3, 4, 6, 7, 8, 9, 10)
 
+#: What a ``recording_request`` asks for: the last seconds of the ring, the latest window frozen
+#: by a trigger of that kind (``any``: of any kind), or a window frozen now (``now``: an explicit
+#: request, answered when its after-trigger part is recorded).
+RECORDING_WHAT = ("last", "fault", "reflex", "lost", "request", "any", "now")
+#: Why a recording holds what it holds (an open vocabulary: the trigger kinds, or ``last``).
+RECORDING_REASONS = ("last", "fault", "reflex", "lost", "request")
+#: Channels of a recording, in order: name -> (per ``cycle`` or per ``drive``, meaning). A per-drive
+#: channel holds n_cycles x len(axes) values, cycle-major (all axes of the first cycle, then ...).
+RECORDING_CHANNELS: dict[str, tuple[str, str]] = {
+    "cycle": ("cycle", "agent cycle counter"),
+    "time_ns": ("cycle", "monotonic clock at the cycle start, ns"),
+    "period_ns": ("cycle", "time since the previous cycle start, ns"),
+    "wkc": ("cycle", "working counter of the exchange"),
+    "statusword": ("drive", "0x6041 statusword"),
+    "controlword": ("drive", "0x6040 controlword written"),
+    "target_position": ("drive", "0x607A target position written"),
+    "target_velocity": ("drive", "0x60FF target velocity written"),
+    "target_torque": ("drive", "0x6071 target torque written"),
+    "position": ("drive", "0x6064 position actual value"),
+    "velocity": ("drive", "0x606C velocity actual value"),
+    "torque": ("drive", "0x6077 torque actual value"),
+    "error_code": ("drive", "0x603F error code"),
+    "mode_display": ("drive", "0x6061 modes of operation display"),
+}
+#: Longest recording a request may ask for (``last_s``).
+RECORDING_MAX_S = 600.0
+
 U16 = (0, 0xFFFF)
 I32 = (-(2**31), 2**31 - 1)
 I16 = (-(2**15), 2**15 - 1)
@@ -240,7 +267,53 @@ class CommandReply:
     lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="holder of the lease (busy), '' if none")
 
 
-MESSAGE_TYPES: tuple[type[Any], ...] = (DriveStatus, AgentStatus, Event, CommandRequest, CommandReply)
+@dataclass(frozen=True)
+class RecordingRequest:
+    """Payload of a query on ``drives/@v1/<host>/agent/recording`` (the flight recorder)."""
+
+    TYPE: ClassVar[str] = "recording_request"
+    STRICT: ClassVar[bool] = True  # a request the agent does not fully understand is refused
+    what: str = _f("last", choices=RECORDING_WHAT, doc="last seconds, latest frozen window of a trigger kind, or freeze now")
+    last_s: float = _f(10.0, range=(0.001, RECORDING_MAX_S), doc="with what=last: how many seconds back")
+
+
+I64 = (-(2**63), 2**63 - 1)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Reply on ``drives/@v1/<host>/agent/recording``: consecutive cycles of every drive of the
+    agent, one value list per channel (:data:`RECORDING_CHANNELS`)."""
+
+    TYPE: ClassVar[str] = "recording"
+    STRICT: ClassVar[bool] = False  # published/replied state: readers ignore fields they do not know
+    host: str = _f(max_len=NAME_LEN, name=True, doc="agent host name")
+    reason: str = _f(choices=RECORDING_REASONS, open=True, doc="the trigger that froze it, or last")
+    cycle_us: int = _f(range=(1, 10_000_000), doc="configured cycle period")
+    first_cycle: int = _f(range=U64, doc="cycle counter of the first recorded cycle")
+    n_cycles: int = _f(range=(0, 2**32 - 1), doc="consecutive cycles recorded")
+    time_origin_ns: int = _f(range=U64, doc="agent wall clock at the first recorded cycle, ns since the epoch")
+    axes: list = _f([], items=NAME, doc="axis names, the order of per-drive values")
+    channels: dict = _f({}, keys=NAME, values=Meta(list, {"items": Meta(int, {"range": I64})}),
+                        doc="channel name -> values (per cycle, or per cycle and axis, cycle-major)")
+    axis: str = _f("", max_len=NAME_LEN, name=True, doc="axis of the trigger, '' if none")
+    detail: str = _f("", max_len=400, doc="what triggered it")
+    trigger_cycle: int = _f(0, range=U64, doc="cycle of the trigger, 0 if none")
+
+
+def _check_recording(kw: dict) -> None:
+    """Every known channel holds one value per cycle (or per cycle and axis)."""
+    n, axes = kw["n_cycles"], kw.get("axes", [])
+    for name, values in kw.get("channels", {}).items():
+        scope = RECORDING_CHANNELS.get(name, ("",))[0]
+        want = n if scope == "cycle" else n * len(axes) if scope == "drive" else len(values)
+        if len(values) != want:
+            raise SchemaError(f"recording.channels[{name!r}]: {len(values)} values, expected {want} "
+                              f"({n} cycles{' x ' + str(len(axes)) + ' axes' if scope == 'drive' else ''})")
+
+
+MESSAGE_TYPES: tuple[type[Any], ...] = (DriveStatus, AgentStatus, Event, CommandRequest, CommandReply,
+                                        RecordingRequest, Recording)
 _BY_TYPE = {cls.TYPE: cls for cls in MESSAGE_TYPES}
 
 
@@ -435,6 +508,8 @@ def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) 
         imeta = meta.get("items")
         if imeta is None:
             value = list(value)
+        elif imeta.type is int and set(imeta.meta) <= {"range", "doc"} and _int_list(value, imeta.meta):
+            value = list(value)  # long numeric lists (recordings): checked at C speed
         else:
             value = [_check_value(f"{where}[{i}]", imeta.type, imeta.meta, v, allow_empty=False)
                      for i, v in enumerate(value)]
@@ -446,6 +521,16 @@ def _check_value(where: str, t: type, meta: Any, value: Any, allow_empty: bool) 
             meta.get("open") and isinstance(value, str) and _OPEN_WORD.match(value)):
         raise SchemaError(f"{where}: {value!r} is not one of {', '.join(map(str, meta['choices']))}")
     return value
+
+
+def _int_list(value: Any, meta: dict) -> bool:
+    """True when every item is a plain int within ``meta['range']`` (else the slow path names it)."""
+    if not value:
+        return True
+    if not set(map(type, value)) <= {int}:
+        return False
+    lo, hi = meta.get("range", ARG_INT)
+    return lo <= min(value) and max(value) <= hi
 
 
 _OPEN_WORD = re.compile(r"[a-z][a-z0-9_]{0,31}\Z")
@@ -487,6 +572,8 @@ def _validated(cls: type[Any], body: dict) -> dict:
             raise SchemaError(f"{where}: required field missing")
     if cls is CommandRequest:
         _validate_args(kwargs["op"], kwargs.get("args", {}), f"{cls.TYPE}.args")
+    elif cls is Recording:
+        _check_recording(kwargs)
     return kwargs
 
 

@@ -43,6 +43,7 @@ from bus_agent.cycle.groups import Groups
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management
 from bus_agent.cycle.realtime import helper_priority, set_thread_fifo
+from bus_agent.cycle.recorder import Recorder, RecordingData, RecordingUnavailable
 from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand,
                                DriveSnapshot, Outcome)
 
@@ -220,6 +221,8 @@ class Cycle:
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.
         self.period_log = array("q", bytes(8 * record_periods)) if record_periods else None
         self.period_log_len = 0
+        #: The flight recorder (created in :meth:`open`; None when ``[recorder] seconds = 0``).
+        self.recorder: Recorder | None = None
 
     # ---- lifecycle --------------------------------------------------------------------------
 
@@ -268,6 +271,10 @@ class Cycle:
         for d in self.drives:
             d.al = self._al_status[d.slave]
         self.groups = Groups(self.config.host, self.config.groups, self.axes)
+        rc = self.config.recorder
+        if rc.seconds:
+            self.recorder = Recorder(self.axes, self.config.cycle_us, rc.seconds, rc.pre_s, rc.post_s,
+                                     wall_ns=self._wall_ns, mono_ns=self.clock_ns)
         self._stats = CycleStats(cycle_us=self.config.cycle_us, expected_wkc=self.bus.expected_wkc)
         self._opened = True
         self.state = "running"
@@ -306,6 +313,8 @@ class Cycle:
         self._prepare_process()
         self._mgmt.rt_priority = helper_priority(self.rt_priority)
         self._mgmt.start()
+        if self.recorder is not None:
+            self.recorder.start()
         self._thread = threading.Thread(target=self._run, name=f"cycle-{self.config.host}", daemon=True)
         self._thread.start()
 
@@ -361,6 +370,8 @@ class Cycle:
             return
         self._closed = True
         self._mgmt.stop()
+        if self.recorder is not None:
+            self.recorder.stop()
         try:
             self.bus.close()
         except Exception as e:
@@ -389,6 +400,13 @@ class Cycle:
 
     def stats(self) -> CycleStats:
         return self._stats
+
+    def recording(self, what: str = "last", last_s: float = 10.0, timeout_s: float = 5.0) -> RecordingData:
+        """A flight recording (``Recorder.fetch``); raises RecordingUnavailable. Thread-safe, not
+        for the cycle thread (``what='now'`` blocks until the window after the trigger is recorded)."""
+        if self.recorder is None:
+            raise RecordingUnavailable(f"the flight recorder of {self.config.host} is off ([recorder] seconds = 0)")
+        return self.recorder.fetch(what, last_s, timeout_s)
 
     # ---- the loop -------------------------------------------------------------------------------
 
@@ -494,6 +512,7 @@ class Cycle:
             if self.period_log is not None and self.period_log_len < len(self.period_log):
                 self.period_log[self.period_log_len] = p
                 self.period_log_len += 1
+        period_ns = now_ns - self._last_start_ns if self._last_start_ns else 0
         self._last_start_ns = now_ns
         now_s = now_ns / 1e9
         events = self._events = []
@@ -599,6 +618,9 @@ class Cycle:
         if cycle % RECOVER_EVERY_CYCLES == 0:
             self._update_recover_set()
 
+        rec = self.recorder
+        if rec is not None:
+            rec.record(cycle, now_ns, period_ns, wkc, self.drives, events)
         if cycle % STATS_EVERY == 0:
             self._update_stats()
         snap = CycleSnapshot(cycle=cycle, time_ns=self._wall_ns(), drives=self._drive_snapshots(),

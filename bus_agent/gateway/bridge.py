@@ -67,6 +67,8 @@ FORWARD_PERIOD_S = 0.05
 READY_TIMEOUT_S = 30.0
 #: How long ``CycleProxy.submit`` waits for the cycle process's answer.
 SUBMIT_TIMEOUT_S = 5.0
+#: A recording's round trip may take this much longer than its own timeout (copy, pickling).
+RECORD_MARGIN_S = 10.0
 #: Events kept while the bridge thread is behind (as the in-process gateway).
 EVENT_BACKLOG = 8192
 
@@ -91,12 +93,14 @@ class Msg(IntEnum):
     SIM_RESULT = 4  # (call id, ok, detail or error text)
     STOPPING = 5    # stop taking commands; agent state "stopping"
     CLOSE = 6       # the cycle stopped: publish the last status, undeclare, close, exit
+    RECORD_RESULT = 7  # (call id, ok, RecordingData or error text)
     # gateway process -> cycle process
     READY = 10      # ()
     FAILED = 11     # (what: "zenoh" | "gateway", text)
     SUBMIT = 12     # (cid, command fields)
     TRIGGER = 13    # (group, reason)
     SIM = 14        # (call id, action, position, args)
+    RECORD = 15     # (call id, what, last_s, timeout_s): a flight recording (Cycle.recording)
 
 
 class BridgeError(RuntimeError):
@@ -436,6 +440,9 @@ class GatewayProcess:
             except Exception as exc:  # refused: the child answers reply_err with this text
                 result = (False, str(exc) or type(exc).__name__)
             self._try_send(dumps((Msg.SIM_RESULT.value, call_id, *result)))
+        elif kind is Msg.RECORD:
+            # Copying (or waiting for a window to close) must not hold up commands: own thread.
+            threading.Thread(target=self._record, args=msg[1:], name="bridge-record", daemon=True).start()
         elif kind is Msg.READY:
             self._ready.set()
         elif kind is Msg.FAILED:
@@ -444,6 +451,13 @@ class GatewayProcess:
             self._ready.set()
         else:
             log.warning("gateway %s: unexpected bridge message %s", self.host, kind.name)
+
+    def _record(self, call_id: int, what: str, last_s: float, timeout_s: float) -> None:
+        try:
+            result: tuple = (True, self.cycle.recording(what, last_s, timeout_s))
+        except Exception as exc:  # refused or unavailable: the child answers reply_err with this text
+            result = (False, str(exc) or type(exc).__name__)
+        self._try_send(dumps((Msg.RECORD_RESULT.value, call_id, *result)))
 
     def _lost(self, why: str) -> None:
         if self.lost_reason is not None or self._closing.is_set():
@@ -556,6 +570,18 @@ class CycleProxy:
             raise ValueError(text)
         return text
 
+    def recording(self, what: str, last_s: float, timeout_s: float) -> Any:
+        """A flight recording from the cycle process (``Cycle.recording``); raises LookupError."""
+        call_id = -next(self._ids)
+        answer = self._round_trip(call_id, dumps((Msg.RECORD.value, call_id, what, last_s, timeout_s)),
+                                  timeout_s + RECORD_MARGIN_S)
+        if answer is None:
+            raise LookupError("the cycle process did not answer with a recording in time")
+        ok, value = answer
+        if not ok:
+            raise LookupError(value)
+        return value
+
     # reader thread
 
     def dispatch(self, msg: tuple) -> None:
@@ -577,7 +603,7 @@ class CycleProxy:
                 self.event_sink(events)
             if snap_t is not None and self.snapshot_sink is not None and self.latest is not None:
                 self.snapshot_sink(self.latest)
-        elif kind in (Msg.SUBMITTED, Msg.SIM_RESULT):
+        elif kind in (Msg.SUBMITTED, Msg.SIM_RESULT, Msg.RECORD_RESULT):
             with self._lock:
                 slot = self._answers.get(msg[1])
             if slot is not None:

@@ -75,6 +75,10 @@ AGENT_SUPERVISOR = ""
 #: How long one publish pass may wait, in all, for the command thread to finish its work (see
 #: ``Gateway._commands_first``).
 COMMANDS_FIRST_MAX_S = 0.005
+#: Flight recorder queries waiting to be served (beyond: refused as busy), and how long the cycle
+#: may take to produce one (an explicit request waits for its window's after part too).
+RECORDING_QUEUE = 4
+RECORDING_TIMEOUT_S = 10.0
 
 
 class RequestError(ValueError):
@@ -177,6 +181,14 @@ def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], 
     if req.op in LEASE_OPS and req.supervisor and args["holder"] != req.supervisor:
         raise RequestError(f"args.holder {args['holder']!r} differs from supervisor {req.supervisor!r}")
     return ParsedCommand(req, args, addressed, principal)
+
+
+def recording_message(host: str, data: Any) -> m.Recording:
+    """The ``recording`` reply for a ``bus_agent.cycle.recorder.RecordingData``."""
+    return m.Recording(host=host, reason=data.reason, cycle_us=data.cycle_us, first_cycle=data.first_cycle,
+                       n_cycles=data.n_cycles, time_origin_ns=data.time_origin_ns, axes=list(data.axes),
+                       channels=data.channels, axis=data.axis, detail=data.detail,
+                       trigger_cycle=data.trigger_cycle)
 
 
 # ---- pending requests ----------------------------------------------------------------------
@@ -339,6 +351,8 @@ class Gateway:
         # Set while the command thread has nothing to do; the publish thread waits for it (bounded).
         self._commands_idle = threading.Event()
         self._commands_idle.set()
+        # Flight recorder queries: served one at a time on their own thread (copies take a while).
+        self._recordings: queue.Queue[zenoh.Query] = queue.Queue(maxsize=RECORDING_QUEUE)
 
     # ---- called from the cycle thread: enqueue only --------------------------------------
 
@@ -390,8 +404,10 @@ class Gateway:
                 keys.drive_status(host, "*"), lambda smp: enqueue((self._on_remote_status, (smp,)))))
             self._other_decls.append(s.liveliness().declare_subscriber(
                 keys.alive(host), lambda smp: enqueue((self._on_remote_token, (smp,))), history=True))
+        self._other_decls.append(s.declare_queryable(keys.agent_recording(self.host), self._on_recording_query))
         self._threads = [threading.Thread(target=self._publish_loop, name="gw-publish", daemon=True),
-                         threading.Thread(target=self._command_loop, name="gw-command", daemon=True)]
+                         threading.Thread(target=self._command_loop, name="gw-command", daemon=True),
+                         threading.Thread(target=self._recording_loop, name="gw-record", daemon=True)]
         for t in self._threads:
             t.start()
         if hasattr(self.cycle, "event_sink"):  # a cycle behind the process bridge forwards events apart
@@ -633,6 +649,45 @@ class Gateway:
         with query:
             query.reply(keys.agent_status(self.host), m.encode(self._agent_status(self._agent_seq)),
                         encoding=MSGPACK)
+
+    # -- flight recorder
+
+    def _on_recording_query(self, query: zenoh.Query) -> None:
+        try:
+            self._recordings.put_nowait(query)
+        except queue.Full:
+            _reply_err(query, f"{self.host}: flight recorder busy: {RECORDING_QUEUE} requests are waiting")
+
+    def _recording_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                query = self._recordings.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                self._serve_recording(query)
+            except Exception as exc:  # keep serving; the querier gets the reason
+                log.exception("gateway %s: recording query failed", self.host)
+                _reply_err(query, f"{self.host}: recording failed: {exc}")
+
+    def _serve_recording(self, query: zenoh.Query) -> None:
+        try:
+            payload: Any = query.payload
+            req = m.RecordingRequest() if payload is None else m.decode(payload, m.RecordingRequest)
+        except m.SchemaError as exc:
+            _reply_err(query, f"{self.host}: invalid recording_request: {exc}")
+            return
+        fetch = getattr(self.cycle, "recording", None)
+        if fetch is None:
+            _reply_err(query, f"{self.host}: this agent has no flight recorder")
+            return
+        try:
+            data = fetch(req.what, req.last_s, RECORDING_TIMEOUT_S)
+        except LookupError as exc:
+            _reply_err(query, f"{self.host}: {exc}")
+            return
+        query.reply(keys.agent_recording(self.host), m.encode(recording_message(self.host, data)), encoding=MSGPACK)
+        _finish(query)
 
     # -- commands
 

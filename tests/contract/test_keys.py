@@ -130,6 +130,7 @@ def test_build_parse_round_trip(host, axis, op, sup):
     assert keys.parse(keys.agent_status(host)) == ParsedKey(KeyKind.AGENT_STATUS, host=host)
     assert keys.parse(keys.agent_cmd(host, op)) == ParsedKey(KeyKind.AGENT_CMD, host=host, op=op)
     assert keys.parse(keys.alive(host)) == ParsedKey(KeyKind.ALIVE, host=host)
+    assert keys.parse(keys.agent_recording(host)) == ParsedKey(KeyKind.AGENT_RECORDING, host=host)
     assert keys.parse(keys.drive_status(host, axis)) == ParsedKey(KeyKind.DRIVE_STATUS, host=host, axis=axis)
     assert keys.parse(keys.drive_event(host, axis)) == ParsedKey(KeyKind.DRIVE_EVENT, host=host, axis=axis)
     assert keys.parse(keys.drive_cmd(host, axis, op)) == ParsedKey(KeyKind.DRIVE_CMD, host=host, axis=axis, op=op)

@@ -53,7 +53,23 @@ EXAMPLES = [
     m.CommandReply(request_id="r1", host="h1", op="enable", outcome="done", axis="x",
                    state="operation_enabled", elapsed_s=0.012, cycles=12),
     m.CommandReply(request_id="r6", host="h1", op="nmt", outcome="busy", lease_holder="other"),
+    m.RecordingRequest(),
+    m.RecordingRequest(what="fault", last_s=2.5),
+    m.Recording(host="h1", reason="fault", cycle_us=1000, first_cycle=7, n_cycles=2, time_origin_ns=5,
+                axes=["x", "y"], channels={"cycle": [7, 8], "statusword": [0x0237, 0x0237, 0x0237, 0x0218]},
+                axis="y", detail="error code 0x2310", trigger_cycle=8),
 ]
+
+
+def test_recording_channels_hold_one_value_per_cycle_and_axis():
+    with pytest.raises(SchemaError, match=r"recording.channels\['statusword'\]: 3 values, expected 4"):
+        m.encode(m.Recording(host="h1", reason="last", cycle_us=1000, first_cycle=1, n_cycles=2, time_origin_ns=0,
+                             axes=["x", "y"], channels={"statusword": [1, 2, 3]}))
+    with pytest.raises(SchemaError, match=r"channels\['cycle'\]\[1\]: expected int"):
+        m.encode(m.Recording(host="h1", reason="last", cycle_us=1000, first_cycle=1, n_cycles=2, time_origin_ns=0,
+                             channels={"cycle": [1, "2"]}))
+    with pytest.raises(SchemaError, match="unknown field"):
+        m.decode(msgpack.packb({"v": 1, "type": "recording_request", "what": "last", "extra": 1}))
 
 
 def test_examples_cover_every_message_type():

@@ -1,0 +1,162 @@
+"""The flight recorder (bus_agent/cycle/recorder.py): the ring, windows frozen around triggers,
+explicit requests, and the cycle recording every drive into it (SimBus, fake clock, no sleeps)."""
+
+from __future__ import annotations
+
+import threading
+import tracemalloc
+from types import SimpleNamespace
+
+import pytest
+
+from bus_agent.bus.pdo import DriveInputs
+from bus_agent.cia402.states import State, decode_statusword
+from bus_agent.config import AgentConfig, ConfigError, RecorderConfig
+from bus_agent.cycle.recorder import CYCLE_CODES, DRIVE_CODES, Recorder, RecordingUnavailable
+from bus_agent.runtime import CycleEvent
+from schemas import messages as m
+
+from test_cycle import Harness  # tests/unit is on sys.path (rootdir-relative imports)
+
+
+def drives(n: int, base: int = 0) -> list[SimpleNamespace]:
+    return [SimpleNamespace(inputs=DriveInputs(statusword=0x0237, position_actual=base + i, velocity_actual=-i,
+                                               torque_actual=i, modes_of_operation_display=8, error_code=0),
+                            controlword=0x000F, target_position=base + i, target_velocity=0, target_torque=0)
+            for i in range(n)]
+
+
+def test_channels_are_the_contract_s():
+    assert set(CYCLE_CODES) | set(DRIVE_CODES) == set(m.RECORDING_CHANNELS)
+    assert {k for k, (scope, _) in m.RECORDING_CHANNELS.items() if scope == "drive"} == set(DRIVE_CODES)
+
+
+def test_last_seconds_from_the_ring_wraps_and_keeps_order():
+    rec = Recorder(["a", "b"], cycle_us=1000, seconds=0.1, pre_s=0.02, post_s=0.01)
+    assert rec.size == 100
+    for c in range(1, 251):
+        rec.record(c, c * 1_000_000, 1_000_000, 6, drives(2, base=c * 10), ())
+    data = rec.fetch("last", last_s=0.05)
+    assert data.n_cycles == 50 and data.first_cycle == 201
+    assert data.channels["cycle"] == list(range(201, 251))
+    assert data.channels["position"][:4] == [2010, 2011, 2020, 2021]  # cycle-major: a, b, a, b
+    whole = rec.fetch("last", last_s=10.0)
+    assert whole.n_cycles == rec.size - 1 and whole.channels["cycle"][-1] == 250
+    msg = m.Recording(host="h1", **{k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(whole).items()})
+    assert m.decode(m.encode(msg)) == msg  # what the recorder returns is a valid recording
+
+
+def test_fault_freezes_a_window_before_and_after_kept_while_the_ring_turns():
+    rec = Recorder(["a"], cycle_us=1000, seconds=0.1, pre_s=0.02, post_s=0.01)
+    with pytest.raises(RecordingUnavailable, match="no window frozen by a fault trigger"):
+        rec.fetch("fault")
+    for c in range(1, 60):
+        evs = (CycleEvent(axis="a", kind="fault", detail="error code 0x2310"),) if c == 40 else ()
+        rec.record(c, c, 1, 3, drives(1), evs)
+    rec.freeze_closed()
+    frozen = rec.fetch("fault")
+    assert frozen.trigger_cycle == 40 and frozen.axis == "a" and "0x2310" in frozen.detail
+    assert frozen.channels["cycle"] == list(range(40 - 20, 40 + 11))  # 20 cycles before, the trigger, 10 after
+    for c in range(60, 400):  # the ring turns several times: the frozen copy stays
+        rec.record(c, c, 1, 3, drives(1), ())
+    assert rec.fetch("any") == frozen
+    with pytest.raises(RecordingUnavailable, match="reflex"):
+        rec.fetch("reflex")
+
+
+def test_second_trigger_inside_an_open_window_belongs_to_it():
+    rec = Recorder(["a", "b"], cycle_us=1000, seconds=0.1, pre_s=0.02, post_s=0.01)
+    for c in range(1, 60):
+        evs = ()
+        if c == 30:
+            evs = (CycleEvent(axis="a", kind="fault"),)
+        elif c == 31:
+            evs = (CycleEvent(axis="b", kind="reflex"),)
+        rec.record(c, c, 1, 3, drives(2), evs)
+    rec.freeze_closed()
+    assert rec.fetch("any").reason == "fault"
+    with pytest.raises(RecordingUnavailable):
+        rec.fetch("reflex")
+
+
+def test_explicit_request_is_answered_when_its_window_is_complete():
+    rec = Recorder(["a"], cycle_us=1000, seconds=0.1, pre_s=0.02, post_s=0.01)
+    rec.start()
+    for c in range(1, 101):  # some history before the request
+        rec.record(c, c, 1, 3, drives(1), ())
+    stop = threading.Event()
+    result: list = []
+    asker = threading.Thread(target=lambda: result.append(rec.fetch("now", timeout_s=30.0)))
+    asker.start()
+    while asker.is_alive() and c < 100_000:  # the cycle: record until the asker has its window
+        c += 1
+        rec.record(c, c, 1, 3, drives(1), ())
+        if c % 50 == 0:
+            asker.join(0.001)
+    stop.set()
+    asker.join(30)
+    rec.stop()
+    data = result[0]
+    assert data.reason == "request" and data.n_cycles == 31
+    assert data.channels["cycle"][-1] == data.trigger_cycle + 10
+
+
+def test_record_allocates_nothing_per_cycle():
+    rec = Recorder([f"x{i}" for i in range(16)], cycle_us=1000, seconds=1.0, pre_s=0.2, post_s=0.1)
+    ds = drives(16, base=100)
+    for c in range(1, 2000):  # warm up: every slot written once
+        rec.record(c, c, 1, 48, ds, ())
+    tracemalloc.start()
+    before = tracemalloc.take_snapshot()
+    for c in range(2000, 7000):
+        rec.record(c, c, 1, 48, ds, ())
+    after = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    grown = sum(s.size_diff for s in after.compare_to(before, "filename")
+                if s.traceback[0].filename.endswith("recorder.py"))
+    # A few counters (ints) are rebound; anything kept per cycle would be >= 5000 x 28 bytes.
+    assert grown < 1024, f"recorder kept {grown} bytes over 5000 cycles"
+    assert rec.memory_bytes == 1000 * (8 * 3 + 4) + 1000 * 16 * (2 + 2 + 8 * 3 + 4 + 4 + 2 + 2 + 1)
+
+
+def test_value_beyond_its_channel_stops_recording_not_the_caller():
+    rec = Recorder(["a"], cycle_us=1000, seconds=0.1, pre_s=0.02, post_s=0.01)
+    d = drives(1)
+    d[0].target_position = 2**70
+    rec.record(1, 1, 1, 3, d, ())
+    assert "recording stopped at cycle 1" in rec.error
+    with pytest.raises(RecordingUnavailable, match="recording stopped"):
+        rec.fetch("last")
+
+
+def test_recorder_config_is_validated():
+    with pytest.raises(ConfigError, match="recorder"):
+        AgentConfig(host="h1", sim_drives=1, recorder=RecorderConfig(seconds=2.0, pre_s=2.0, post_s=1.0))
+    off = AgentConfig(host="h1", sim_drives=1).with_overrides(record_s=0.0)
+    assert off.recorder.seconds == 0.0
+
+
+def test_cycle_records_an_injected_fault_with_the_cycles_before_it():
+    h = Harness(n=3, recorder=RecorderConfig(seconds=2.0, pre_s=0.5, post_s=0.2)).open()
+    rid = h.cmd("enable", "axis0", "axis1", "axis2")
+    h.until(h.done(rid))
+    h.ticks(600)
+    h.bus.inject_fault(1, 0x2310)
+    h.until(lambda s: s.drives[1].state == "fault")
+    h.ticks(250)
+    rec = h.cycle.recorder
+    assert rec is not None
+    rec.freeze_closed()
+    data = h.cycle.recording("fault")
+    assert data.axis == "axis1" and data.axes == ("axis0", "axis1", "axis2")
+    n = len(data.axes)
+    states = [decode_statusword(sw) for sw in data.channels["statusword"][1::n]]  # axis1's column
+    trigger = data.trigger_cycle - data.first_cycle
+    assert trigger >= 400  # half a second of history before the fault
+    assert all(s == State.OPERATION_ENABLED for s in states[:trigger - 5])
+    assert State.FAULT in states[trigger:]
+    assert data.channels["error_code"][1::n][-1] == 0x2310 and data.channels["error_code"][1::n][0] == 0
+    periods = data.channels["period_ns"]
+    assert set(periods) == {1_000_000}  # the fake clock: every period exactly 1 ms
+    last = h.cycle.recording("last", last_s=0.1)
+    assert last.n_cycles == 100 and last.channels["cycle"][-1] == h.cycle.cycles
