@@ -45,8 +45,8 @@ ROLE_DRIVE_OPS: Mapping[str, tuple[str, ...]] = {
 ROLE_AGENT_OPS: Mapping[str, tuple[str, ...]] = {
     "maintenance": ("nmt",),
 }
-#: What a role may read: "all" (status, events, agent status, agent and supervisor tokens) or
-#: "status" (the same without the supervisors' tokens).
+#: What a role may read: "all" (status, events, agent status, agent and supervisor tokens, the
+#: agents' flight recordings) or "status" (status, events, agent status and agent tokens).
 ROLE_READ: Mapping[str, str] = {"operator": "all", "maintenance": "all", "viewer": "status"}
 
 
@@ -72,6 +72,8 @@ DECLARATIONS = ("declare_subscriber", "declare_queryable", "declare_liveliness_s
 
 #: Keys everyone with "status" read access may read (subscribe, get, and receive).
 READ_STATUS = (keys.ALL_DRIVE_STATUS, keys.ALL_DRIVE_EVENTS, keys.ALL_AGENT_STATUS)
+#: What "all" readers may read beyond READ_STATUS and agent tokens.
+READ_ALL_EXTRA = (keys.ALL_SUPERVISORS, keys.agent_recording("*"))
 #: Command keys with any principal (declarations egress, router links).
 ANY_CMD = (keys.drive_cmd("*", "*", "*", "*"), keys.agent_cmd("*", "*", "*"))
 #: Every key form of the project (router links, declarations egress).
@@ -120,7 +122,7 @@ def grants(name: str, roles: Iterable[str]) -> list[Grant]:
     out: list[Grant] = [Grant("egress", DECLARATIONS, EVERY_KEY)]
     read = {ROLE_READ[r] for r in roles if r in ROLE_READ}
     if read:
-        kes = READ_STATUS + (keys.ALL_ALIVE,) + ((keys.ALL_SUPERVISORS,) if "all" in read else ())
+        kes = READ_STATUS + (keys.ALL_ALIVE,) + (READ_ALL_EXTRA if "all" in read else ())
         out += _both(("declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"),
                      ("put", "delete", "reply", "liveliness_token"), kes)
     cmd_kes = tuple(keys.drive_cmd("*", "*", op, name) for r in roles for op in ROLE_DRIVE_OPS.get(r, ())) + \

@@ -78,6 +78,9 @@ def test_acl_is_default_deny_and_each_role_gets_only_its_verbs() -> None:
     assert _allowed(acl, "vic", "ingress", "declare_subscriber", keys.ALL_DRIVE_STATUS)
     assert _allowed(acl, "vic", "egress", "put", keys.drive_status("h1", "axis0"))
     assert not _allowed(acl, "vic", "ingress", "declare_liveliness_subscriber", keys.ALL_SUPERVISORS)
+    assert _allowed(acl, "mia", "ingress", q, keys.agent_recording("h1"))       # flight recordings
+    assert _allowed(acl, "h1", "ingress", "declare_queryable", keys.agent_recording("h1"))
+    assert not _allowed(acl, "vic", "ingress", q, keys.agent_recording("h1"))
     for who in ("alice", "mia", "vic", "tb"):
         assert not _allowed(acl, who, "ingress", "put", keys.drive_status("h1", "axis0"))
         assert not _allowed(acl, who, "ingress", "declare_queryable", keys.drive_cmd("h1", "*", "*", "*"))
