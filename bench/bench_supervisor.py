@@ -16,7 +16,10 @@ agent with its own Zenoh session, all through one router process):
   queryable (an agent process busy with its cycles);
 - ``fanin`` (largest size): a watcher in its own process (a ``Fleet``) receives the status
   of every drive while all are enabled and disabled; it reports status messages received,
-  state changes seen, sequence-number gaps (missed messages: must be 0) and its CPU time.
+  state changes seen, sequence-number gaps (missed messages: must be 0) and its CPU time;
+- ``departure`` (last, every size): one agents process is killed (SIGKILL, no clean-up) and the
+  supervisor's ``Fleet`` times each of its agents' departure (liveliness token gone): the
+  latency the system tests only bound generously.
 
 Results go to ``bench/results/bench_supervisor.json`` and are printed. Flags: ``--sizes``,
 ``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 20000 so
@@ -31,6 +34,7 @@ import json
 import os
 import statistics
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -201,11 +205,34 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
             if fanin:
                 out["fanin"] = run_fanin(fleet, ep, total, pki)
             out["router_cpu_s"] = round(proc_cpu_s(router.pid) - cpu0, 3)
+            out["departure"] = run_departure(fleet, procs[0], hosts[:args.per_process])
     finally:
         for p in procs:
             p.stop(timeout_s=60)
         router.stop()
     return out
+
+
+def run_departure(fleet: Fleet, proc: Proc, hosts: list[str], timeout_s: float = 10.0) -> dict[str, Any]:
+    """SIGKILL one agents process (no clean-up) and time each of its hosts' departure as the
+    supervisor's Fleet reports it (its liveliness token vanishing)."""
+    seen: dict[str, float] = {}
+    done = threading.Event()
+
+    def on_departure(host: str) -> None:
+        if host in hosts and host not in seen:
+            seen[host] = time.monotonic()
+            if len(seen) == len(hosts):
+                done.set()
+
+    fleet.on("departure", on_departure)
+    t0 = time.monotonic()
+    proc.kill()
+    done.wait(timeout_s)
+    lat = sorted(seen.values())
+    return {"killed_agents": len(hosts), "reported": len(seen), "timeout_s": timeout_s,
+            "first_ms": round(1e3 * (lat[0] - t0), 1) if lat else None,
+            "last_ms": round(1e3 * (lat[-1] - t0), 1) if lat else None}
 
 
 def run_fanin(fleet: Fleet, ep: str, total: int, pki: str | None = None) -> dict[str, Any]:

@@ -167,6 +167,8 @@ def agent_targets(r: Mapping[str, Any]) -> list[Target]:
 #: Fan-in: a drive enabled and disabled changes state at least twice (into operation_enabled and
 #: back to switch_on_disabled); intermediate states may share one publication.
 FANIN_CHANGES_PER_DRIVE_MIN = 2
+#: A killed agent is reported gone within the Zenoh link lease (deploy/router.json5).
+LINK_LEASE_S = 3.0
 
 
 def supervisor_figures(r: Mapping[str, Any]) -> dict[str, Any]:
@@ -183,6 +185,8 @@ def supervisor_figures(r: Mapping[str, Any]) -> dict[str, Any]:
                                                            bare.get("p50_ms")),
                "rounds_ok": sum(1 for x in s.get("rounds", []) if x["enable"]["ok"] and x["disable"]["ok"]),
                "rounds": len(s.get("rounds", []))}
+        if "departure" in s:
+            row["departure"] = s["departure"]
         if "fanin" in s:
             row["fanin"] = {k: s["fanin"].get(k) for k in (
                 "drives_seen", "status_received", "state_changes_seen", "missed_by_seq", "supervisor_missed_by_seq",
@@ -195,9 +199,13 @@ def supervisor_headline(r: Mapping[str, Any]) -> str:
     parts = []
     for s in r["sizes"]:
         bare = s.get("get_rtt_bare", {})
-        text = (f"{s['drives']} drives: enable wall/overhead {_s(s.get('enable_wall_s_median'))}/"
+        text = (f"{_size(s)}: enable wall/overhead {_s(s.get('enable_wall_s_median'))}/"
                 f"{_s(s.get('enable_overhead_s_median'))}, disable {_s(s.get('disable_wall_s_median'))}/"
                 f"{_s(s.get('disable_overhead_s_median'))}, bare get p50 {bare.get('p50_ms')} ms")
+        d = s.get("departure")
+        if d:
+            text += (f"; {d['reported']}/{d['killed_agents']} killed agents reported gone after "
+                     f"{d['first_ms']}-{d['last_ms']} ms")
         f = s.get("fanin")
         if f:
             text += (f"; fan-in {f.get('status_received')} status, {f.get('state_changes_seen')} state changes, "
@@ -210,14 +218,26 @@ def _s(v: float | None) -> str:
     return "-" if v is None else f"{v * 1e3:.1f} ms" if v < 1 else f"{v:.2f} s"
 
 
+def _size(s: Mapping[str, Any]) -> str:
+    """``AxD``, and the transport unless plain TCP."""
+    transport = s.get("transport", "tcp")
+    return f"{s['agents']}x{s['drives'] // max(1, s['agents'])}" + ("" if transport == "tcp" else f" {transport}")
+
+
 def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
     out = []
     for s in r["sizes"]:
-        size = f"{s['agents']}x{s['drives'] // max(1, s['agents'])}"
+        size = _size(s)
         rounds = s.get("rounds", [])
         ok = sum(1 for x in rounds if x["enable"]["ok"] and x["disable"]["ok"])
         out.append(Target(f"{size}: enable/disable rounds ok", f"{ok}/{len(rounds)}", "all", bool(rounds) and
                           ok == len(rounds)))
+        d = s.get("departure")
+        if d is not None:
+            out.append(Target(f"{size}: killed agents reported gone (ms)", d["last_ms"],
+                              f"all {d['killed_agents']} within the {LINK_LEASE_S:g} s link lease",
+                              d["reported"] == d["killed_agents"] and d["last_ms"] is not None
+                              and d["last_ms"] <= LINK_LEASE_S * 1e3))
         f = s.get("fanin")
         if f is None:
             continue
@@ -230,6 +250,30 @@ def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
         out.append(Target(f"{size}: status fan-in", measured,
                           f"commands ok, every drive seen, >= {need} state changes, 0 missed", met))
     return out
+
+
+# ---- bench_trust --------------------------------------------------------------------------------
+
+#: The audit trail may add at most this much to the gateway's own CPU work per command (it runs
+#: on the command and publish threads, never on the cycle).
+AUDIT_RATIO_MAX = 1.0
+
+
+def trust_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: r.get(k) for k in ("command_existing_us", "command_audit_us", "audit_ratio", "status_encode_us",
+                                  "error_text_us", "error_text_ratio", "loadavg_start")}
+
+
+def trust_headline(r: Mapping[str, Any]) -> str:
+    return (f"16-drive command: audit {r.get('command_audit_us')} us next to the gateway's "
+            f"{r.get('command_existing_us')} us ({r.get('audit_ratio')}x); error text {r.get('error_text_us')} us "
+            f"per status next to {r.get('status_encode_us')} us encoding ({r.get('error_text_ratio')}x)")
+
+
+def trust_targets(r: Mapping[str, Any]) -> list[Target]:
+    ratio = r.get("audit_ratio")
+    return [Target("audit trail / existing per-command gateway work", ratio, f"<= {AUDIT_RATIO_MAX}",
+                   None if ratio is None else ratio <= AUDIT_RATIO_MAX)]
 
 
 # ---- the README table -----------------------------------------------------------------------------

@@ -152,3 +152,17 @@ def test_fanin_target_needs_commands_ok_state_changes_and_nothing_missed(change:
     rounds, fanin = s.supervisor_targets(_sup(**change))
     assert rounds.met is True and rounds.measured == "1/1"
     assert fanin.met is met and fanin.name == "4x16: status fan-in"
+
+
+@pytest.mark.parametrize("departure, met", [
+    ({"killed_agents": 4, "reported": 4, "first_ms": 5.0, "last_ms": 40.0}, True),
+    ({"killed_agents": 4, "reported": 3, "first_ms": 5.0, "last_ms": 40.0}, False),
+    ({"killed_agents": 4, "reported": 4, "first_ms": 5.0, "last_ms": 3500.0}, False),
+    ({"killed_agents": 4, "reported": 0, "first_ms": None, "last_ms": None}, False),
+])
+def test_departure_target_all_killed_agents_within_the_link_lease(departure: dict, met: bool) -> None:
+    data = _sup()
+    data["sizes"][0]["departure"] = departure
+    rounds, gone, fanin = s.supervisor_targets(data)
+    assert gone.name == "4x16: killed agents reported gone (ms)" and gone.met is met
+    assert "killed agents reported gone" in s.supervisor_headline(data)
