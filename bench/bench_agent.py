@@ -158,6 +158,13 @@ def phase_bare(args) -> dict:
 def _enable_all(cyc, timeout_s: float = 10.0) -> None:
     from bus_agent.runtime import DriveCommand
 
+    # Every slave in OP first: on a loaded host the start-up may trip an SM watchdog, and the
+    # agent brings such a slave back to OP itself (disabled) within a few seconds.
+    deadline = time.monotonic() + 30.0
+    while not (cyc.latest is not None and all(d.al_state == "op" and not d.lost for d in cyc.latest.drives)):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"slaves not in OP: {[(d.axis, d.al_state) for d in cyc.latest.drives]}")
+        time.sleep(0.05)
     done = threading.Semaphore(0)
     outs = []
 
@@ -267,7 +274,8 @@ def encoding_figures(drives: int, n: int = 2000) -> dict:
     pickle (what the bridge uses) vs msgpack of the same tuples."""
     import msgpack
 
-    from bus_agent import bridge, runtime as rt
+    from bus_agent import runtime as rt
+    from bus_agent.gateway import bridge
 
     snap = rt.CycleSnapshot(
         cycle=123456, time_ns=time.time_ns(), events=(), stats=rt.CycleStats(cycles=123456, period_p99_us=1001.2),

@@ -47,11 +47,16 @@ def build_row(name: str, what: str, status: str, data: Mapping[str, Any] | None,
     if run:
         row["run"] = dict(run)
     if status in (OK, STALE) and data is not None:
+        try:
+            read = {"figures": figures(data), "headline": headline(data) if headline is not None else "",
+                    "targets": [asdict(t) for t in targets(data)]}
+        except (KeyError, TypeError, ValueError, ZeroDivisionError) as exc:
+            # a JSON this row cannot read says so instead of showing half its figures
+            row["status"] = f"failed: JSON not readable ({type(exc).__name__}: {exc})"
+            return row
         row["time"] = data.get("time")
         row["loadavg"] = data.get("loadavg") or data.get("loadavg_1m") or data.get("load_avg_1min_at_start")
-        row["figures"] = figures(data)
-        row["headline"] = headline(data) if headline is not None else ""
-        row["targets"] = [asdict(t) for t in targets(data)]
+        row.update(read)
     elif status in (OK, STALE):
         row["status"] = f"failed: no JSON from the {'run' if status == OK else 'earlier run'}"
     return row
