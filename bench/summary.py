@@ -257,6 +257,30 @@ def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
     return out
 
 
+# ---- bench_trust --------------------------------------------------------------------------------
+
+#: The audit trail may add at most this much to the gateway's own CPU work per command (it runs
+#: on the command and publish threads, never on the cycle).
+AUDIT_RATIO_MAX = 1.0
+
+
+def trust_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: r.get(k) for k in ("command_existing_us", "command_audit_us", "audit_ratio", "status_encode_us",
+                                  "error_text_us", "error_text_ratio", "loadavg_start")}
+
+
+def trust_headline(r: Mapping[str, Any]) -> str:
+    return (f"16-drive command: audit {r.get('command_audit_us')} us next to the gateway's "
+            f"{r.get('command_existing_us')} us ({r.get('audit_ratio')}x); error text {r.get('error_text_us')} us "
+            f"per status next to {r.get('status_encode_us')} us encoding ({r.get('error_text_ratio')}x)")
+
+
+def trust_targets(r: Mapping[str, Any]) -> list[Target]:
+    ratio = r.get("audit_ratio")
+    return [Target("audit trail / existing per-command gateway work", ratio, f"<= {AUDIT_RATIO_MAX}",
+                   None if ratio is None else ratio <= AUDIT_RATIO_MAX)]
+
+
 # ---- the README table -----------------------------------------------------------------------------
 
 

@@ -15,6 +15,7 @@ from typing import Any, Mapping
 
 from bus_agent.cia402.states import Mode
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX
+from bus_agent.motion.config import HomingConfig, MotionConfig, MotionConfigError
 from bus_agent.security.exposure import exposed_endpoints, refusal
 from schemas.keys import InvalidKey, validate_name
 
@@ -104,6 +105,7 @@ class DriveConfig:
     mode: int = int(Mode.CYCLIC_SYNC_POSITION)
     pdo: PdoMapping | None = None
     policy: DrivePolicy = DrivePolicy()
+    motion: MotionConfig = MotionConfig()
 
     def __post_init__(self) -> None:
         if not self.axis:
@@ -154,6 +156,7 @@ class AgentConfig:
     reflex: str = "quick_stop"
     heartbeat_s: float = 1.0
     default_policy: DrivePolicy = DrivePolicy()
+    default_motion: MotionConfig = MotionConfig()
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
     recorder: RecorderConfig = RecorderConfig()
@@ -173,7 +176,8 @@ class AgentConfig:
         slave with defaults when none are configured. Raises ConfigError if a configured slave
         position is not on the segment."""
         if not self.drives:
-            return tuple(DriveConfig(slave=i, policy=self.default_policy) for i in range(n_slaves))
+            return tuple(DriveConfig(slave=i, policy=self.default_policy, motion=self.default_motion)
+                         for i in range(n_slaves))
         for i, d in enumerate(self.drives):
             if d.slave >= n_slaves:
                 raise ConfigError(f"drives[{i}].slave: position {d.slave} configured for axis {d.axis!r} "
@@ -439,6 +443,38 @@ def _policy(t: _Table, base: DrivePolicy) -> DrivePolicy:
     )
 
 
+def _motion(t: _Table, base: MotionConfig) -> MotionConfig:
+    """``[defaults.motion]`` / ``[drives.motion]`` (keys: bus_agent.motion.config.MotionConfig)."""
+    m = t.table("motion")
+    h = m.table("homing")
+    b = base.homing
+    opt = (int, float)
+    try:
+        homing = HomingConfig(
+            method=h.get("method", int, b.method), switch_speed=h.get("switch_speed", _NUM, b.switch_speed),
+            zero_speed=h.get("zero_speed", _NUM, b.zero_speed), acceleration=h.get("acceleration", _NUM, b.acceleration),
+            offset=h.get("offset", _NUM, b.offset), timeout_s=h.get("timeout_s", _NUM, b.timeout_s))
+        h.done()
+        out = MotionConfig(
+            max_velocity=m.get("max_velocity", _NUM, base.max_velocity),
+            max_acceleration=m.get("max_acceleration", _NUM, base.max_acceleration),
+            max_jerk=m.get("max_jerk", _NUM, base.max_jerk),
+            min_position=m.get("min_position", opt, base.min_position),
+            max_position=m.get("max_position", opt, base.max_position),
+            position_window=m.get("position_window", _NUM, base.position_window),
+            velocity_window=m.get("velocity_window", _NUM, base.velocity_window),
+            settle_s=m.get("settle_s", _NUM, base.settle_s),
+            limit_policy=m.get("limit_policy", str, base.limit_policy),
+            require_homing=m.get("require_homing", bool, base.require_homing),
+            counts_per_unit=m.get("counts_per_unit", _NUM, base.counts_per_unit),
+            unit=m.get("unit", str, base.unit),
+            homing=homing)
+    except MotionConfigError as e:
+        raise ConfigError(f"{t.key(str(e))}") from None
+    m.done()
+    return out
+
+
 def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     """Build an AgentConfig from parsed TOML (or any mapping of the same shape)."""
     t = _Table(data, "")
@@ -460,6 +496,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     rc.done()
     defaults_t = t.table("defaults")
     defaults = _policy(defaults_t, DrivePolicy())
+    default_motion = _motion(defaults_t, MotionConfig())
     defaults_t.done()
     drives = []
     for i, raw in enumerate(t.get("drives", list, [])):
@@ -482,7 +519,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
                 raise ConfigError(f"drives[{i}].pdo.tx_pdo: 0x{pdo.tx_pdo:04X} is not a TxPDO mapping (0x1A00..0x1BFF)")
         drives.append(DriveConfig(slave=slave, axis=d.get("axis", str, ""), identity=ident,
                                   mode=d.get("mode", int, int(Mode.CYCLIC_SYNC_POSITION)), pdo=pdo,
-                                  policy=_policy(d, defaults)))
+                                  policy=_policy(d, defaults), motion=_motion(d, default_motion)))
         d.done()
     g = t.table("groups")
     groups = {name: g.strings(name) for name in list(g.data)}
@@ -499,6 +536,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         reflex=t.get("reflex", str, "quick_stop"),
         heartbeat_s=heartbeat_s,
         default_policy=defaults,
+        default_motion=default_motion,
         gateway=t.get("gateway", str, "process"),
         rt_priority=rt_priority,
         recorder=recorder,

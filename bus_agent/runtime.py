@@ -18,12 +18,13 @@ class Outcome:
     """Terminal answer for one axis (or for the agent when ``axis`` is '')."""
 
     axis: str
-    outcome: str  # schemas.messages.OUTCOMES: done, failed, timeout, rejected, busy
+    outcome: str  # schemas.messages.OUTCOMES: done, failed, timeout, rejected, busy, aborted
     state: str = "unknown"  # schemas.messages.DRIVE_STATES
     error_code: int = 0
     reason: str = ""
     elapsed_s: float = 0.0
     cycles: int = 0
+    duration_s: float = 0.0  # motion: the planned profile duration (move prepare: the minimum)
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,12 @@ class DriveSnapshot:
     error_text: str
     al_state: str
     lost: bool
+    # motion layer (bus_agent.motion): PLCopen axis state, homed, 0x607A written, following error
+    axis_state: str = "disabled"
+    homed: bool = False
+    target_position: int = 0
+    following_error: int = 0
+    motion_request_id: str = ""
 
 
 @dataclass(frozen=True)

@@ -59,13 +59,20 @@ DRIVE_OPS = (
     "set_mode",     # args {"mode": int}: 0x6060, done on the 0x6061 echo
     "lease",        # args {"holder": str, "ttl_s": float, "takeover": bool}
     "release",      # args {"holder": str}
+    "move",         # args {"to" | "by": float, "velocity", "accel", "jerk": float, "sync": bool}
+    "jog",          # args {"velocity": float, "for_s": float}
+    "home",         # args {"method": int}
+    "stop",         # args {"release": bool}: decelerate and refuse motion until released
 )
 #: Agent command ops (``.../agent/cmd/<op>``).
 AGENT_OPS = ("nmt",)
 #: Network management commands (cia402.md §5) and their EtherCAT meaning.
 NMT_COMMANDS = ("start", "stop", "preop", "reset_comm", "reset_node")
 #: Terminal outcomes of a command, one per addressed drive.
-OUTCOMES = ("done", "failed", "timeout", "rejected", "busy")
+OUTCOMES = ("done", "failed", "timeout", "rejected", "busy", "aborted")
+#: PLCopen axis states of the motion layer (drive_status.axis_state).
+AXIS_STATES = ("disabled", "standstill", "homing", "discrete_motion", "continuous_motion",
+               "synchronized_motion", "stopping", "error_stop")
 #: Event kinds.
 EVENT_KINDS = ("transition", "fault", "outcome", "lost", "found", "lease", "reflex", "al_state", "warning",
                "command", "conflict", "emcy")
@@ -182,6 +189,11 @@ class DriveStatus:
     lost: bool = _f(False, doc="slave not answering (working counter or AL state)")
     lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="supervisor holding the lease, '' if none")
     slave: int = _f(0, range=(0, 65535), doc="slave position on the segment (0-based)")
+    axis_state: str = _f("disabled", choices=AXIS_STATES, open=True, doc="PLCopen axis state of the motion layer")
+    homed: bool = _f(False, doc="a home command succeeded since the agent started")
+    target_position: int = _f(0, range=I32, doc="0x607A target position written last")
+    following_error: int = _f(0, range=I32, doc="target position written last minus 0x6064 (counts)")
+    motion_request_id: str = _f("", max_len=128, doc="request id of the running motion command ('' if none)")
 
 
 @dataclass(frozen=True)
@@ -263,6 +275,7 @@ class CommandReply:
     error_code: int = _f(0, range=U16, doc="0x603F error code reached (failed), 0 = none")
     reason: str = _f("", max_len=400, doc="why (failed, rejected, busy, timeout)")
     elapsed_s: float = _f(0.0, doc="receipt to outcome")
+    duration_s: float = _f(0.0, range=(0.0, 1e6), doc="motion: the planned profile duration (move prepare: the axis's minimum)")
     cycles: int = _f(0, range=U64, doc="agent cycles from receipt to outcome")
     lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="holder of the lease (busy), '' if none")
 
@@ -348,6 +361,30 @@ OP_ARGS: dict[str, dict[str, Arg]] = {
     },
     "release": {
         "holder": Arg(str, required=True, meta={"name": True, "max_len": NAME_LEN, "doc": "supervisor giving the lease back"}),
+    },
+    "move": {
+        "to": Arg(float, meta={"range": (-1e12, 1e12), "doc": "absolute target position (axis unit); exactly one of to, by"}),
+        "by": Arg(float, meta={"range": (-1e12, 1e12), "doc": "relative distance from the position being commanded (axis unit)"}),
+        "velocity": Arg(float, meta={"range": (0.0, 1e12), "doc": "max velocity (unit/s; default the axis limit; above it: clamped or rejected by the axis policy)"}),
+        "accel": Arg(float, meta={"range": (0.0, 1e15), "doc": "max acceleration (unit/s^2; default the axis limit)"}),
+        "jerk": Arg(float, meta={"range": (0.0, 1e18), "doc": "max jerk (unit/s^3; default the axis limit)"}),
+        "sync": Arg(bool, default=False, meta={"doc": "the addressed axes of this host start in one cycle and arrive together"}),
+        "duration_s": Arg(float, meta={"range": (0.0, 3600.0), "doc": "sync: the group's common duration (at least; commit of a cross-host move)"}),
+        "start_at_ns": Arg(int, meta={"range": (0, 2**63 - 1), "doc": "sync: start at this agent wall-clock time (ns since the epoch)"}),
+        "prepare": Arg(bool, default=False, meta={"doc": "sync: only plan; the reply's duration_s is the axes' minimum duration"}),
+        "targets": Arg(dict, meta={"keys": NAME, "values": Meta(float, {"range": (-1e12, 1e12)}), "doc": "per-axis absolute targets (axis -> position), instead of to/by"}),
+    },
+    "jog": {
+        "velocity": Arg(float, required=True, meta={"range": (-1e12, 1e12), "doc": "velocity (unit/s, signed)"}),
+        "for_s": Arg(float, meta={"range": (0.001, 3600.0), "doc": "run this long, then stop (default: until the command's timeout)"}),
+        "accel": Arg(float, meta={"range": (0.0, 1e15), "doc": "max acceleration (unit/s^2; default the axis limit)"}),
+        "jerk": Arg(float, meta={"range": (0.0, 1e18), "doc": "max jerk (unit/s^3; default the axis limit)"}),
+    },
+    "home": {
+        "method": Arg(int, meta={"range": (-128, 127), "doc": "0x6098 homing method (default the axis's configured one)"}),
+    },
+    "stop": {
+        "release": Arg(bool, default=False, meta={"doc": "release a stop: motion is accepted again"}),
     },
     "nmt": {
         "command": Arg(str, required=True, meta={"choices": NMT_COMMANDS, "doc": "network management command"}),

@@ -517,6 +517,8 @@ class Fleet:
         out: dict[str, str] = {}
         with self._lock:
             for host, seen in self._instances.items():
+                if not (host in self._agents and self._agents[host].alive):
+                    continue  # a departed host (its last status may still come in) commands nothing
                 recent = {i: c for i, (t, c) in seen.items() if now - t < CONFLICT_HOLD_S}
                 said = [c for c in recent.values() if c]
                 if len(recent) > 1:

@@ -42,6 +42,8 @@ from bus_agent.config import AgentConfig, ConfigError, DriveConfig
 from bus_agent.cycle.groups import Groups
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management
+from bus_agent.cycle.motion import MotionMixin, following_error
+from bus_agent.motion.axis import MOTION_OPS, AxisMotion
 from bus_agent.cycle.realtime import helper_priority, set_thread_fifo
 from bus_agent.cycle.recorder import Recorder, RecordingData, RecordingUnavailable
 from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand,
@@ -115,6 +117,7 @@ class _Drive:
     axis: str
     slave: int
     ctrl: DriveController
+    motion: AxisMotion
     out: DriveOutputs = field(default_factory=DriveOutputs)
     inputs: DriveInputs = field(default_factory=DriveInputs)
     state: State = State.UNKNOWN
@@ -146,7 +149,7 @@ class _Nmt:
     ticket: int = 0           # AL status must be read after this management request
 
 
-class Cycle:
+class Cycle(MotionMixin):
     """The cyclic process-data loop of one bus agent.
 
     ``Cycle(bus, config, clock_ns=time.monotonic_ns)``; :meth:`open` brings the segment to OP
@@ -264,7 +267,8 @@ class Cycle:
             cc = ControllerConfig(transition_timeout_s=pol.transition_timeout_s,
                                   fault_reset_retries=pol.fault_reset_retries, mode_timeout_s=pol.transition_timeout_s)
             self.drives.append(_Drive(cfg=dc, axis=dc.axis, slave=dc.slave,
-                                      ctrl=DriveController(cc, mode=dc.mode, supported_modes=supported[dc.slave])))
+                                      ctrl=DriveController(cc, mode=dc.mode, supported_modes=supported[dc.slave]),
+                                      motion=AxisMotion(dc.motion, self.period_ns / 1e9)))
         self._by_axis = {d.axis: d for d in self.drives}
         self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
         self._al_status = [SlaveALStatus(ALState.OP, False, 0)] * len(self.slaves)
@@ -494,6 +498,7 @@ class Cycle:
             for d in self.drives:
                 if d.pending is not None:
                     self._resolve(d, "failed", "agent stopping", now_ns)
+                self._motion_abort(d, "agent stopping", now_ns)
                 d.ctrl.set_halt(False)
                 d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
         log.info("host %s: ordered shutdown of %d drive(s)", self.config.host, len(self.drives))
@@ -590,6 +595,7 @@ class Cycle:
             out = d.ctrl.step(d.inputs.statusword, d.inputs.modes_of_operation_display, now_s)
             prev = d.state
             d.state = d.ctrl.state if d.ctrl.state is not None else decode_statusword(d.inputs.statusword)
+            self._motion_step(d, out.hold_target, now_ns)
             o = d.out
             o.controlword = d.controlword = out.controlword
             o.modes_of_operation = out.mode_of_operation
@@ -695,6 +701,7 @@ class Cycle:
         self._event(d.axis, "lost", why, from_state=d.state.value, error_code=st.status_code if st.error else 0)
         if d.pending is not None:
             self._resolve(d, "failed", f"slave lost: {why}", now_ns)
+        self._motion_abort(d, f"slave lost: {why}", now_ns, drop=True)
         # Never re-enabled without a new command once it returns.
         d.ctrl.set_halt(False)
         d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
@@ -770,10 +777,22 @@ class Cycle:
                 if isinstance(cmd, AgentCommand):
                     self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"internal error: {e}"))
 
+    def _refusal(self, d: _Drive) -> str:
+        """Why no command can act on ``d`` now ('' if one can)."""
+        if d.lost:
+            return f"slave {d.slave} lost (AL {d.al.state.wire_name})"
+        want = self._desired_al.get(d.slave, ALState.OP)
+        if want != ALState.OP or (self._nmt is not None and d.slave in self._nmt.slaves):
+            return f"slave {d.slave} not operational (AL {d.al.state.wire_name}, nmt in progress or stopped)"
+        return ""
+
     def _apply_drive(self, cmd: DriveCommand, now_ns: int) -> None:
         now_s = now_ns / 1e9
         start_ns = cmd.received_ns or now_ns
         deadline = start_ns + int(cmd.timeout_s * 1e9)
+        if cmd.op == "move" and (cmd.args.get("sync") or cmd.args.get("targets") is not None):
+            self._group_move(cmd, now_ns)
+            return
         seen: set[str] = set()
         for axis in cmd.axes:
             if axis in seen:
@@ -783,16 +802,18 @@ class Cycle:
             if d is None:
                 self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=f"no axis {axis!r} on {self.config.host}"))
                 continue
-            if d.lost:
-                self._reply(d, cmd, "rejected", f"slave {d.slave} lost (AL {d.al.state.wire_name})", now_ns, start_ns)
-                continue
-            want = self._desired_al.get(d.slave, ALState.OP)
-            if want != ALState.OP or (self._nmt is not None and d.slave in self._nmt.slaves):
-                self._reply(d, cmd, "rejected", f"slave {d.slave} not operational (AL {d.al.state.wire_name}, "
-                            f"nmt in progress or stopped)", now_ns, start_ns)
+            why = self._refusal(d)
+            if why:
+                self._reply(d, cmd, "rejected", why, now_ns, start_ns)
                 continue
             op = cmd.op
             kind = None
+            if op in MOTION_OPS:
+                self._motion_command(d, cmd, now_ns)
+                continue
+            if op in GOAL_OF_OP and GOAL_OF_OP[op] is not Goal.ENABLED:
+                # Still following the profile (decelerating) until the drive leaves Operation enabled.
+                self._motion_abort(d, f"{op} ({cmd.request_id})", now_ns)
             if op in GOAL_OF_OP:
                 d.ctrl.set_goal(GOAL_OF_OP[op], now_s)
                 kind = "goal"
@@ -817,6 +838,10 @@ class Cycle:
                     self._reply(d, cmd, "rejected", f"mode {mode} ({Mode(mode).name.lower()}) is not supported by the "
                                 f"drive (0x6502: modes {sorted(sup)})", now_ns, start_ns)
                     continue
+                if d.motion.plan is not None:
+                    self._reply(d, cmd, "rejected", f"axis in motion ({d.motion.axis_state.value}): halt or stop it "
+                                "before changing the mode", now_ns, start_ns)
+                    continue
                 d.ctrl.request_mode(mode, now_s)
                 kind = "mode"
             elif op == "halt":
@@ -824,19 +849,10 @@ class Cycle:
                 if not isinstance(on, bool):
                     self._reply(d, cmd, "rejected", f"halt 'on' must be a boolean, got {on!r}", now_ns, start_ns)
                     continue
+                if on:
+                    self._motion_abort(d, f"halt ({cmd.request_id})", now_ns)
                 d.ctrl.set_halt(on)  # controlword bit 8, written this cycle
                 self._reply(d, cmd, "done", f"halt {'on' if on else 'off'}", now_ns, start_ns)
-                continue
-            elif op == "setpoint":
-                bad = [k for k in ("position", "velocity", "torque") if k in cmd.args
-                       and (not isinstance(cmd.args[k], int) or isinstance(cmd.args[k], bool))]
-                if bad:
-                    self._reply(d, cmd, "rejected", f"setpoint {bad[0]} must be an integer", now_ns, start_ns)
-                    continue
-                d.target_position = cmd.args.get("position", d.target_position)
-                d.target_velocity = cmd.args.get("velocity", d.target_velocity)
-                d.target_torque = cmd.args.get("torque", d.target_torque)
-                self._reply(d, cmd, "done", "setpoint taken (held at actual until operation enabled)", now_ns, start_ns)
                 continue
             else:
                 self._reply(d, cmd, "rejected", f"op {op!r} is not a drive command of the cycle", now_ns, start_ns)
@@ -849,10 +865,11 @@ class Cycle:
             self._resolve(d, "failed", f"superseded by {cmd.request_id}", now_ns)
 
     def _reply(self, d: _Drive, cmd: DriveCommand, outcome: str, reason: str, now_ns: int, start_ns: int,
-               start_cycle: int | None = None) -> None:
+               start_cycle: int | None = None, duration_s: float = 0.0) -> None:
         o = Outcome(axis=d.axis, outcome=outcome, state=d.state.value, error_code=d.inputs.error_code,
                     reason=reason, elapsed_s=max(0.0, (now_ns - start_ns) / 1e9),
-                    cycles=self.cycles - (start_cycle if start_cycle is not None else self.cycles))
+                    cycles=self.cycles - (start_cycle if start_cycle is not None else self.cycles),
+                    duration_s=duration_s)
         self._event(d.axis, "outcome", f"{cmd.op} {outcome}" + (f": {reason}" if reason else ""),
                     to_state=d.state.value, error_code=d.inputs.error_code, request_id=cmd.request_id)
         self._outcome(cmd, o)
@@ -928,6 +945,7 @@ class Cycle:
                 continue
             if d.pending is not None:
                 self._resolve(d, "failed", f"group {group} reflex: {reason}", now_ns)
+            self._motion_abort(d, f"group {group} reflex: {reason}", now_ns)
             d.ctrl.set_goal(goal, now_ns / 1e9)
             self._event(axis, "reflex", f"group {group}: {goal.value} ({reason})", from_state=d.state.value)
 
@@ -964,6 +982,7 @@ class Cycle:
                 if d.slave in slaves:
                     if d.pending is not None:
                         self._resolve(d, "failed", f"nmt {command} ({cmd.request_id})", now_ns)
+                    self._motion_abort(d, f"nmt {command} ({cmd.request_id})", now_ns)
                     d.ctrl.set_halt(False)
                     d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
         else:
@@ -1067,7 +1086,10 @@ class Cycle:
                 controlword=d.controlword, goal=c.goal.value, halt=c.halt, mode=c.mode,
                 mode_display=i.modes_of_operation_display, position=i.position_actual,
                 velocity=i.velocity_actual, torque=i.torque_actual, error_code=i.error_code,
-                error_text=self._error_text(d.slave, i.error_code), al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost))
+                error_text=self._error_text(d.slave, i.error_code),
+                al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost,
+                axis_state=d.motion.axis_state.value, homed=d.motion.homed, target_position=d.target_position,
+                following_error=following_error(d), motion_request_id=d.motion.request_id))
         return tuple(out)
 
     def _error_text(self, slave: int, error_code: int) -> str:

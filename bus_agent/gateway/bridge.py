@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 #: Drive snapshot fields whose change is forwarded at once (the gateway's ``CHANGE_FIELDS``:
 #: each change is a status publication within one cycle).
 FORWARD_NOW_FIELDS = ("state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
-                      "error_code", "error_text", "al_state", "lost")
+                      "error_code", "error_text", "al_state", "lost", "axis_state", "homed", "motion_request_id")
 #: Otherwise (position, velocity, torque, statistics) the latest snapshot goes at this rate; it
 #: must be at least the gateway's motion rate (``motion_period_s`` 0.1 s) and heartbeat.
 FORWARD_PERIOD_S = 0.05

@@ -58,8 +58,8 @@ LEASE_REACTION_OPS: dict[str, tuple[str, ...]] = {
 #: velocity and torque change every cycle in motion: they go out at most every
 #: ``motion_period_s`` and with every heartbeat.
 CHANGE_FIELDS = ("state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
-                 "error_code", "error_text", "al_state", "lost")
-MOTION_FIELDS = ("position", "velocity", "torque")
+                 "error_code", "error_text", "al_state", "lost", "axis_state", "homed", "motion_request_id")
+MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following_error")
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
@@ -546,6 +546,8 @@ class Gateway:
             controlword=d.controlword, goal=d.goal, halt=d.halt, mode=d.mode, mode_display=d.mode_display,
             position=d.position, velocity=d.velocity, torque=d.torque, error_code=d.error_code,
             error_text=(d.error_text or describe(d.error_code))[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
+            axis_state=d.axis_state, homed=d.homed, target_position=d.target_position,
+            following_error=max(-2**31, min(2**31 - 1, d.following_error)), motion_request_id=d.motion_request_id[:128],
         )
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
@@ -836,6 +838,7 @@ class Gateway:
             state=o.state if o.state in m.DRIVE_STATES else "unknown", error_code=o.error_code & 0xFFFF,
             reason=o.reason[:400], elapsed_s=o.elapsed_s or (time.monotonic_ns() - req.received_ns) / 1e9,
             cycles=o.cycles, lease_holder=self.leases.holder(o.axis) if o.axis else "",
+            duration_s=min(max(o.duration_s, 0.0), 1e6),
         )
 
     def _emit(self, ev: rt.CycleEvent) -> None:

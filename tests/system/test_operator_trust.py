@@ -20,6 +20,7 @@ from schemas import keys
 from schemas.messages import Event, decode
 from supervisor.fleet import Fleet, zenoh_config
 from supervisor.testbed import Proc, _env, start_cli_agent, start_router
+from supervisor.watch import status_rows
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -305,10 +306,20 @@ def test_one_agent_per_host_name(bed: Bed) -> None:
         assert r.returncode == 1 and "conflict" in r.stdout.lower(), r.stdout
         log = wait_for(lambda: [ln for ln in late.lines if "also used by agent instance" in ln], 10, "conflict log")
         assert "ERROR" in log[0]
+        # Without an expected fleet, a long-lived Fleet keeps a departed host visible as gone.
+        with Fleet(connect=[bed.ep]) as watcher:
+            assert watcher.wait_for_agents(["c1"], 10, drives=len(HOSTS) * N + 1)
+            bridge.stop()
+            late.stop()
+            bed.agents.pop("c1").stop()
+            assert watcher.wait_until(lambda f: "c1" not in f.hosts(), 20)
+            rows = [r for r in status_rows(watcher) if r["host"] == "c1"]
+            assert [(r["axis"], r["agent"], r["agent_alive"]) for r in rows] == [("axis0", "gone", False)]
     finally:
         bridge.stop()
         late.stop()
-        bed.agents.pop("c1").stop()
+        if "c1" in bed.agents:
+            bed.agents.pop("c1").stop()
 
 
 def start_cli_agent_raw(router: str, host: str, ready: bool = False) -> Proc:

@@ -1,0 +1,166 @@
+"""The cycle's side of the motion layer: motion ops in, targets out, one outcome per command.
+
+A mixin of :class:`bus_agent.cycle.cycle.Cycle` (cycle thread only). The motion logic itself
+is pure and lives in :mod:`bus_agent.motion`; this module only routes commands to each drive's
+:class:`~bus_agent.motion.axis.AxisMotion`, copies its targets into the drive's output record
+(the cycle's ``target_position``/``target_velocity``, written by the usual output path) and turns
+its :class:`~bus_agent.motion.axis.Finished` records into command outcomes.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Callable, Sequence
+
+from bus_agent.cia402.states import State
+from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected
+from bus_agent.motion.planner import PlanError, plan_group
+from bus_agent.runtime import DriveCommand, Outcome
+
+if TYPE_CHECKING:  # the attributes of Cycle this mixin uses
+    from bus_agent.cycle.cycle import _Drive
+
+_FAULTS = (State.FAULT, State.FAULT_REACTION_ACTIVE)
+
+
+class MotionMixin:
+    """Motion commands and per-cycle motion steps of the :class:`Cycle`."""
+
+    if TYPE_CHECKING:
+        _by_axis: dict[str, _Drive]
+        _wall_ns: Callable[[], int]
+        cycles: int
+
+        def _reply(self, d: _Drive, cmd: DriveCommand, outcome: str, reason: str, now_ns: int, start_ns: int,
+                   start_cycle: int | None = None, duration_s: float = 0.0) -> None: ...
+
+        def _refusal(self, d: _Drive) -> str: ...
+
+        @staticmethod
+        def _outcome(cmd: DriveCommand, outcome: Outcome) -> None: ...
+
+    # ---- commands ------------------------------------------------------------------------------
+
+    def _motion_command(self, d: "_Drive", cmd: DriveCommand, now_ns: int) -> None:
+        """move / jog / stop for one axis (a ``sync`` move goes through :meth:`_group_move`)."""
+        m = d.motion
+        now_s = now_ns / 1e9
+        start_ns = cmd.received_ns or now_ns
+        deadline_s = (start_ns + int(cmd.timeout_s * 1e9)) / 1e9
+        if cmd.op == "home":
+            self._reply(d, cmd, "rejected", "homing is not available on this agent yet", now_ns, start_ns)
+            return
+        token = (cmd, self.cycles)
+        ended = m.command(token, cmd.request_id, cmd.op, cmd.args, now_s, deadline_s)
+        if m.active is not None and m.active.token is token:
+            d.ctrl.set_halt(False)  # a new move after a halt: PLCopen MC_Halt may be overridden
+        self._motion_finished(d, ended, now_ns)
+
+    def _group_move(self, cmd: DriveCommand, now_ns: int) -> None:
+        """A synchronised move of the axes of one query: all start in the same cycle (or at
+        ``start_at_ns``) and arrive together. Any axis refusing refuses the whole group."""
+        args = cmd.args
+        targets = args.get("targets")
+        start_ns = cmd.received_ns or now_ns
+        deadline_s = (start_ns + int(cmd.timeout_s * 1e9)) / 1e9
+        now_s = now_ns / 1e9
+        axes = list(dict.fromkeys(cmd.axes))
+        drives: list[_Drive] = []
+        prepared = []
+        refused: dict[str, str] = {}
+        for axis in axes:
+            d = self._by_axis.get(axis)
+            if d is None:
+                refused[axis] = f"no axis {axis!r} here"
+                self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=refused[axis]))
+                continue
+            why = self._refusal(d)
+            if why:
+                refused[axis] = why
+                drives.append(d)
+                continue
+            one = {k: v for k, v in args.items() if k not in ("targets", "sync", "prepare", "duration_s", "start_at_ns")}
+            if targets is not None:
+                if axis not in targets:
+                    refused[axis] = "no target for this axis in targets"
+                    drives.append(d)
+                    continue
+                one = {k: v for k, v in one.items() if k not in ("to", "by")} | {"to": targets[axis]}
+            try:
+                prepared.append(d.motion.prepare_move(one, now_s))
+            except Rejected as e:
+                refused[axis] = str(e)
+            drives.append(d)
+        plans = []
+        if not refused:
+            try:
+                plans = plan_group([p[0] for p in prepared], [p[1] for p in prepared], [p[2] for p in prepared],
+                                   float(args.get("duration_s") or 0.0))
+            except PlanError as e:
+                refused = {d.axis: str(e) for d in drives}
+        if refused:
+            for d in drives:
+                why = refused.get(d.axis) or "group move refused: " + "; ".join(f"{a}: {r}" for a, r in refused.items())
+                self._reply(d, cmd, "rejected", why, now_ns, start_ns)
+            return
+        duration = max((p.duration for p in plans), default=0.0)
+        if args.get("prepare"):
+            for d in drives:
+                self._reply(d, cmd, "done", f"prepared: minimum duration {duration:.6f} s", now_ns, start_ns,
+                            duration_s=duration)
+            return
+        t0_s = now_s
+        start_at = args.get("start_at_ns")
+        if start_at:
+            t0_s = now_s + (int(start_at) - self._wall_ns()) / 1e9
+            if t0_s < now_s:
+                late = now_s - t0_s
+                for d in drives:
+                    self._reply(d, cmd, "rejected", f"start_at_ns is {late * 1e3:.3f} ms in the past", now_ns, start_ns)
+                return
+        token_cycle = self.cycles
+        for d, plan, prep in zip(drives, plans, prepared):
+            d.ctrl.set_halt(False)
+            ended = d.motion.start_plan((cmd, token_cycle), cmd.request_id, "sync", plan, t0_s, deadline_s,
+                                        note="; ".join(prep[3]), synchronized=True)
+            self._motion_finished(d, ended, now_ns)
+
+    def _motion_abort(self, d: "_Drive", reason: str, now_ns: int, *, drop: bool = False) -> None:
+        """End the running motion command of ``d`` (aborted); ``drop``: forget the plan too (the
+        drive is leaving Operation enabled or is lost), else decelerate on the profile."""
+        m = d.motion
+        ended = m.lose(reason, now_ns / 1e9) if drop else m.abort(reason, now_ns / 1e9)
+        self._motion_finished(d, ended, now_ns)
+
+    def _motion_finished(self, d: "_Drive", ended: Sequence[Finished], now_ns: int) -> None:
+        for f in ended:
+            cmd, start_cycle = f.token
+            self._reply(d, cmd, f.outcome, f.reason, now_ns, cmd.received_ns or now_ns, start_cycle,
+                        duration_s=f.duration_s)
+
+    # ---- per cycle -----------------------------------------------------------------------------
+
+    def _motion_step(self, d: "_Drive", hold_target: bool, now_ns: int) -> None:
+        """Observe, step, and copy the axis's targets into the drive's output record. Cycle-safe."""
+        i = d.inputs
+        m = d.motion
+        state = d.state
+        m.observe(enabled=state is State.OPERATION_ENABLED, fault=state in _FAULTS, state=state.value,
+                  error_code=i.error_code, position=i.position_actual, velocity=i.velocity_actual,
+                  mode=i.modes_of_operation_display, halted=d.ctrl.halt, commanded=d.target_position)
+        ended = m.step(now_ns / 1e9)
+        if m.write and not hold_target:
+            if m.mode == MODE_CSV:
+                d.target_velocity = m.target_velocity
+                d.target_position = i.position_actual
+            elif m.mode == MODE_CSP:
+                d.target_position = m.target_position
+        if ended:
+            self._motion_finished(d, ended, now_ns)
+
+
+def following_error(d: "_Drive") -> int:
+    """Target position written last minus the actual position (CSP in Operation enabled), else 0."""
+    if d.state is State.OPERATION_ENABLED and d.inputs.modes_of_operation_display == MODE_CSP:
+        return d.target_position - d.inputs.position_actual
+    return 0
+

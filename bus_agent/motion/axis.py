@@ -1,0 +1,458 @@
+"""One axis's motion: the PLCopen axis state machine and the stepper that writes cyclic targets.
+
+Functional core of the motion layer (docs/motion.md). :class:`AxisMotion` has no clock and no
+I/O: the cycle tells it what it observed (:meth:`AxisMotion.observe`), hands it commands
+(:meth:`AxisMotion.command`) and steps it once per cycle (:meth:`AxisMotion.step`); it answers
+with the targets to write (``write``, ``target_position``, ``target_velocity``) and the commands
+that finished (:class:`Finished`, exactly one per accepted command). Cycle-safe: planning runs
+only when a command starts (ruckig, tens of microseconds); a step samples one trajectory.
+
+Rules (PLCopen Part 1 semantics; the issue's safety rules):
+
+- commands are checked against the axis state (:data:`ACCEPTS`): motion only in Operation
+  enabled, nothing but ``stop`` while stopping or homing;
+- one active command per axis: a new one aborts the old one, whose outcome says by what;
+- a new plan starts from the set-point being written (position, velocity, acceleration), so the
+  targets never jump; leaving Operation enabled drops the plan (the cycle holds the targets at
+  the actual values) and ends the command: ``failed`` on a drive fault, ``aborted`` otherwise;
+- software limits are checked before a move starts; a jog stops before them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any, Mapping
+
+from bus_agent.motion.config import MotionConfig
+from bus_agent.motion.planner import Kinematic, Limits, Plan, PlanError, plan_position, plan_stop, plan_velocity
+
+__all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMotion", "Rejected"]
+
+MODE_CSP = 8
+MODE_CSV = 9
+
+
+class AxisState(str, Enum):
+    """PLCopen axis states (values are the wire names of ``drive_status.axis_state``)."""
+
+    DISABLED = "disabled"
+    STANDSTILL = "standstill"
+    HOMING = "homing"
+    DISCRETE_MOTION = "discrete_motion"
+    CONTINUOUS_MOTION = "continuous_motion"
+    SYNCHRONIZED_MOTION = "synchronized_motion"
+    STOPPING = "stopping"
+    ERROR_STOP = "error_stop"
+
+
+#: Motion ops of the drive command key space handled by this module.
+MOTION_OPS = ("move", "jog", "home", "stop")
+
+_A = AxisState
+_MOVING = frozenset({"move", "jog", "home", "stop"})
+#: PLCopen: the ops each axis state accepts (a new motion command aborts the running one).
+ACCEPTS: dict[AxisState, frozenset[str]] = {
+    _A.DISABLED: frozenset({"stop"}),
+    _A.ERROR_STOP: frozenset({"stop"}),
+    _A.STANDSTILL: _MOVING,
+    _A.DISCRETE_MOTION: _MOVING,
+    _A.CONTINUOUS_MOTION: _MOVING,
+    _A.SYNCHRONIZED_MOTION: _MOVING,
+    _A.HOMING: frozenset({"stop"}),
+    _A.STOPPING: frozenset({"stop"}),
+}
+#: Why a state refuses the ops it does not accept.
+REFUSAL: dict[AxisState, str] = {
+    _A.DISABLED: "not enabled: motion needs operation_enabled",
+    _A.ERROR_STOP: "axis in error_stop (drive fault): reset the fault and enable first",
+    _A.HOMING: "homing in progress: stop it first",
+    _A.STOPPING: "axis busy with a stop: release it first (stop --release)",
+}
+
+
+class Rejected(Exception):
+    """A command refused before anything changed; the message is the reply's reason."""
+
+
+@dataclass(frozen=True)
+class Finished:
+    """The terminal outcome of one motion command (``token`` is the caller's command)."""
+
+    token: Any
+    request_id: str
+    outcome: str   # done | aborted | failed | timeout | rejected
+    reason: str = ""
+    duration_s: float = 0.0  # the profile's planned duration (done moves)
+
+
+@dataclass(slots=True)
+class _Active:
+    token: Any
+    request_id: str
+    op: str                 # move | jog | stop (home: bus_agent.motion.homing)
+    deadline_s: float       # the command's timeout, on the caller's clock
+    end_s: float = math.inf  # jog: when it starts to decelerate
+    synchronized: bool = False
+    note: str = ""          # clamps, appended to the done reason
+    limit_ahead: str = ""   # jog (CSP): the software limit its position plan ends at
+    limit_stop: str = ""    # jog: the software limit it stopped at
+
+
+def _num(args: Mapping[str, Any], name: str) -> float | None:
+    v = args.get(name)
+    return None if v is None else float(v)
+
+
+class AxisMotion:
+    """Motion state of one axis (see the module docstring). ``cfg`` in user units."""
+
+    def __init__(self, cfg: MotionConfig, period_s: float) -> None:
+        self.user = cfg
+        self.cfg = c = cfg.in_counts()
+        self.scale = cfg.counts_per_unit
+        self.limits = Limits(c.max_velocity, c.max_acceleration, c.max_jerk)
+        #: Targets take effect at the next exchange: plans are sampled one period ahead.
+        self.lead_s = period_s
+        self.homed = False
+        self.stop_latched = False
+        self.active: _Active | None = None
+        self.plan: Plan | None = None
+        self.plan_t0 = 0.0
+        self.plan_kind = ""      # move | sync | jog | decel | stop
+        # what the cycle writes this cycle when ``write`` is set
+        self.write = False
+        self.target_position = 0
+        self.target_velocity = 0
+        # last observation (observe)
+        self.enabled = False
+        self.fault = False
+        self.state = "unknown"
+        self.error_code = 0
+        self.position = 0
+        self.velocity = 0
+        self.mode = 0
+        self.halted = False
+        self.commanded = 0       # the position target the cycle wrote last
+
+    # ---- observation ----------------------------------------------------------------------
+
+    def observe(self, *, enabled: bool, fault: bool, state: str, error_code: int, position: int,
+                velocity: int, mode: int, halted: bool, commanded: int) -> None:
+        """What the cycle saw this cycle (fresh inputs). Cycle-safe."""
+        self.enabled = enabled
+        self.fault = fault
+        self.state = state
+        self.error_code = error_code
+        self.position = position
+        self.velocity = velocity
+        self.mode = mode
+        self.halted = halted
+        self.commanded = commanded
+
+    @property
+    def axis_state(self) -> AxisState:
+        if self.fault:
+            return AxisState.ERROR_STOP
+        if not self.enabled:
+            return AxisState.DISABLED
+        if self.stop_latched:
+            return AxisState.STOPPING
+        a = self.active
+        if a is not None and a.op == "jog":
+            return AxisState.CONTINUOUS_MOTION
+        if a is not None and a.synchronized:
+            return AxisState.SYNCHRONIZED_MOTION
+        if self.plan is not None:
+            return AxisState.DISCRETE_MOTION
+        return AxisState.STANDSTILL
+
+    @property
+    def request_id(self) -> str:
+        return self.active.request_id if self.active is not None else ""
+
+    # ---- commands --------------------------------------------------------------------------
+
+    def check(self, op: str) -> None:
+        """Raise Rejected when the axis state does not accept ``op``."""
+        st = self.axis_state
+        if op not in ACCEPTS[st]:
+            raise Rejected(REFUSAL.get(st, f"{op} not accepted in axis state {st.value}"))
+
+    def _current(self, now_s: float) -> Kinematic:
+        """The set-point being written now: where a new plan starts (no jump)."""
+        if self.plan is not None:
+            p, v, a = self.plan.sample(now_s - self.plan_t0)
+            return Kinematic(p, v, a)
+        if self.halted or self.mode == MODE_CSV:
+            return Kinematic(float(self.position), float(self.velocity))
+        return Kinematic(float(self.commanded))
+
+    def _limits(self, args: Mapping[str, Any], notes: list[str]) -> Limits:
+        """Requested velocity/accel/jerk (user units) within the axis limits: clamped or rejected."""
+        out = []
+        for arg, name, limit in (("velocity", "velocity", self.limits.velocity),
+                                 ("accel", "acceleration", self.limits.acceleration),
+                                 ("jerk", "jerk", self.limits.jerk)):
+            v = _num(args, arg)
+            if v is None:
+                out.append(limit)
+                continue
+            counts = abs(v * self.scale)
+            if not counts > 0:
+                raise Rejected(f"{arg} {v:g} must be > 0")
+            if counts > limit * (1 + 1e-9):
+                max_user = limit / abs(self.scale)
+                if self.cfg.limit_policy == "clamp":
+                    notes.append(f"{arg} {v:g} clamped to the axis {name} limit {max_user:g} {self.user.unit}")
+                    counts = limit
+                else:
+                    raise Rejected(f"{arg} {v:g} {self.user.unit} exceeds the axis {name} limit {max_user:g}")
+            out.append(counts)
+        return Limits(*out)
+
+    def _check_target(self, target: float) -> None:
+        c = self.cfg
+        if c.min_position is not None and target < c.min_position - 1e-9:
+            raise Rejected(f"target {target / self.scale:g} {self.user.unit} is below the software limit "
+                           f"min_position {c.min_position / self.scale:g}")
+        if c.max_position is not None and target > c.max_position + 1e-9:
+            raise Rejected(f"target {target / self.scale:g} {self.user.unit} is beyond the software limit "
+                           f"max_position {c.max_position / self.scale:g}")
+        if not -2**31 <= round(target) < 2**31:
+            raise Rejected(f"target {target:.0f} counts is outside the 32-bit range of 0x607A")
+
+    def prepare_move(self, args: Mapping[str, Any], now_s: float) -> tuple[Kinematic, float, Limits, list[str]]:
+        """Check a move (``to`` or ``by``, optional velocity/accel/jerk): start, target in counts,
+        limits and clamp notes. Raises Rejected (nothing changed)."""
+        self.check("move")
+        if self.mode != MODE_CSP:
+            raise Rejected(f"move needs cyclic synchronous position (0x6061 = 8); the drive is in mode {self.mode}")
+        to, by = _num(args, "to"), _num(args, "by")
+        if (to is None) == (by is None):
+            raise Rejected("give exactly one of to (absolute) or by (relative)")
+        if to is not None and self.cfg.require_homing and not self.homed:
+            raise Rejected("not homed: this axis requires homing before absolute moves")
+        notes: list[str] = []
+        limits = self._limits(args, notes)
+        start = self._current(now_s)
+        target = to * self.scale if to is not None else start.position + (by or 0.0) * self.scale
+        self._check_target(target)
+        return start, target, limits, notes
+
+    def command(self, token: Any, request_id: str, op: str, args: Mapping[str, Any], now_s: float,
+                deadline_s: float) -> list[Finished]:
+        """Start ``op`` (move, jog, stop) now. Returns the commands this ends: the new one when it is
+        rejected or already done, the aborted one it replaces. Cycle-safe."""
+        try:
+            if op == "move":
+                start, target, limits, notes = self.prepare_move(args, now_s)
+                try:
+                    plan = plan_position(start, target, limits)
+                except PlanError as e:
+                    raise Rejected(str(e)) from None
+                return self.start_plan(token, request_id, "move", plan, now_s, deadline_s, note="; ".join(notes))
+            if op == "jog":
+                return self._jog(token, request_id, args, now_s, deadline_s)
+            if op == "stop":
+                return self._stop(token, request_id, bool(args.get("release", False)), now_s)
+            raise Rejected(f"op {op!r} is not a motion op of this axis")
+        except Rejected as e:
+            return [Finished(token, request_id, "rejected", str(e))]
+
+    def start_plan(self, token: Any, request_id: str, kind: str, plan: Plan, now_s: float, deadline_s: float,
+                   *, note: str = "", synchronized: bool = False, end_s: float = math.inf,
+                   limit_ahead: str = "") -> list[Finished]:
+        """Make ``plan`` the axis's trajectory from ``now_s``; the running command is aborted."""
+        ended = self.abort(f"aborted by {request_id} ({kind})", now_s, decelerate=False)
+        self.plan, self.plan_t0, self.plan_kind = plan, now_s, kind
+        self.active = _Active(token, request_id, "jog" if kind == "jog" else "move", deadline_s, end_s=end_s,
+                              synchronized=synchronized, note=note, limit_ahead=limit_ahead)
+        return ended
+
+    def _jog(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float,
+             deadline_s: float) -> list[Finished]:
+        self.check("jog")
+        if self.mode not in (MODE_CSP, MODE_CSV):
+            raise Rejected(f"jog needs cyclic synchronous position or velocity (0x6061 = 8 or 9); "
+                           f"the drive is in mode {self.mode}")
+        v = _num(args, "velocity")
+        if v is None:
+            raise Rejected("jog needs a velocity")
+        notes: list[str] = []
+        lim = self._limits({k: args[k] for k in ("accel", "jerk") if k in args}, notes)
+        speed = abs(v * self.scale)
+        if speed > self.limits.velocity * (1 + 1e-9):
+            if self.cfg.limit_policy != "clamp":
+                raise Rejected(f"velocity {v:g} {self.user.unit}/s exceeds the axis velocity limit "
+                               f"{self.limits.velocity / abs(self.scale):g}")
+            notes.append(f"velocity {v:g} clamped to the axis velocity limit {self.limits.velocity / abs(self.scale):g}")
+            speed = self.limits.velocity
+        velocity = math.copysign(speed, v * self.scale)
+        start = self._current(now_s)
+        c = self.cfg
+        limit = c.max_position if velocity > 0 else c.min_position
+        if limit is not None and (start.position - limit) * velocity >= 0:
+            raise Rejected(f"at the software limit {'max' if velocity > 0 else 'min'}_position "
+                           f"{limit / self.scale:g}: jog the other way")
+        # Run for for_s (default: the command's deadline less the time to stop from that speed).
+        stop_s = plan_stop(Kinematic(0.0, velocity), lim).duration
+        for_s = _num(args, "for_s")
+        end_s = now_s + for_s if for_s is not None else deadline_s - stop_s - 0.05
+        if end_s + stop_s > deadline_s + 1e-9:
+            raise Rejected(f"jog for {for_s:g} s cannot stop within the command's timeout "
+                           f"({deadline_s - now_s:.3g} s; stopping takes {stop_s:.3g} s)")
+        try:
+            if limit is not None and self.mode == MODE_CSP:
+                # CSP with a software limit ahead: a position plan to the limit at the jog speed
+                # never passes it (it ends at rest there).
+                plan = plan_position(start, limit, Limits(speed, lim.acceleration, lim.jerk))
+                plan.final_velocity = 0.0
+                stop_at = f"{'max' if velocity > 0 else 'min'}_position {limit / self.scale:g}"
+            else:
+                plan = plan_velocity(start, velocity, lim)
+                stop_at = ""
+        except PlanError as e:
+            raise Rejected(str(e)) from None
+        return self.start_plan(token, request_id, "jog", plan, now_s, deadline_s, note="; ".join(notes),
+                               end_s=end_s, limit_ahead=stop_at)
+
+    def _stop(self, token: Any, request_id: str, release: bool, now_s: float) -> list[Finished]:
+        if release:
+            was = self.stop_latched
+            self.stop_latched = False
+            return [Finished(token, request_id, "done", "stop released" if was else "no stop to release")]
+        ended = self.abort(f"aborted by {request_id} (stop)", now_s, decelerate=True)
+        self.stop_latched = True
+        if self.plan is None or not self.enabled:
+            return ended + [Finished(token, request_id, "done", "at rest; motion refused until released")]
+        self.plan_kind = "stop"
+        self.active = _Active(token, request_id, "stop", math.inf)
+        return ended
+
+    def abort(self, reason: str, now_s: float, *, decelerate: bool = True, outcome: str = "aborted") -> list[Finished]:
+        """End the running command with ``outcome``; with ``decelerate`` (and still enabled) the
+        axis comes to rest on its profile from the set-point being written, else the plan is dropped."""
+        ended: list[Finished] = []
+        a = self.active
+        if a is not None:
+            self.active = None
+            ended.append(Finished(a.token, a.request_id, outcome, reason))
+        if not decelerate:
+            return ended  # the caller replaces or drops the plan
+        if self.enabled and not self.halted and self.plan is not None:
+            start = self._current(now_s)
+            self.plan, self.plan_t0, self.plan_kind = plan_stop(start, self.limits), now_s, "decel"
+        else:
+            self.plan = None
+        return ended
+
+    def lose(self, reason: str, now_s: float) -> list[Finished]:
+        """The drive is lost or leaves Operation enabled: abort and forget the plan."""
+        ended = self.abort(reason, now_s, decelerate=False)
+        self.plan = None
+        return ended
+
+    # ---- the cycle step -------------------------------------------------------------------
+
+    def step(self, now_s: float) -> list[Finished]:
+        """Sample the plan for this cycle's targets and decide outcomes. Call after :meth:`observe`."""
+        if not self.enabled:
+            self.write = False
+            if self.active is None and self.plan is None:
+                return []
+            if self.fault:
+                return self.abort(f"drive fault 0x{self.error_code:04X} in {self.state}", now_s,
+                                  decelerate=False, outcome="failed") + self._drop()
+            why = "quick stop" if self.state == "quick_stop_active" else f"drive left operation_enabled ({self.state})"
+            return self.abort(why, now_s, decelerate=False) + self._drop()
+        if self.halted:
+            # controlword bit 8: the drive stops on its own ramp (0x605D); follow it, no jump on release
+            halted = self.abort("halt (controlword bit 8)", now_s, decelerate=False) + self._drop()
+            self.write = True
+            self.target_position = self.position
+            self.target_velocity = 0
+            return halted
+        plan = self.plan
+        if plan is None:
+            self.write = False
+            return []
+        t = now_s - self.plan_t0 + self.lead_s
+        p, v, _ = plan.sample(t)
+        self.write = True
+        self.target_position = int(round(p))
+        self.target_velocity = int(round(v))
+        a = self.active
+        if a is not None and a.op == "move" and now_s >= a.deadline_s:
+            return self.abort(f"not in position within the timeout ({plan.target / self.scale:g} {self.user.unit})",
+                              now_s, outcome="timeout")
+        if a is not None and a.op == "jog" and self.plan_kind == "jog":
+            if now_s >= a.end_s:
+                self.plan, self.plan_t0, self.plan_kind = plan_stop(self._current(now_s), self.limits), now_s, "jog_end"
+                return []
+            if self.mode == MODE_CSV:
+                a.limit_stop = self._csv_limit_ahead(plan.final_velocity)
+                if a.limit_stop:
+                    self.plan, self.plan_t0 = plan_stop(self._current(now_s), self.limits), now_s
+                    self.plan_kind = "jog_end"
+                    return []
+            if t < plan.duration or math.isnan(plan.target):
+                return []  # a velocity plan keeps going until its end time
+            a.limit_stop = a.limit_ahead  # a position plan to the limit: it ends there, at rest
+            self.plan_kind = "jog_end"
+        if t < plan.duration:
+            return []
+        at_rest = abs(self.velocity) <= self.cfg.velocity_window
+        if a is None:
+            if at_rest or t >= plan.duration + self.cfg.settle_s:
+                self.plan = None  # the last target stays written (held by the cycle)
+            return []
+        if a.op == "stop":
+            if at_rest:
+                self.active = None
+                self.plan = None
+                return [Finished(a.token, a.request_id, "done", "at rest; motion refused until released")]
+            return []
+        if a.op == "jog":
+            if at_rest:
+                self.active = None
+                self.plan = None
+                if a.limit_stop:
+                    return [Finished(a.token, a.request_id, "aborted", f"stopped at the software limit {a.limit_stop}")]
+                return [Finished(a.token, a.request_id, "done", "jog ended" + (f"; {a.note}" if a.note else ""))]
+            return []
+        err = abs(self.position - plan.target)
+        if err <= self.cfg.position_window and at_rest:
+            self.active = None
+            self.plan = None
+            return [Finished(a.token, a.request_id, "done", a.note, plan.duration)]
+        if t >= plan.duration + self.cfg.settle_s:
+            self.active = None
+            self.plan = None
+            return [Finished(a.token, a.request_id, "failed",
+                             f"not in the position window {self.cfg.position_window / abs(self.scale):g} "
+                             f"{self.user.unit} {self.cfg.settle_s:g} s after the profile ended "
+                             f"(error {err / abs(self.scale):g}, velocity {self.velocity / abs(self.scale):g})")]
+        return []
+
+    def _csv_limit_ahead(self, velocity: float) -> str:
+        """CSV jog at (up to) ``velocity``: the software limit the axis would pass if it braked a
+        cycle later, or ''. Conservative braking distance: bringing the acceleration to zero
+        (at most |v| a/j), then a jerk-limited stop from |v| at zero acceleration
+        (|v| (|v|/a + a/j) / 2), plus three cycles' travel for the inputs' delay."""
+        c = self.cfg
+        limit = c.max_position if velocity > 0 else c.min_position
+        if limit is None or velocity == 0:
+            return ""
+        lim = self.limits
+        speed = abs(velocity)
+        brake = (speed * lim.acceleration / lim.jerk + speed * (speed / lim.acceleration + lim.acceleration / lim.jerk) / 2
+                 + speed * 3 * self.lead_s)
+        if (self.position + math.copysign(brake, velocity) - limit) * velocity >= 0:
+            return f"{'max' if velocity > 0 else 'min'}_position {limit / self.scale:g}"
+        return ""
+
+    def _drop(self) -> list[Finished]:
+        self.plan = None
+        return []
