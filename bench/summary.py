@@ -115,6 +115,7 @@ def agent_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {
         "phases": {k: {"jitter_us": {q: v["jitter_us"][q] for q in JITTER_QUANTILES},
                        "period_us_max": v["period_us"]["max"], "overruns": v["overruns"], "cycles": v["cycles"],
+                       "startup_fault_resets": v.get("startup_fault_resets", 0),
                        "wkc_errors": v["wkc_errors"], "cpu_pct": v["cpu_pct"]} for k, v in ph.items()},
         "ratios": r["ratios"]}
     gp = ph.get("gateway_process")
@@ -136,6 +137,10 @@ def agent_headline(r: Mapping[str, Any]) -> str:
             j = ph[k]["jitter_us"]
             parts.append(f"{k} {j['p99']}/{j['p999']}/{j['max']} ({ph[k]['overruns']} overruns)")
     text = "jitter p99/p99.9/max us: " + ", ".join(parts)
+    resets = sum(v.get("startup_fault_resets", 0) for v in ph.values()) + (r.get("enable_latency") or {}).get(
+        "startup_fault_resets", 0)
+    if resets:
+        text += f"; {resets} drive faults from start-up stalls reset by the benchmark"
     en = r.get("enable_latency") or {}
     lat, beyond, bare = en.get("latency") or {}, en.get("beyond_cycles") or {}, en.get("bare_get") or {}
     if lat:
