@@ -221,6 +221,8 @@ class AgentStatus:
     groups: dict = _f({}, keys=NAME, values=Meta(list, {"items": MEMBER}), doc="group name -> list of member keys 'host/axis'")
     instance: str = _f("", max_len=64, doc="this agent process' random id, new at every start: two ids under one host name are a conflict")
     conflict: str = _f("", max_len=400, doc="another agent publishes under this host name ('' if none): commands are refused by supervisors")
+    commands: dict = _f({}, keys=NAME, values=Meta(int, {"range": U64}),
+                        doc="'op.outcome' -> command replies given since start (e.g. 'enable.done')")
 
 
 @dataclass(frozen=True)

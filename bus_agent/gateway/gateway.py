@@ -353,6 +353,8 @@ class Gateway:
         self._commands_idle.set()
         # Flight recorder queries: served one at a time on their own thread (copies take a while).
         self._recordings: queue.Queue[zenoh.Query] = queue.Queue(maxsize=RECORDING_QUEUE)
+        #: 'op.outcome' -> replies given (published in AgentStatus.commands, for metrics).
+        self._command_counts: dict[str, int] = {}
 
     # ---- called from the cycle thread: enqueue only --------------------------------------
 
@@ -588,7 +590,7 @@ class Gateway:
             overruns=st.overruns, wkc_errors=st.wkc_errors, expected_wkc=st.expected_wkc,
             axes=list(self.axes), al_states={d.axis: d.al_state for d in snap.drives} if snap else {},
             leases=dict(self._lease_holders), groups={g: list(ms) for g, ms in self.s.groups.items()},
-            instance=self.instance, conflict=self._conflict_text[:400],
+            instance=self.instance, conflict=self._conflict_text[:400], commands=dict(self._command_counts),
         )
 
     # ---- command thread ---------------------------------------------------------------------
@@ -832,9 +834,12 @@ class Gateway:
                      req.requester, ", ".join(f"{a or 'agent'}={r.outcome}" for a, r in sorted(req.replies.items())))
 
     def _reply(self, req: _Request, o: rt.Outcome) -> m.CommandReply:
+        outcome = o.outcome if o.outcome in m.OUTCOMES else "failed"
+        key = f"{req.op}.{outcome}"
+        self._command_counts[key] = self._command_counts.get(key, 0) + 1
         return m.CommandReply(
             request_id=req.request_id, host=self.host, op=req.op,
-            outcome=o.outcome if o.outcome in m.OUTCOMES else "failed", axis=o.axis,
+            outcome=outcome, axis=o.axis,
             state=o.state if o.state in m.DRIVE_STATES else "unknown", error_code=o.error_code & 0xFFFF,
             reason=o.reason[:400], elapsed_s=o.elapsed_s or (time.monotonic_ns() - req.received_ns) / 1e9,
             cycles=o.cycles, lease_holder=self.leases.holder(o.axis) if o.axis else "",

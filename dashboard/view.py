@@ -1,0 +1,178 @@
+"""What the dashboard shows, kept from the supervisor API's callbacks; read by the web handlers.
+
+:class:`FleetView` is fed by ``supervisor.Fleet`` listeners (status, agent, arrival, departure)
+and the drive event subscriber, on their threads; the web side reads JSON-ready copies. Every
+change bumps a version; each drive row, host row and event carries the version it changed at,
+so a live page gets only what changed since the version it has (:meth:`FleetView.changes_since`).
+No I/O here.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Any, Iterable
+
+from schemas.messages import DRIVE_STATES, AgentStatus, DriveStatus, Event
+
+#: Motion samples kept per drive for the live plots (status publications: about 10 per second
+#: in motion, one per heartbeat at rest).
+MOTION_SAMPLES = 600
+#: Recent events kept for the page.
+EVENTS_KEPT = 200
+#: States that make a row stand out.
+BAD_STATES = ("fault", "fault_reaction_active")
+
+
+def drive_row(st: DriveStatus, agent_alive: bool) -> dict[str, Any]:
+    """One table row (JSON-ready). Pure."""
+    return {"host": st.host, "axis": st.axis, "state": st.state, "mode": st.mode_display,
+            "position": st.position, "velocity": st.velocity, "torque": st.torque,
+            "error_code": st.error_code, "error_text": st.error_text, "al_state": st.al_state,
+            "lost": st.lost, "lease_holder": st.lease_holder, "statusword": st.statusword,
+            "goal": st.goal, "online": agent_alive, "time_ns": st.time_ns,
+            "alarm": st.state in BAD_STATES or st.lost or not agent_alive}
+
+
+def offline_row(host: str, axis: str) -> dict[str, Any]:
+    """Row of an expected drive that no live agent reports. Pure."""
+    return {"host": host, "axis": axis, "state": "offline", "mode": None, "position": None, "velocity": None,
+            "torque": None, "error_code": 0, "error_text": "", "al_state": "none", "lost": False,
+            "lease_holder": "", "statusword": None, "goal": None, "online": False, "alarm": True, "time_ns": 0}
+
+
+def agent_row(host: str, alive: bool, st: AgentStatus | None, expected: bool) -> dict[str, Any]:
+    """One agent health row (JSON-ready). Pure."""
+    row: dict[str, Any] = {"host": host, "alive": alive, "expected": expected, "state": "offline"}
+    if st is not None:
+        row.update(state=st.state if alive else "offline", backend=st.backend, cycle_us=st.cycle_us,
+                   cycles=st.cycles, period_p50_us=st.period_p50_us, period_p99_us=st.period_p99_us,
+                   period_max_us=st.period_max_us, overruns=st.overruns, wkc_errors=st.wkc_errors,
+                   axes=list(st.axes), commands=dict(getattr(st, "commands", {}) or {}))
+    return row
+
+
+def event_row(ev: Event) -> dict[str, Any]:
+    """One event line (JSON-ready). Pure."""
+    return {"host": ev.host, "axis": ev.axis, "time_ns": ev.time_ns, "kind": ev.kind, "detail": ev.detail,
+            "from_state": ev.from_state, "to_state": ev.to_state, "error_code": ev.error_code,
+            "alarm": ev.kind in ("fault", "lost", "reflex")}
+
+
+class FleetView:
+    """The dashboard's state. ``expected``: host -> axes of the expected fleet (may be empty)."""
+
+    def __init__(self, expected: dict[str, list[str]] | None = None) -> None:
+        self.expected = {h: list(a) for h, a in (expected or {}).items()}
+        self._lock = threading.Lock()
+        self.version = 0
+        self._status: dict[tuple[str, str], DriveStatus] = {}
+        self._rows: dict[tuple[str, str], tuple[int, dict[str, Any]]] = {}
+        self._agents: dict[str, tuple[bool, AgentStatus | None]] = {}
+        self._hosts: dict[str, tuple[int, dict[str, Any]]] = {}
+        self._events: collections.deque[tuple[int, dict[str, Any]]] = collections.deque(maxlen=EVENTS_KEPT)
+        self._motion: dict[tuple[str, str], collections.deque[tuple[float, int, int, int]]] = {}
+        self.started_s = time.time()
+        for h, axes in self.expected.items():
+            self._agents[h] = (False, None)
+            self._touch_host(h)
+            for a in axes:
+                self._set_row((h, a))
+
+    # ---- feeding (any thread) --------------------------------------------------------------
+
+    def on_status(self, st: DriveStatus) -> None:
+        ref = (st.host, st.axis)
+        with self._lock:
+            self._status[ref] = st
+            m = self._motion.get(ref)
+            if m is None:
+                m = self._motion[ref] = collections.deque(maxlen=MOTION_SAMPLES)
+            m.append((st.time_ns / 1e9, st.position, st.velocity, st.torque))
+            self._set_row(ref)
+
+    def on_agent(self, st: AgentStatus) -> None:
+        with self._lock:
+            alive = self._agents.get(st.host, (True, None))[0]
+            self._agents[st.host] = (alive or st.state == "running", st)
+            self._touch_host(st.host)
+
+    def on_alive(self, host: str, alive: bool) -> None:
+        with self._lock:
+            st = self._agents.get(host, (False, None))[1]
+            self._agents[host] = (alive, st)
+            self._touch_host(host)
+            for ref in [r for r in set(self._status) | set(self._rows) if r[0] == host]:
+                self._set_row(ref)
+
+    def on_event(self, ev: Event) -> None:
+        with self._lock:
+            self.version += 1
+            self._events.append((self.version, event_row(ev)))
+
+    def _touch_host(self, host: str) -> None:
+        self.version += 1
+        alive, st = self._agents.get(host, (False, None))
+        self._hosts[host] = (self.version, agent_row(host, alive, st, host in self.expected))
+
+    def _set_row(self, ref: tuple[str, str]) -> None:
+        self.version += 1
+        st = self._status.get(ref)
+        alive = self._agents.get(ref[0], (False, None))[0]
+        self._rows[ref] = (self.version, drive_row(st, alive) if st is not None else offline_row(*ref))
+
+    # ---- reading (any thread) -------------------------------------------------------------------
+
+    def changes_since(self, version: int) -> dict[str, Any]:
+        """Rows, hosts and events changed after ``version`` (everything for 0), and the version now."""
+        with self._lock:
+            return {"version": self.version,
+                    "full": version == 0,
+                    "drives": [r for v, r in self._rows.values() if v > version],
+                    "hosts": [r for v, r in self._hosts.values() if v > version],
+                    "events": [e for v, e in self._events if v > version]}
+
+    def snapshot(self) -> dict[str, Any]:
+        """Everything, sorted (``/api/fleet``)."""
+        with self._lock:
+            drives = [r for _, (_, r) in sorted(self._rows.items())]
+            hosts = [r for _, (_, r) in sorted(self._hosts.items())]
+            events = [e for _, e in self._events]
+            version = self.version
+        return {"version": version, "drives": drives, "hosts": hosts, "events": events,
+                "summary": summary(drives, hosts)}
+
+    def drive(self, host: str, axis: str) -> dict[str, Any] | None:
+        """One drive: its row, motion history and events (``/api/drive/<host>/<axis>``)."""
+        with self._lock:
+            row = self._rows.get((host, axis))
+            if row is None:
+                return None
+            motion = list(self._motion.get((host, axis), ()))
+            events = [e for _, e in self._events if e["host"] == host and e["axis"] == axis]
+        return {"drive": row[1], "motion": {"t": [m[0] for m in motion], "position": [m[1] for m in motion],
+                                            "velocity": [m[2] for m in motion], "torque": [m[3] for m in motion]},
+                "events": events}
+
+    def statuses(self) -> dict[tuple[str, str], DriveStatus]:
+        with self._lock:
+            return dict(self._status)
+
+    def agents(self) -> dict[str, tuple[bool, AgentStatus | None]]:
+        with self._lock:
+            return dict(self._agents)
+
+
+def summary(drives: Iterable[dict[str, Any]], hosts: Iterable[dict[str, Any]]) -> dict[str, Any]:
+    """Counts for the page header and the fleet metrics. Pure."""
+    by_state = {s: 0 for s in (*DRIVE_STATES, "offline")}
+    alarms = 0
+    n = 0
+    for r in drives:
+        n += 1
+        by_state[r["state"]] = by_state.get(r["state"], 0) + 1
+        alarms += bool(r["alarm"])
+    hs = list(hosts)
+    return {"drives": n, "by_state": by_state, "alarms": alarms, "agents_up": sum(1 for h in hs if h["alive"]),
+            "agents_expected_offline": sum(1 for h in hs if h["expected"] and not h["alive"])}

@@ -1,0 +1,106 @@
+"""The dashboard's view and metrics (pure logic, no network): rows, changes since a version,
+offline expected drives, and the Prometheus exposition parsed back with the client's parser."""
+
+from __future__ import annotations
+
+from prometheus_client.parser import text_string_to_metric_families
+
+from dashboard.app import recording_json
+from dashboard.metrics import registry_for, render
+from dashboard.view import FleetView
+from schemas import messages as m
+
+
+def status(axis: str, state: str = "switch_on_disabled", **kw) -> m.DriveStatus:
+    base = dict(host="h1", axis=axis, seq=1, time_ns=10**18, cycle=5, state=state, statusword=0x0250,
+                controlword=0, goal="disabled", halt=False, mode=8, mode_display=8, position=7, velocity=0,
+                torque=0, error_code=0)
+    base.update(kw)
+    return m.DriveStatus(**base)
+
+
+def agent(**kw) -> m.AgentStatus:
+    base = dict(host="h1", seq=0, time_ns=0, state="running", backend="sim", cycle_us=1000, cycles=9000,
+                period_p50_us=1000.0, period_p99_us=1100.0, period_max_us=2500.0, overruns=3, wkc_errors=1,
+                expected_wkc=6, axes=["a", "b"], commands={"enable.done": 2, "enable.failed": 1})
+    base.update(kw)
+    return m.AgentStatus(**base)
+
+
+def test_rows_changes_and_offline_expected_drives():
+    v = FleetView({"h1": ["a", "b"], "h9": ["x"]})
+    full = v.changes_since(0)
+    assert {(d["host"], d["axis"], d["state"]) for d in full["drives"]} == {
+        ("h1", "a", "offline"), ("h1", "b", "offline"), ("h9", "x", "offline")}
+    v.on_alive("h1", True)
+    v.on_agent(agent())
+    v.on_status(status("a"))
+    v.on_status(status("b"))
+    mark = v.version
+    v.on_status(status("b", "fault", error_code=0x2310, statusword=0x0218))
+    ch = v.changes_since(mark)
+    assert [(d["axis"], d["state"], d["alarm"]) for d in ch["drives"]] == [("b", "fault", True)]
+    assert v.changes_since(v.version)["drives"] == []
+    snap = v.snapshot()
+    assert snap["summary"]["by_state"]["fault"] == 1 and snap["summary"]["by_state"]["offline"] == 1
+    assert snap["summary"]["agents_up"] == 1 and snap["summary"]["agents_expected_offline"] == 1
+    v.on_alive("h1", False)  # the agent went away: its drives stand out as not online
+    rows = {d["axis"]: d for d in v.snapshot()["drives"] if d["host"] == "h1"}
+    assert not rows["a"]["online"] and rows["a"]["alarm"]
+    v.on_event(m.Event(host="h1", axis="b", seq=1, time_ns=1, cycle=2, kind="fault", error_code=0x2310))
+    assert v.changes_since(mark)["events"][0]["alarm"] is True
+    d = v.drive("h1", "a")
+    assert d is not None and d["motion"]["position"] == [7]
+    assert v.drive("h1", "nope") is None
+
+
+def test_metrics_exposition_follows_the_conventions():
+    v = FleetView({"h9": ["x"]})
+    v.on_alive("h1", True)
+    v.on_agent(agent())
+    v.on_status(status("a", "operation_enabled"))
+    v.on_status(status("b", "fault", error_code=0x7500, lost=True, al_state="safeop"))
+    fams = {f.name: f for f in text_string_to_metric_families(render(registry_for(v)).decode())}
+    cur = {(s.labels["axis"], s.labels["state"]) for s in fams["drives_drive_state"].samples if s.value == 1}
+    assert cur == {("a", "operation_enabled"), ("b", "fault")}
+    assert len(fams["drives_drive_state"].samples) == 2 * len(m.DRIVE_STATES)
+    assert {s.labels["axis"]: s.value for s in fams["drives_drive_error_code"].samples} == {"a": 0, "b": 0x7500}
+    assert {s.labels["axis"]: s.value for s in fams["drives_drive_lost"].samples} == {"a": 0, "b": 1}
+    assert {(s.labels["axis"], s.labels["al_state"]) for s in fams["drives_drive_al_state"].samples
+            if s.value == 1} == {("a", "op"), ("b", "safeop")}
+    assert fams["drives_cycle_overruns"].type == "counter"
+    assert [s.value for s in fams["drives_cycle_overruns"].samples if s.name.endswith("_total")] == [3]
+    period = {s.labels["quantile"]: s.value for s in fams["drives_cycle_period_seconds"].samples}
+    assert period == {"0.5": 0.001, "0.99": 0.0011, "1": 0.0025}
+    cmds = {(s.labels["op"], s.labels["outcome"]): s.value for s in fams["drives_commands"].samples
+            if s.name == "drives_commands_total"}
+    assert cmds == {("enable", "done"): 2, ("enable", "failed"): 1}
+    up = {s.labels["host"]: s.value for s in fams["drives_agent_up"].samples}
+    assert up == {"h1": 1.0, "h9": 0.0}
+    by_state = {s.labels["state"]: s.value for s in fams["drives_drives"].samples}
+    assert by_state["fault"] == 1 and by_state["offline"] == 1 and by_state["operation_enabled"] == 1
+
+
+def test_recording_json_splits_axes():
+    rec = m.Recording(host="h1", reason="fault", cycle_us=1000, first_cycle=10, n_cycles=2, time_origin_ns=0,
+                      axes=["a", "b"], channels={"time_ns": [0, 1_000_000], "statusword": [1, 2, 3, 4]},
+                      trigger_cycle=11)
+    j = recording_json(rec, "b")
+    assert j["t"] == [0.0, 0.001] and j["drives"] == {"b": {"statusword": [2, 4]}}
+
+
+def test_grafana_dashboard_and_scrape_config_use_exposed_metrics():
+    import json
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    v = FleetView({"h9": ["x"]})
+    v.on_alive("h1", True)
+    v.on_agent(agent())
+    v.on_status(status("a"))
+    exposed = {s.name for f in text_string_to_metric_families(render(registry_for(v)).decode()) for s in f.samples}
+    dash = json.loads((root / "deploy" / "grafana-dashboard.json").read_text())
+    used = {name for p in dash["panels"] for t in p["targets"] for name in re.findall(r"drives_[a-z_]+", t["expr"])}
+    assert used and used <= exposed, used - exposed
+    assert "/metrics" in (root / "deploy" / "prometheus.yml").read_text()
