@@ -46,6 +46,7 @@ from schemas.messages import (
 )
 
 from .fleetfile import ExpectedFleet, load as load_fleet
+from .motion import group_move, move_args
 from .orchestration import ordered_shutdown, two_phase_enable
 from .results import CommandResult, DriveResult, Report, aggregate, single
 from .selectors import (
@@ -601,10 +602,15 @@ class Fleet:
         return Selection(tuple(s.text for s in parsed), tuple(drives),
                          plan_queries(parsed, drives, self.host_axes()))
 
-    def selection_of(self, refs: Iterable[DriveRef]) -> Selection:
-        """A selection of exactly these drives (one query per host where the host is whole)."""
+    def selection_of(self, refs: Iterable[DriveRef], *, per_host: bool = False) -> Selection:
+        """A selection of exactly these drives (one query per host where the host is whole).
+        ``per_host``: one ``<host>/drive/*`` query per host whatever the axes (for a command the
+        agent narrows itself, a group move's ``targets``)."""
         refs = sorted(set(refs))
         sels = [Selector(str(r), pattern=str(r)) for r in refs]
+        if per_host:
+            hosts = sorted({r.host for r in refs})
+            return Selection(tuple(s.text for s in sels), tuple(refs), QueryPlan(tuple((h, "*") for h in hosts)))
         # Concrete names are each expressible; group them per host to save queries.
         by_host: dict[str, list[str]] = {}
         for r in refs:
@@ -765,6 +771,42 @@ class Fleet:
     def halt(self, *selectors: str, on: bool = True, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
         """Halt (controlword bit 8) on or off."""
         return self.command("halt", selectors or "**", {"on": bool(on)}, timeout_s=timeout_s)
+
+    # -- motion (docs/motion.md; the agents generate the trajectories)
+
+    def move(self, *selectors: str, to: float | None = None, by: float | None = None,
+             velocity: float | None = None, accel: float | None = None, jerk: float | None = None,
+             sync: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Move to ``to`` (absolute) or ``by`` (relative), in each axis's unit; ``velocity``,
+        ``accel``, ``jerk`` default to the axis limits (above them: clamped or rejected by the
+        axis). ``sync``: the selected axes of each host start in one cycle and arrive together.
+        Done when in the position window at rest; ``timeout_s`` must cover the move."""
+        return self.command("move", selectors or "**", move_args(to, by, velocity, accel, jerk, sync),
+                            timeout_s=timeout_s)
+
+    def jog(self, *selectors: str, velocity: float, for_s: float | None = None,
+            timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Jog at ``velocity`` (signed, unit/s) for ``for_s`` (default: until ``timeout_s`` less
+        the time to stop), then stop; done at rest. A halt or stop ends it (aborted)."""
+        args: dict[str, Any] = {"velocity": float(velocity)}
+        if for_s is not None:
+            args["for_s"] = float(for_s)
+        return self.command("jog", selectors or "**", args, timeout_s=timeout_s)
+
+    def stop(self, *selectors: str, release: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """PLCopen MC_Stop: abort motion, decelerate, and refuse motion until ``release``."""
+        return self.command("stop", selectors or "**", {"release": True} if release else {}, timeout_s=timeout_s)
+
+    def home(self, *selectors: str, method: int | None = None, timeout_s: float = 30.0) -> CommandResult:
+        """Home (mode 6) with the axis's configured method, or ``method`` (0x6098)."""
+        return self.command("home", selectors or "**", {} if method is None else {"method": int(method)},
+                            timeout_s=timeout_s)
+
+    def group_move(self, targets: Mapping[DriveRef | str, float], *, velocity: float | None = None,
+                   accel: float | None = None, jerk: float | None = None, timeout_s: float = 30.0) -> CommandResult:
+        """Synchronized move of ``{ref: absolute target}`` across any hosts: all start together
+        and arrive together (see :func:`supervisor.motion.group_move`)."""
+        return group_move(self, targets, velocity=velocity, accel=accel, jerk=jerk, timeout_s=timeout_s)
 
     def fault_reset(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
         """Fault reset (controlword bit 7 rising edge, transition 15), made by the agent."""

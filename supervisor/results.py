@@ -34,6 +34,7 @@ class DriveResult:
     error: str = ""
     elapsed_s: float = 0.0
     lease_holder: str = ""
+    duration_s: float = 0.0  # motion: the planned profile duration (move prepare: the minimum)
 
     @property
     def ok(self) -> bool:
@@ -46,7 +47,7 @@ class DriveResult:
     @classmethod
     def from_reply(cls, reply: CommandReply) -> "DriveResult":
         return cls(reply.host, reply.axis, reply.outcome, reply.state, reply.error_code,
-                   reply.reason, reply.elapsed_s, reply.lease_holder)
+                   reply.reason, reply.elapsed_s, reply.lease_holder, reply.duration_s)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

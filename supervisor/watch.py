@@ -69,7 +69,9 @@ def status_rows(fleet: Fleet, selectors: Sequence[str] = ()) -> list[dict[str, A
                 state=st.state, goal=st.goal, mode=st.mode_display, position=st.position,
                 velocity=st.velocity, error_code=st.error_code, error_text=st.error_text,
                 lease_holder=st.lease_holder, lost=st.lost, al_state=st.al_state, seq=st.seq,
-                statusword=st.statusword, halt=st.halt,
+                statusword=st.statusword, halt=st.halt, axis_state=st.axis_state, homed=st.homed,
+                target_position=st.target_position, following_error=st.following_error,
+                motion_request_id=st.motion_request_id,
             )
         else:
             row.update(state="offline" if ref.host not in alive else "unknown")
@@ -80,12 +82,24 @@ def status_rows(fleet: Fleet, selectors: Sequence[str] = ()) -> list[dict[str, A
 _AGENT_STYLE = {"up": "green", "gone": "bold red", "offline": "bold red", "conflict": "bold red reverse"}
 
 
+def _motion_text(r: dict[str, Any]) -> Text:
+    """The PLCopen axis state, '(homed)', and the running motion command's request id."""
+    st = r.get("axis_state")
+    if st is None:
+        return Text("")
+    text = st + (" homed" if r.get("homed") else "")
+    if r.get("motion_request_id"):
+        text += f" {r['motion_request_id']}"
+    return Text(text, style="red" if st == "error_stop" else "yellow" if st == "stopping" else "")
+
+
 def status_table(rows: Iterable[dict[str, Any]], title: str = "drives") -> Table:
-    """A table of status rows: host, axis, state, mode, position, error code and text, the
+    """A table of status rows: host, axis, state, mode, motion (axis state, homed, running command),
+    position and target position, error code and text, the
     EtherCAT AL state when it is not OP (and ``lost``), lease, agent liveliness."""
     t = Table(title=title, expand=False)
-    for col in ("host", "axis", "state", "mode", "position", "error", "AL", "lease", "agent"):
-        t.add_column(col, justify="right" if col == "position" else "left")
+    for col in ("host", "axis", "state", "mode", "motion", "position", "target", "error", "AL", "lease", "agent"):
+        t.add_column(col, justify="right" if col in ("position", "target") else "left")
     for r in rows:
         state = r.get("state", "unknown")
         mode = r.get("mode")
@@ -99,7 +113,9 @@ def status_table(rows: Iterable[dict[str, Any]], title: str = "drives") -> Table
         t.add_row(
             r["host"], r["axis"], Text(state, style=_STATE_STYLE.get(state, "bold red")),
             "" if mode is None else _MODE_ABBR.get(mode, str(mode)),
+            _motion_text(r),
             "" if r.get("position") is None else str(r["position"]),
+            "" if r.get("target_position") is None else str(r["target_position"]),
             Text(err, style="red" if code else ""),
             Text(al_text, style="bold red" if al_text else ""),
             r.get("lease_holder", "") or "",
@@ -213,7 +229,8 @@ def run_watch(fleet: Fleet, selectors: Sequence[str] = (), *, console: Console |
 
 
 #: Status fields whose change makes a ``watch --json`` line.
-JSON_FIELDS = ("state", "goal", "error_code", "error_text", "lost", "al_state", "lease_holder", "mode_display")
+JSON_FIELDS = ("state", "goal", "error_code", "error_text", "lost", "al_state", "lease_holder", "mode_display",
+               "axis_state", "homed", "motion_request_id")
 
 
 def _json_line(st: DriveStatus) -> dict[str, Any]:

@@ -178,6 +178,12 @@ def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], 
         raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key} "
                            "(the key's last chunk is the op)")
     args = m.validate_args(req.op, req.args)
+    if req.op == "move" and "targets" in args:
+        # A group move addresses the axes it names (one query for a part of a host's axes).
+        missing = sorted(set(args["targets"]) - set(addressed))
+        if missing:
+            raise RequestError(f"args.targets: {', '.join(missing)} not addressed by {query_key} on {host}")
+        addressed = tuple(a for a in addressed if a in args["targets"])
     if req.op in LEASE_OPS and req.supervisor and args["holder"] != req.supervisor:
         raise RequestError(f"args.holder {args['holder']!r} differs from supervisor {req.supervisor!r}")
     return ParsedCommand(req, args, addressed, principal)

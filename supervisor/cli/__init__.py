@@ -26,12 +26,12 @@ from rich.console import Console
 
 from ..fleet import NoAgentError
 from ..selectors import SelectorError
-from . import agents, drives, lease, recorder, sim, status
+from . import agents, drives, lease, motion, recorder, sim, status
 from .common import (EXIT_FAILED, EXIT_NO_AGENT, EXIT_OK, EXIT_TEXT, EXIT_USAGE, Handler, UsageError,
                      add_globals, check_syntax, merge_globals)
 
 #: The verb groups, in the order ``--help`` lists them.
-VERB_MODULES: tuple[ModuleType, ...] = (status, drives, agents, lease, sim, recorder)
+VERB_MODULES: tuple[ModuleType, ...] = (status, drives, motion, agents, lease, sim, recorder)
 
 
 def build_parser() -> argparse.ArgumentParser:

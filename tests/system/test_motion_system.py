@@ -1,0 +1,96 @@
+"""Motion end to end: simulated agents in their own process behind a router, commanded by the Fleet API
+and by ``drivectl`` as a subprocess (moves, limits refused, jog, stop and release, a group move
+across two agents with prepare and commit, status fields)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from typing import Iterator
+
+import pytest
+
+from supervisor.fleet import Fleet
+from supervisor.testbed import _env, start_agents, start_router
+
+pytestmark = pytest.mark.timeout(240)
+
+HOSTS = ("m1", "m2")
+
+
+@pytest.fixture(scope="module")
+def bed() -> Iterator[str]:
+    router, ep = start_router()
+    try:
+        # One process, one agent (and Zenoh session) per host; the simulated slaves' SM watchdog
+        # at 2 s so a starved test machine does not trip it between the steps.
+        agents = start_agents(HOSTS, 2, ep, sm_watchdog_s=2.0)
+        try:
+            with Fleet(connect=[ep]) as f:
+                assert f.wait_for_agents(HOSTS, 10, drives=4)
+                assert f.enable("m*/*").ok
+            yield ep
+        finally:
+            agents.stop()
+    finally:
+        router.stop()
+
+
+def drivectl(ep: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "supervisor.cli", "--connect", ep, "--json", *args],
+                          capture_output=True, text=True, timeout=60, env=_env())
+
+
+def test_fleet_move_done_status_shows_motion_and_limits_are_refused(bed: str) -> None:
+    with Fleet(connect=[bed]) as f:
+        f.wait_for_agents(HOSTS, 10, drives=4)
+        res = f.move("m1/axis0", to=20_000, timeout_s=10)
+        assert res.ok, res.failures
+        assert res.results[0].duration_s > 0
+        st = f.fetch_status("m1/axis0")
+        s = next(iter(st.values()))
+        assert (s.position, s.target_position, s.axis_state, s.motion_request_id) == (20_000, 20_000, "standstill", "")
+        bad = f.move("m1/axis0", by=10, velocity=1e9)
+        assert [r.outcome for r in bad.results] == ["rejected"]
+        assert "exceeds the axis velocity limit" in bad.results[0].error
+        started = f.jog("m1/axis1", velocity=-10_000, for_s=0.3)
+        assert started.ok, started.failures
+
+
+def test_drivectl_move_jog_stop_release(bed: str) -> None:
+    r = drivectl(bed, "move", "m2/axis0", "--by", "5000", "--velocity", "50000", "--timeout", "10")
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = drivectl(bed, "stop", "m2/axis0")
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = drivectl(bed, "move", "m2/axis0", "--to", "0")
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "stop" in r.stdout and "rejected" in r.stdout
+    assert drivectl(bed, "stop", "--release", "m2/axis0").returncode == 0
+    r = drivectl(bed, "jog", "m2/axis0", "--velocity", "20000", "--for", "0.2")
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = drivectl(bed, "move", "m2/axis0")
+    assert r.returncode == 2 and "--to" in r.stdout  # usage error, nothing sent
+
+
+def test_group_move_across_two_agents_prepares_then_commits(bed: str) -> None:
+    with Fleet(connect=[bed]) as f:
+        f.wait_for_agents(HOSTS, 10, drives=4)
+        targets = {"m1/axis0": -30_000.0, "m1/axis1": 5_000.0, "m2/axis1": 60_000.0}
+        res = f.group_move(targets, timeout_s=15)
+        assert res.ok, res.failures
+        assert len(res.results) == 3 and len({round(r.duration_s, 6) for r in res.results}) == 1
+        st = f.fetch_status(list(targets))
+        assert {str(ref): s.position for ref, s in st.items()} == {k: int(v) for k, v in targets.items()}
+        refused = f.group_move({"m1/axis0": 0.0, "m2/axis1": 1e12})
+        assert not refused.ok
+        assert {r.outcome for r in refused.results} == {"rejected"}
+        st = f.fetch_status(["m1/axis0"])
+        assert next(iter(st.values())).position == -30_000  # nothing moved
+
+
+def test_watch_json_shows_the_axis_state(bed: str) -> None:
+    r = subprocess.run([sys.executable, "-m", "supervisor.cli", "--connect", bed, "watch", "--json", "m1/axis0",
+                        "--duration", "1"], capture_output=True, text=True, timeout=60, env=_env())
+    lines = [json.loads(x) for x in r.stdout.splitlines() if x.strip()]
+    assert any(x.get("axis_state") == "standstill" for x in lines), r.stdout + r.stderr
