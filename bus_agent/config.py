@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bus_agent.cia402.states import Mode
+from bus_agent.bus.mapping import POLICIES, SDO_TYPES, MappingError, MappingPolicy, SlaveSetup, StartupSdo
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX
 from bus_agent.motion.config import HomingConfig, MotionConfig, MotionConfigError
 from bus_agent.security.exposure import exposed_endpoints, refusal
@@ -103,13 +104,29 @@ class DriveConfig:
     axis: str = ""                      # default f"axis{slave}"
     identity: Identity | None = None    # None: any identity accepted (logged)
     mode: int = int(Mode.CYCLIC_SYNC_POSITION)
-    pdo: PdoMapping | None = None
+    pdo: PdoMapping | None = None       # kept: the same as mapping policy "default" into these PDOs
     policy: DrivePolicy = DrivePolicy()
+    mapping: MappingPolicy | None = None  # [drives.mapping]; None: "drive" (or "default" with pdo)
+    sdos: tuple[StartupSdo, ...] = ()   # [[drives.sdo]]: applied in PRE-OP, again after a power cycle
     motion: MotionConfig = MotionConfig()
 
     def __post_init__(self) -> None:
         if not self.axis:
             object.__setattr__(self, "axis", f"axis{self.slave}")
+
+    @property
+    def setup(self) -> SlaveSetup:
+        """Mapping policy and start-up SDOs of this drive's slave."""
+        policy = self.mapping
+        if policy is None:
+            policy = (MappingPolicy("default", rx_pdo=self.pdo.rx_pdo, tx_pdo=self.pdo.tx_pdo) if self.pdo
+                      else MappingPolicy())
+        return SlaveSetup(policy, self.sdos)
+
+    @property
+    def needs_setup(self) -> bool:
+        """True when the slave needs more than its own mapping read (a policy writes, or SDOs)."""
+        return self.setup != SlaveSetup()
 
 
 @dataclass(frozen=True)
@@ -443,6 +460,52 @@ def _policy(t: _Table, base: DrivePolicy) -> DrivePolicy:
     )
 
 
+def _entries(t: _Table, name: str) -> tuple[tuple[int, int, int], ...]:
+    out = []
+    for k, e in enumerate(t.get(name, list, [])):
+        if not isinstance(e, list) or len(e) != 3 or not all(isinstance(x, int) and not isinstance(x, bool) for x in e):
+            raise ConfigError(f"{t.key(name)}[{k}]: expected [index, subindex, bits], got {e!r}")
+        out.append((e[0], e[1], e[2]))
+    return tuple(out)
+
+
+def _ints(t: _Table, name: str) -> tuple[int, ...]:
+    v = t.get(name, list, [])
+    for k, x in enumerate(v):
+        if not isinstance(x, int) or isinstance(x, bool):
+            raise ConfigError(f"{t.key(name)}[{k}]: expected a PDO index (integer), got {x!r}")
+    return tuple(v)
+
+
+def _mapping(t: _Table, key: str) -> MappingPolicy:
+    """``[drives.mapping]``: policy = drive | default | predefined | explicit (bus_agent.bus.mapping)."""
+    policy = t.get("policy", str, "drive")
+    if policy not in POLICIES:
+        raise ConfigError(f"{key}.policy: {policy!r} is not one of {', '.join(POLICIES)}")
+    try:
+        mp = MappingPolicy(policy=policy, rx=_ints(t, "rx"), tx=_ints(t, "tx"), rx_entries=_entries(t, "rx_entries"),
+                           tx_entries=_entries(t, "tx_entries"), rx_pdo=t.get("rx_pdo", int, RXPDO_INDEX),
+                           tx_pdo=t.get("tx_pdo", int, TXPDO_INDEX))
+    except MappingError as e:
+        raise ConfigError(f"{key}: {e}") from None
+    t.done()
+    return mp
+
+
+def _sdo(t: _Table) -> StartupSdo:
+    """``[[drives.sdo]]``: index, subindex, type, value."""
+    index, sub = t.get("index", int), t.get("subindex", int, 0)
+    typ, value = t.get("type", str), t.get("value", int)
+    if typ not in SDO_TYPES:
+        raise ConfigError(f"{t.key('type')}: {typ!r} is not one of {', '.join(SDO_TYPES)}")
+    try:
+        sdo = StartupSdo(index, sub, typ, value)
+    except MappingError as e:
+        raise ConfigError(f"{t.path}: {e}") from None
+    t.done()
+    return sdo
+
+
 def _motion(t: _Table, base: MotionConfig) -> MotionConfig:
     """``[defaults.motion]`` / ``[drives.motion]`` (keys: bus_agent.motion.config.MotionConfig)."""
     m = t.table("motion")
@@ -517,9 +580,15 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
                 raise ConfigError(f"drives[{i}].pdo.rx_pdo: 0x{pdo.rx_pdo:04X} is not an RxPDO mapping (0x1600..0x17FF)")
             if not 0x1A00 <= pdo.tx_pdo <= 0x1BFF:
                 raise ConfigError(f"drives[{i}].pdo.tx_pdo: 0x{pdo.tx_pdo:04X} is not a TxPDO mapping (0x1A00..0x1BFF)")
+        mapping = _mapping(d.table("mapping"), f"drives[{i}].mapping") if "mapping" in d.data else None
+        if mapping is not None and pdo is not None:
+            raise ConfigError(f"drives[{i}]: 'pdo' and 'mapping' both given: use mapping (policy = \"default\", "
+                              "rx_pdo, tx_pdo)")
+        sdos = tuple(_sdo(_Table(raw_sdo, f"drives[{i}].sdo[{k}]")) for k, raw_sdo in enumerate(d.get("sdo", list, [])))
         drives.append(DriveConfig(slave=slave, axis=d.get("axis", str, ""), identity=ident,
                                   mode=d.get("mode", int, int(Mode.CYCLIC_SYNC_POSITION)), pdo=pdo,
-                                  policy=_policy(d, defaults), motion=_motion(d, default_motion)))
+                                  policy=_policy(d, defaults), mapping=mapping, sdos=sdos,
+                                  motion=_motion(d, default_motion)))
         d.done()
     g = t.table("groups")
     groups = {name: g.strings(name) for name in list(g.data)}

@@ -73,6 +73,11 @@ class DriveSnapshot:
     error_text: str
     al_state: str
     lost: bool
+    #: Actual values (position, velocity, torque) the drive does not map: their fields read 0.
+    absent: tuple[str, ...] = ()
+    #: Other mapped input objects: names (CiA 402 table, else '0xIIII:SS') and their values.
+    object_names: tuple[str, ...] = ()
+    objects: tuple[int, ...] = ()
     # motion layer (bus_agent.motion): PLCopen axis state, homed, 0x607A written, following error
     axis_state: str = "disabled"
     homed: bool = False

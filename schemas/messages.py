@@ -189,6 +189,10 @@ class DriveStatus:
     lost: bool = _f(False, doc="slave not answering (working counter or AL state)")
     lease_holder: str = _f("", max_len=NAME_LEN, name=True, doc="supervisor holding the lease, '' if none")
     slave: int = _f(0, range=(0, 65535), doc="slave position on the segment (0-based)")
+    absent: list = _f([], items=Meta(str, {"choices": ("position", "velocity", "torque")}),
+                      doc="actual values the drive does not map (their fields read 0 and mean nothing)")
+    objects: dict = _f({}, keys=Meta(str, {"max_len": 64}), values=Meta(int, {"range": (-(2**63), 2**64 - 1)}),
+                       doc="other mapped input objects by name (CiA 402 table, else '0xIIII:SS') -> value")
     axis_state: str = _f("disabled", choices=AXIS_STATES, open=True, doc="PLCopen axis state of the motion layer")
     homed: bool = _f(False, doc="a home command succeeded since the agent started")
     target_position: int = _f(0, range=I32, doc="0x607A target position written last")

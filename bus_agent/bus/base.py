@@ -52,11 +52,54 @@ AL_STATUS_CODES = {
     0x001D: "invalid output configuration",
     0x001E: "invalid input configuration",
     0x001F: "invalid watchdog configuration",
+    0x0020: "slave needs cold start",
+    0x0021: "slave needs INIT",
+    0x0022: "slave needs PRE-OP",
+    0x0023: "slave needs SAFE-OP",
+    0x0024: "invalid input mapping",
+    0x0025: "invalid output mapping",
+    0x0026: "inconsistent settings",
+    0x0027: "free run not supported",
+    0x0028: "synchronization not supported",
+    0x0029: "free run needs 3-buffer mode",
+    0x002A: "background watchdog",
+    0x002B: "no valid inputs and outputs",
+    0x002C: "fatal sync error",
+    0x002D: "no sync error",
+    0x002E: "cycle time too small",
+    0x0030: "invalid DC SYNC configuration",
+    0x0031: "invalid DC latch configuration",
+    0x0032: "PLL error",
+    0x0033: "DC sync IO error",
+    0x0034: "DC sync timeout error",
+    0x0035: "DC invalid sync cycle time",
+}
+
+#: What usually causes a sync or mapping AL status code, and what to do (vendor manuals,
+#: SOEM/pysoem/ethercat_driver_ros2 reports).
+AL_STATUS_HINTS = {
+    0x001A: "the drive lost synchronisation: SYNC0 not running or process data not in step with it "
+            "([dc] mode = \"auto\"; keep the cycle free of stalls)",
+    0x001B: "outputs stopped arriving within the SM watchdog time (the master stalled or stopped)",
+    0x001D: "the output SM length does not match the drive's RxPDO mapping (mapping policy, PDO sizes)",
+    0x001E: "the input SM length does not match the drive's TxPDO mapping (mapping policy, PDO sizes)",
+    0x0024: "the drive refuses the TxPDO mapping: use mapping policy 'drive' or one of its predefined PDOs",
+    0x0025: "the drive refuses the RxPDO mapping: use mapping policy 'drive' or one of its predefined PDOs",
+    0x0028: "the drive needs DC SYNC0 in this mode: [dc] mode = \"auto\" (SYNC0 before OP)",
+    0x002C: "SYNC0/SYNC1 settings the drive cannot run: check [dc] sync0_cycle_ns/shift",
+    0x002D: "no SYNC0 received: enable DC ([dc] mode = \"auto\"), or start SYNC0 before SAFE-OP "
+            "([dc] before_safeop = true)",
+    0x0030: "the drive needs DC SYNC0 in cyclic synchronous modes (8/9/10): [dc] mode = \"auto\", "
+            "or a free-run mode (1/3/4)",
+    0x0035: "the drive does not accept this SYNC0 cycle time: choose cycle_us / [dc] sync0_cycle_ns it supports",
 }
 
 
 def al_status_text(code: int) -> str:
-    return AL_STATUS_CODES.get(code, f"unknown AL status code 0x{code:04X}")
+    """The AL status code's meaning (ETG.1000.6 Table 11), with a hint for sync and mapping codes."""
+    text = AL_STATUS_CODES.get(code, f"unknown AL status code 0x{code:04X}")
+    hint = AL_STATUS_HINTS.get(code)
+    return f"{text} ({hint})" if hint else text
 
 
 @dataclass(frozen=True)

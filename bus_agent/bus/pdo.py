@@ -67,6 +67,8 @@ class DriveInputs:
     torque_actual: int = 0
     modes_of_operation_display: int = 0
     error_code: int = 0
+    #: Other mapped input objects, in the order of the drive codec's ``extra_names``.
+    extra: tuple = ()
 
     def pack(self) -> bytes:
         return TX_STRUCT.pack(self.statusword, self.position_actual, self.velocity_actual,
@@ -74,4 +76,4 @@ class DriveInputs:
 
     @classmethod
     def unpack(cls, data: bytes | memoryview) -> "DriveInputs":
-        return cls(*TX_STRUCT.unpack_from(data))
+        return cls(*TX_STRUCT.unpack_from(data))  # type: ignore[arg-type]

@@ -32,8 +32,10 @@ from typing import Any, Mapping, Sequence
 
 from bus_agent.bus.base import (ALState, BusError, SlaveALStatus, SlaveIdentity, SlaveInfo,
                                 al_status_text)
-from bus_agent.bus.pdo import (RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveInputs, DriveOutputs,
-                           mapping_entry)
+from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort_hint, check_mapping, describe,
+                                   plan_writes, read_mapping)
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +91,10 @@ class PysoemBus:
         self._slaves: list[Any] = []
         self._inputs: list[DriveInputs] = []
         self._expected_wkc = 0
-        self._overrides: dict[int, Any] = {}
+        self._setups: dict[int, SlaveSetup] = {}
+        self._preop_values: dict[tuple[int, int], bytes | BusError] = {}
+        self._mappings: dict[int, SlaveMapping] = {}
+        self._codecs: list[DriveCodec] = []
         self._opened = False
         self._closed = False
         #: Per slave: the recovery step under way ("to_init", "to_preop", "to_safeop", "to_op").
@@ -145,51 +150,102 @@ class PysoemBus:
         self._master = None
 
     def _config_func(self, position: int) -> None:
-        """pysoem PO2SO hook, in PRE-OP (inside config_map): the PDO mapping override."""
-        self._write_mapping(position)
+        """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs."""
+        self._configure_slave(position)
 
-    def _write_mapping(self, position: int) -> None:
-        """In PRE-OP: write the PDO mapping override by SDO (0x1C12/0x1C13, 0x16xx/0x1Axx:
-        sub 0 = 0, entries, sub 0 = n; assignment the same). The GIL is released meanwhile."""
-        ov = self._overrides.get(position)
-        if ov is None:
-            return
+    def _configure_slave(self, position: int) -> SlaveMapping:
+        """In PRE-OP: read the drive's PDO mapping, write what its policy wants (only what
+        differs), read it back, check it, then apply the start-up SDOs. SDOs release the GIL.
+        Raises BusError naming the slave, the object, the abort code and what to do."""
+        setup = self._setups.get(position, SlaveSetup())
         s = self._slaves[position]
+        who = f"slave {position} ({s.name!r})"
 
-        def w(index: int, sub: int, fmt: str, value: int) -> None:
+        def read(index: int, sub: int, size: int) -> bytes:
             try:
-                s.sdo_write(index, sub, struct.pack(fmt, value), release_gil=True)
+                return bytes(s.sdo_read(index, sub, size, release_gil=True))
             except self._pysoem.SdoError as e:
-                raise BusError(f"slave {position} ({s.name!r}): PDO mapping override: SDO write "
-                               f"0x{index:04X}:{sub} aborted 0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
+                code = e.abort_code & 0xFFFFFFFF
+                raise BusError(f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X} aborted "
+                               f"0x{code:08X} ({e.desc})") from None
+            except Exception as e:
+                raise BusError(f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X} failed: {e}") from None
 
-        rx, tx = ov.rx_pdo, ov.tx_pdo
-        w(0x1C12, 0, "<B", 0)
-        w(0x1C13, 0, "<B", 0)
-        for pdo, entries in ((rx, RXPDO_DEFAULT), (tx, TXPDO_DEFAULT)):
-            w(pdo, 0, "<B", 0)
-            for i, (index, sub, bits, _c, _n) in enumerate(entries, start=1):
-                w(pdo, i, "<I", mapping_entry(index, sub, bits))
-            w(pdo, 0, "<B", len(entries))
-        w(0x1C12, 1, "<H", rx)
-        w(0x1C12, 0, "<B", 1)
-        w(0x1C13, 1, "<H", tx)
-        w(0x1C13, 0, "<B", 1)
-        log.info("slave %d: PDO mapping override written (RxPDO 0x%04X, TxPDO 0x%04X)", position, rx, tx)
+        current = read_mapping(read)
+        policy = setup.policy
+        steps = plan_writes(policy, current)
+        for step in steps:
+            try:
+                s.sdo_write(step.index, step.subindex, step.data, release_gil=True)
+            except self._pysoem.SdoError as e:
+                code = e.abort_code & 0xFFFFFFFF
+                raise BusError(f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X} "
+                               f"aborted 0x{code:08X} ({e.desc}): {abort_hint(code)}") from None
+            except Exception as e:
+                raise BusError(f"{who}: mapping policy {policy.policy!r}: SDO write {step} failed: {e}") from None
+        if steps:
+            current = read_mapping(read)
+            log.info("%s: mapping policy %s written (%d SDO downloads): %s", who, policy.policy, len(steps),
+                     describe(current))
+        problems = check_mapping(current)
+        if problems:
+            hint = ("use mapping policy 'default' (write the project's layout) or 'predefined'/'explicit'"
+                    if policy.policy == "drive" else "choose other PDOs or entries")
+            raise BusError(f"{who}: its PDO mapping cannot run the cycle: {'; '.join(problems)} "
+                           f"(mapping policy {policy.policy!r}: {describe(current)}); {hint}")
+        for sdo in setup.sdos:
+            try:
+                s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True)
+            except self._pysoem.SdoError as e:
+                code = e.abort_code & 0xFFFFFFFF
+                raise BusError(f"{who}: start-up SDO {sdo} aborted 0x{code:08X} ({e.desc})") from None
+            except Exception as e:
+                raise BusError(f"{who}: start-up SDO {sdo} failed: {e}") from None
+        if setup.sdos:
+            log.info("%s: %d start-up SDO(s) applied", who, len(setup.sdos))
+        if position < len(self._codecs) and self._codecs[position].mapping != current:
+            raise BusError(f"{who}: its PDO mapping is not the one of start-up ({describe(current)}, was "
+                           f"{describe(self._codecs[position].mapping)}): not brought back")
+        self._mappings[position] = current
+        try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
+            self._preop_values[(position, 0x6502)] = read(0x6502, 0, 4)
+        except BusError as e:
+            self._preop_values[(position, 0x6502)] = e
+        return current
+
+    def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
+        v = self._preop_values.get((position, index)) if subindex == 0 else None
+        if v is None:
+            return self.sdo_read(position, index, subindex, size)
+        if isinstance(v, BusError):
+            raise v
+        return v
+
+    def codec(self, position: int) -> DriveCodec:
+        """The process-data codec of the slave at ``position`` (after start())."""
+        return self._codecs[position]
 
     def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
-        """Map PDOs and bring every slave SAFE-OP then OP, each with a deadline. Returns the
-        expected working counter. Raises BusError naming the slave and the AL status code."""
+        """Read (and per policy write) each slave's PDO mapping and apply its start-up SDOs in
+        PRE-OP, build its codec, then SAFE-OP and OP, each with a deadline. ``mapping_override``
+        maps slave positions to a :class:`SlaveSetup` (default: policy ``drive``, no SDOs).
+        Returns the expected working counter. Raises BusError naming the slave (and the object,
+        abort code or AL status code)."""
         if not self._opened:
             raise BusError(f"{self.ifname}: start() before open()")
         pysoem = self._pysoem
         m = self._master
-        self._overrides = dict(mapping_override or {})
-        for pos in self._overrides:
+        setups: dict[int, SlaveSetup] = {}
+        for pos, setup in (mapping_override or {}).items():
             if not 0 <= pos < len(self._slaves):
-                raise BusError(f"{self.ifname}: PDO mapping override for slave {pos}, which is not on the segment")
+                raise BusError(f"{self.ifname}: a mapping policy is configured for slave {pos}, which is not on the segment")
+            if not isinstance(setup, SlaveSetup):
+                raise BusError(f"slave {pos}: mapping setup must be a SlaveSetup, got {type(setup).__name__}")
+            setups[pos] = setup
+        self._setups = setups
         for pos, s in enumerate(self._slaves):
-            s.config_func = self._config_func if pos in self._overrides else None
+            s.config_func = self._config_func
         try:
             m.config_map()
         except BusError:
@@ -199,11 +255,20 @@ class PysoemBus:
             raise BusError(f"{self.ifname}: config_map: {details}") from None
         except Exception as e:
             raise BusError(f"{self.ifname}: config_map failed: {e}") from None
+        self._codecs = []
         for pos, s in enumerate(self._slaves):
-            if len(s.output) != RX_STRUCT.size or len(s.input) != TX_STRUCT.size:
+            mp = self._mappings[pos]
+            try:
+                codec = DriveCodec(mp)
+            except MappingError as e:
+                raise BusError(f"slave {pos} ({s.name!r}): {e}") from None
+            if len(s.output) != codec.out_size or len(s.input) != codec.in_size:
                 raise BusError(f"slave {pos} ({s.name!r}): process data is {len(s.output)} bytes out / "
-                               f"{len(s.input)} in, expected {RX_STRUCT.size}/{TX_STRUCT.size} "
-                               "(the default CiA 402 mapping; configure drives[].pdo to remap)")
+                               f"{len(s.input)} in, its PDO mapping says {codec.out_size}/{codec.in_size} "
+                               f"({describe(mp)})")
+            self._codecs.append(codec)
+            log.info("%s: slave %d: %s; absent actual values: %s; other objects: %s", self.ifname, pos,
+                     describe(mp), ", ".join(codec.absent_inputs) or "none", ", ".join(codec.extra_names) or "none")
         self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
         self._expected_wkc = m.expected_wkc
         # Outputs must flow while OP is requested, or the SM watchdog trips on the way.
@@ -276,17 +341,15 @@ class PysoemBus:
         return wkc
 
     def inputs(self, position: int) -> DriveInputs:
-        """The TxPDO of the slave, decoded into a preallocated record (valid until the next call)."""
+        """The TxPDO of the slave, decoded by its codec into a preallocated record (valid until
+        the next call). Cycle-safe: one unpack."""
         rec = self._inputs[position]
-        (rec.statusword, rec.position_actual, rec.velocity_actual, rec.torque_actual,
-         rec.modes_of_operation_display, rec.error_code) = TX_STRUCT.unpack_from(self._slaves[position].input)
+        self._codecs[position].decode_into(rec, self._slaves[position].input)
         return rec
 
     def set_outputs(self, position: int, outputs: DriveOutputs) -> None:
-        """RxPDO for the next exchange (copied into the IO map). Cycle-safe."""
-        self._slaves[position].output = RX_STRUCT.pack(
-            outputs.controlword, outputs.target_position, outputs.target_velocity,
-            outputs.target_torque, outputs.modes_of_operation)
+        """RxPDO for the next exchange (copied into the IO map) through the slave's codec. Cycle-safe."""
+        self._slaves[position].output = self._codecs[position].encode(outputs)
 
     # ---- management (management thread; bounded datagrams) -----------------------------------
 
@@ -423,7 +486,7 @@ class PysoemBus:
             if step == "to_preop":
                 _sm, fmmu = self._esc_config[position]
                 try:
-                    self._write_mapping(position)
+                    self._configure_slave(position)  # a power cycle forgot mapping and SDOs
                     if fmmu:
                         s._fpwr(_REG_FMMU0, fmmu, MGMT_TIMEOUT_US)
                 except BusError as e:

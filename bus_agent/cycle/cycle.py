@@ -41,7 +41,7 @@ from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, DriveConfig
 from bus_agent.cycle.groups import Groups
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
-from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management
+from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, RECOVER_EVERY_CYCLES, Management, SdoJob
 from bus_agent.cycle.motion import MotionMixin, following_error
 from bus_agent.motion.axis import MOTION_OPS, AxisMotion
 from bus_agent.cycle.realtime import helper_priority, set_thread_fifo
@@ -91,6 +91,7 @@ NMT_TARGET = {"start": ALState.OP, "stop": ALState.SAFEOP, "preop": ALState.PREO
               "reset_comm": ALState.PREOP, "reset_node": ALState.OP}
 _VALID_MODES = frozenset(int(m) for m in Mode)
 SUPPORTED_DRIVE_MODES = 0x6502
+_MODE_UNWRITTEN = -129  # no i8: the first cycle writes 0x6060 by SDO
 
 
 def decode_supported_modes(bits: int) -> frozenset[int]:
@@ -133,6 +134,15 @@ class _Drive:
     last_fault_ns: int = 0
     auto_attempts: int = 0
     auto_exhausted: bool = False
+    # objects the drive does not map (see docs/agent-cycle.md, "Real drives")
+    absent: tuple[str, ...] = ()        # actual values not mapped: reported absent
+    object_names: tuple[str, ...] = ()  # other mapped input objects
+    sdo_mode: bool = False              # 0x6060 not in the RxPDO: written by SDO
+    sdo_mode_display: bool = False      # 0x6061 not in the TxPDO: read by SDO
+    sdo_error_code: bool = False        # 0x603F not in the TxPDO: read by SDO on a fault
+    mode_written: int = 0
+    mode_display_sdo: int = 0
+    error_code_sdo: int = 0
 
 
 @dataclass(slots=True)
@@ -255,20 +265,22 @@ class Cycle(MotionMixin):
                 if dc.identity is None:
                     log.info("slave %d (%s) axis %s: identity not configured, accepting vendor 0x%08X product 0x%08X",
                              dc.slave, info.name, dc.axis, ident.vendor_id, ident.product_code)
-            overrides = {dc.slave: dc.pdo for dc in configs if dc.pdo is not None}
+            overrides = {dc.slave: dc.setup for dc in configs if dc.needs_setup}
             self.bus.start(overrides or None)
             supported = {dc.slave: self._read_supported_modes(dc) for dc in configs}
+            for dc in configs:
+                pol = dc.policy
+                cc = ControllerConfig(transition_timeout_s=pol.transition_timeout_s,
+                                      fault_reset_retries=pol.fault_reset_retries, mode_timeout_s=pol.transition_timeout_s)
+                d = _Drive(cfg=dc, axis=dc.axis, slave=dc.slave,
+                           ctrl=DriveController(cc, mode=dc.mode, supported_modes=supported[dc.slave]),
+                           motion=AxisMotion(dc.motion, self.period_ns / 1e9))
+                self._unmapped_objects(d)
+                self.drives.append(d)
         except BaseException:
             self.state = "error"
             self._close_bus()
             raise
-        for dc in configs:
-            pol = dc.policy
-            cc = ControllerConfig(transition_timeout_s=pol.transition_timeout_s,
-                                  fault_reset_retries=pol.fault_reset_retries, mode_timeout_s=pol.transition_timeout_s)
-            self.drives.append(_Drive(cfg=dc, axis=dc.axis, slave=dc.slave,
-                                      ctrl=DriveController(cc, mode=dc.mode, supported_modes=supported[dc.slave]),
-                                      motion=AxisMotion(dc.motion, self.period_ns / 1e9)))
         self._by_axis = {d.axis: d for d in self.drives}
         self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
         self._al_status = [SlaveALStatus(ALState.OP, False, 0)] * len(self.slaves)
@@ -286,12 +298,33 @@ class Cycle(MotionMixin):
                  self.config.host, len(self.slaves), len(self.drives), ",".join(self.axes), self.bus.expected_wkc)
         return self.slaves
 
+    def _unmapped_objects(self, d: _Drive) -> None:
+        """From the drive's codec: which objects are served by SDO and which are absent."""
+        codec_of = getattr(self.bus, "codec", None)
+        if codec_of is None:
+            return  # a backend with the fixed default layout (sim)
+        codec = codec_of(d.slave)
+        d.absent = tuple(f for f in codec.absent_inputs if f in ("position", "velocity", "torque"))
+        d.object_names = codec.extra_names
+        d.sdo_mode = (0x6060, 0) not in codec.mapped_outputs
+        d.sdo_mode_display = (0x6061, 0) not in codec.mapped_inputs
+        d.sdo_error_code = (0x603F, 0) not in codec.mapped_inputs
+        # No SDO here: the slaves are in OP and the loop does not run yet (SM watchdog). The
+        # first cycle writes the configured mode (0x6060) by SDO and reads 0x6061 back.
+        d.mode_written = _MODE_UNWRITTEN
+        served = [n for n, f in (("0x6060", d.sdo_mode), ("0x6061", d.sdo_mode_display), ("0x603F", d.sdo_error_code)) if f]
+        if served or d.absent:
+            log.info("axis %s (slave %d): not mapped, served by SDO: %s; absent: %s", d.axis, d.slave,
+                     ", ".join(served) or "none", ", ".join(d.absent) or "none")
+
     def _read_supported_modes(self, d: DriveConfig) -> frozenset[int] | None:
         """0x6502 (supported drive modes) by SDO; None (any mode tried) when the drive has no
         0x6502 or the read fails. Raises ConfigError when the configured mode is not supported."""
         sdo_read = getattr(self.bus, "sdo_read", None)
         if sdo_read is None:
             return None
+        # read in PRE-OP by a bus that can (no SDO between OP and the first cycle: SM watchdog)
+        sdo_read = getattr(self.bus, "preop_sdo_read", sdo_read)
         try:
             raw = sdo_read(d.slave, SUPPORTED_DRIVE_MODES, 0, 4)
             if len(raw) < 1:
@@ -313,8 +346,14 @@ class Cycle(MotionMixin):
         (AL status, AL requests, recovery). Returns once the threads run."""
         if self._thread is not None:
             return
-        self.open()
+        # GC settings first: a full collection between OP and the first cycle could outlast the
+        # slaves' SM watchdog (100 ms) in a large process
         self._prepare_process()
+        try:
+            self.open()
+        except BaseException:
+            self._restore_process()
+            raise
         self._mgmt.rt_priority = helper_priority(self.rt_priority)
         self._mgmt.start()
         if self.recorder is not None:
@@ -543,7 +582,11 @@ class Cycle(MotionMixin):
             self._apply_reports(now_ns)
 
         for d in self.drives:
-            d.inputs = bus.inputs(d.slave)
+            i = d.inputs = bus.inputs(d.slave)
+            if d.sdo_mode_display:
+                i.modes_of_operation_display = d.mode_display_sdo
+            if d.sdo_error_code:
+                i.error_code = d.error_code_sdo
         if self._take_emergencies is not None:
             for slave, code, register, text in self._take_emergencies():
                 for d in self.drives:
@@ -559,12 +602,16 @@ class Cycle(MotionMixin):
                 continue
             st = decode_statusword(d.inputs.statusword)
             if st in _FAULT_STATES and d.state not in _FAULT_STATES:
+                if d.sdo_error_code:
+                    mgmt.sdo(SdoJob(d.slave, "error_code", deadline_ns=now_ns + 1_000_000_000))  # 0x603F not mapped
                 for g in self.groups.of_axis(d.axis):
                     origins.append((g, f"{self.config.host}/{d.axis} fault 0x{d.inputs.error_code:04X}"))
                 d.fault_since_ns = now_ns
                 d.last_fault_ns = now_ns
             elif st in _FAULT_STATES:
                 d.last_fault_ns = now_ns
+            elif d.error_code_sdo and d.sdo_error_code:
+                d.error_code_sdo = 0  # out of fault: the SDO-read 0x603F no longer applies
         for g, reason in self._lost_origins:
             origins.append((g, reason))
         self._lost_origins = []
@@ -599,6 +646,12 @@ class Cycle(MotionMixin):
             o = d.out
             o.controlword = d.controlword = out.controlword
             o.modes_of_operation = out.mode_of_operation
+            if out.mode_of_operation != d.mode_written and (d.sdo_mode or d.sdo_mode_display):
+                # 0x6060 or 0x6061 not mapped: written and/or read back by SDO (management thread);
+                # the controller waits for the echo of 0x6061 as with PDOs
+                d.mode_written = out.mode_of_operation
+                mgmt.sdo(SdoJob(d.slave, "mode", out.mode_of_operation, written=not d.sdo_mode,
+                                deadline_ns=now_ns + int(d.cfg.policy.transition_timeout_s * 1e9)))
             if out.hold_target:
                 # CSP/CSV/CST before Operation enabled: no stale target (a jump or a following
                 # error on enable). Velocity and torque are held at zero.
@@ -645,8 +698,27 @@ class Cycle(MotionMixin):
             r = reports.popleft()
             if r[0] == "al":
                 self._apply_al(r[1], r[2], now_ns)
+            elif r[0] == "sdo":
+                self._apply_sdo(r[1], r[2], r[3], r[4], now_ns)
             else:
                 self._apply_returned(r[1], r[2], now_ns)
+
+    def _apply_sdo(self, slave: int, what: str, value: int | None, error: str, now_ns: int) -> None:
+        """A result of an SDO job (objects the drive does not map)."""
+        for d in self.drives:
+            if d.slave != slave:
+                continue
+            if what == "mode_display" and value is not None:
+                d.mode_display_sdo = value
+            elif what == "error_code" and value is not None:
+                if value != d.error_code_sdo and d.state in _FAULT_STATES:
+                    self._event(d.axis, "fault", f"0x603F = 0x{value:04X} (read by SDO: not in the PDO mapping)",
+                                to_state=d.state.value, error_code=value)
+                d.error_code_sdo = value
+            elif what == "mode_write" and d.pending is not None and d.pending.kind == "mode":
+                self._resolve(d, "failed", f"0x6060 = {d.mode_written} by SDO refused: {error}", now_ns)
+            elif error:
+                log.warning("axis %s: SDO %s: %s", d.axis, what, error)
 
     def _apply_al(self, statuses: Sequence[SlaveALStatus] | None, ticket: int, now_ns: int) -> None:
         self._last_al_poll = self.cycles
@@ -1088,6 +1160,7 @@ class Cycle(MotionMixin):
                 velocity=i.velocity_actual, torque=i.torque_actual, error_code=i.error_code,
                 error_text=self._error_text(d.slave, i.error_code),
                 al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost,
+                absent=d.absent, object_names=d.object_names, objects=i.extra,
                 axis_state=d.motion.axis_state.value, homed=d.motion.homed, target_position=d.target_position,
                 following_error=following_error(d), motion_request_id=d.motion.request_id))
         return tuple(out)

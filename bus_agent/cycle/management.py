@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import collections
 import logging
+import struct
 import threading
+from dataclasses import dataclass
 from typing import Callable
 
 from bus_agent.bus.base import ALState, Bus, SlaveALStatus
@@ -26,6 +28,28 @@ log = logging.getLogger(__name__)
 AL_POLL_MIN_CYCLES = 10
 #: Call bus.recover() for a lost slave every this many cycles (each call is a few round trips).
 RECOVER_EVERY_CYCLES = 10
+#: While a mode written by SDO (0x6060) waits for its echo, read 0x6061 by SDO this often.
+MODE_POLL_NS = 5_000_000
+#: Reads of an SDO job tried this often before its error is reported.
+SDO_ATTEMPTS = 5
+
+
+@dataclass
+class SdoJob:
+    """An object served by SDO because the drive does not map it (never on the cycle thread).
+
+    ``kind`` "mode": write 0x6060 = ``value`` (unless ``written``: it is in the PDOs), then read 0x6061 every :data:`MODE_POLL_NS` until
+    it echoes or ``deadline_ns``; "error_code": read 0x603F once. Reports
+    ``("sdo", slave, what, value, error)`` with what = "mode_write" (error only),
+    "mode_display" or "error_code"."""
+
+    slave: int
+    kind: str
+    value: int = 0
+    deadline_ns: int = 0
+    next_ns: int = 0
+    written: bool = False
+    attempts: int = 0
 
 
 class Management:
@@ -50,6 +74,8 @@ class Management:
         self.fast = False
         self.recover_set: frozenset[tuple[int, int]] = frozenset()  # (slave, epoch)
         self.requests: collections.deque[tuple[int, int | None, ALState, str]] = collections.deque()
+        self.sdo_requests: collections.deque[SdoJob] = collections.deque()
+        self._sdo_jobs: list[SdoJob] = []
         self.tickets = 0
         self._poll_asap = True
         # management -> cycle
@@ -78,6 +104,11 @@ class Management:
         self.requests.append((self.tickets, slave, state, nmt))
         self.kick()
         return self.tickets
+
+    def sdo(self, job: SdoJob) -> None:
+        """Queue an SDO job (a newer mode job of the same slave replaces the older one)."""
+        self.sdo_requests.append(job)
+        self._wake.set()
 
     # management side
     def start(self) -> None:
@@ -111,6 +142,8 @@ class Management:
             due = (self._last_poll_ns or now) + self.fast_ns if self.fast else now + 100_000_000
             for _slave, _epoch in self.recover_set:
                 due = min(due, self._next_recover.get(_slave, now))
+            for job in self._sdo_jobs:
+                due = min(due, job.next_ns)
             self._wake.wait(min(max(due - now, 200_000), 100_000_000) / 1e9)
 
     def run_once(self, now_ns: int) -> None:
@@ -139,6 +172,7 @@ class Management:
                 log.warning("host %s: AL status read failed: %s", self.host, e)
                 statuses = None
             self.reports.append(("al", statuses, ticket))
+        self._run_sdo_jobs(now_ns)
         keys = self.recover_set
         self._reported &= keys
         for key in sorted(keys):
@@ -156,3 +190,44 @@ class Management:
             if back:
                 self._reported.add(key)
                 self.reports.append(("returned", slave, key[1]))
+
+    def _run_sdo_jobs(self, now_ns: int) -> None:
+        while self.sdo_requests:
+            job = self.sdo_requests.popleft()
+            if job.kind == "mode":
+                self._sdo_jobs = [j for j in self._sdo_jobs if not (j.slave == job.slave and j.kind == "mode")]
+            self._sdo_jobs.append(job)
+        if not self._sdo_jobs:
+            return
+        keep = []
+        for job in self._sdo_jobs:
+            if now_ns < job.next_ns:
+                keep.append(job)
+            elif self._sdo_step(job, now_ns):
+                job.next_ns = now_ns + MODE_POLL_NS
+                keep.append(job)
+        self._sdo_jobs = keep
+
+    def _sdo_step(self, job: SdoJob, now_ns: int) -> bool:
+        """One step of a job; True while it is not finished."""
+        bus = self.bus
+        try:
+            if job.kind == "error_code":
+                raw = bus.sdo_read(job.slave, 0x603F, 0, 2)
+                self.reports.append(("sdo", job.slave, "error_code", struct.unpack("<H", bytes(raw)[:2])[0], ""))
+                return False
+            if not job.written:
+                job.written = True
+                bus.sdo_write(job.slave, 0x6060, 0, struct.pack("<b", job.value))
+            raw = bus.sdo_read(job.slave, 0x6061, 0, 1)
+        except Exception as e:  # BusError with the abort code: the cycle answers the command with it
+            what = job.kind if job.kind == "error_code" else ("mode_write" if "0x6060" in str(e) else "mode_display")
+            job.attempts += 1
+            if what != "mode_write" and job.attempts < SDO_ATTEMPTS and now_ns < job.deadline_ns:
+                # an emergency in the mailbox (the fault's own EMCY) fails SOEM's upload: read again
+                return True
+            self.reports.append(("sdo", job.slave, what, None, str(e)))
+            return False
+        value = struct.unpack("<b", bytes(raw)[:1])[0]
+        self.reports.append(("sdo", job.slave, "mode_display", value, ""))
+        return value != job.value and now_ns < job.deadline_ns

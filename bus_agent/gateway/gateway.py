@@ -59,7 +59,7 @@ LEASE_REACTION_OPS: dict[str, tuple[str, ...]] = {
 #: ``motion_period_s`` and with every heartbeat.
 CHANGE_FIELDS = ("state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                  "error_code", "error_text", "al_state", "lost", "axis_state", "homed", "motion_request_id")
-MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following_error")
+MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following_error", "objects")
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
@@ -556,6 +556,7 @@ class Gateway:
             error_text=(d.error_text or describe(d.error_code))[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
             axis_state=d.axis_state, homed=d.homed, target_position=d.target_position,
             following_error=max(-2**31, min(2**31 - 1, d.following_error)), motion_request_id=d.motion_request_id[:128],
+            absent=list(d.absent), objects=dict(zip(d.object_names, d.objects)),
         )
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:

@@ -1,6 +1,6 @@
 """``ecat-sim``: a virtual EtherCAT segment of CiA 402 drives on one end of a veth pair.
 
-    ecat-sim --ifname vethX --drives 16 [--profile generic|indy7] [--name seg0]
+    ecat-sim --ifname vethX --drives 16 [--profile generic*2,omron1s,roassign] [--name seg0]
              [--control /run/seg0.sock | --control 5555] [--zenoh-connect tcp/127.0.0.1:7447]...
 
 Unmodified SOEM/pysoem on the other end of the veth pair finds, configures and runs the
@@ -20,7 +20,7 @@ import sys
 import threading
 
 from bus_agent.security.exposure import exposed_endpoints, refusal
-from bus_agent.sim.drive_model import PROFILES
+from bus_agent.sim.ecat.profiles import PROFILES
 from bus_agent.sim.ecat.control import ACTIONS, TcpControl, UnixControl, apply_action
 from bus_agent.sim.ecat.frameloop import FrameLoop
 from bus_agent.sim.ecat.segment import Segment
@@ -77,10 +77,14 @@ def _zenoh_control(args, name: str, n: int, channel: QueuedControl):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="ecat-sim", description=__doc__.split("\n\n")[0])
+    profiles = "\n".join(f"  {name:10} {prof.description}" for name, prof in PROFILES.items())
+    p = argparse.ArgumentParser(prog="ecat-sim", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=f"slave profiles (--profile):\n{profiles}")
     p.add_argument("--ifname", required=True, help="network interface to serve (one end of a veth pair)")
     p.add_argument("--drives", type=int, default=1, help="number of slaves on the segment (1..1000)")
-    p.add_argument("--profile", choices=sorted(PROFILES), default="generic")
+    p.add_argument("--profile", default="generic",
+                   help="slave profile, or one per slave: 'generic*2,omron1s' (the last repeats); see below")
     p.add_argument("--name", default="seg0", help="segment name (the Zenoh control key chunk)")
     p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")

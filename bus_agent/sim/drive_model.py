@@ -215,6 +215,15 @@ OBJECT_TABLE: tuple[ObjectEntry, ...] = (
     _e(0x6083, 0, "profile acceleration", "u32", "rw", pdo=True, default=1_000_000),
     _e(0x6084, 0, "profile deceleration", "u32", "rw", pdo=True, default=1_000_000),
     _e(0x6085, 0, "quick stop deceleration", "u32", "rw", default=10_000_000),
+    _e(0x60B8, 0, "touch probe function", "u16", "rw", pdo=True),
+    _e(0x60B9, 0, "touch probe status", "u16", "ro", pdo=True),
+    _e(0x60BA, 0, "touch probe 1 positive edge", "i32", "ro", pdo=True),
+    _e(0x60BC, 0, "touch probe 2 positive edge", "i32", "ro", pdo=True),
+    _e(0x60F4, 0, "following error actual value", "i32", "ro", pdo=True),
+    _e(0x60FD, 0, "digital inputs", "u32", "ro", pdo=True),
+    _e(0x60FE, 0, "digital outputs: number", "u8", "ro", default=2),
+    _e(0x60FE, 1, "physical outputs", "u32", "rw", pdo=True),
+    _e(0x60FE, 2, "digital outputs bit mask", "u32", "rw"),
     _e(0x60FF, 0, "target velocity", "i32", "rw", pdo=True),
     _e(0x6502, 0, "supported drive modes", "u32", "ro"),
 )
@@ -263,6 +272,7 @@ class DriveProfile:
     self_test_steps: int = 2     # generic: steps in not_ready_to_switch_on before transition 1
     mode_echo_delay_steps: int = 0  # extra steps before 0x6061 echoes 0x6060
     torque_accel: float = 10_000.0  # increments/s^2 per per-mille of torque (PT/CST kinematics)
+    power_on_position: int = 0   # absolute encoder: position at power-on = this * serial
 
 
 PROFILES: dict[str, DriveProfile] = {
@@ -344,10 +354,13 @@ class DriveModel:
         self._values[(0x1018, 3)] = p.revision
         self._values[(0x1018, 4)] = self.serial & 0xFFFFFFFF
         self._values[(0x6502, 0)] = p.supported_modes
+        # 0x60FD: manufacturer bits 16..31 carry the serial, so each drive's inputs differ
+        self._values[(0x60FD, 0)] = (self.serial & 0xFFFF) << 16
         self._state = State.NOT_READY_TO_SWITCH_ON       # transition 0
         self._steps_in_state = 0
         self._prev_fault_reset_bit = False
-        self._position = 0.0
+        self._position = float(p.power_on_position * self.serial)
+        self._values[(0x6064, 0)] = int(self._position)
         self._velocity = 0.0
         self._torque = 0.0
         self._mode_pending: int | None = None
@@ -667,6 +680,8 @@ class DriveModel:
                 self._following_error = True
                 self.inject_fault(ERROR_FOLLOWING_ERROR)
         v[(0x6064, 0)] = int(round(self._position))
+        v[(0x60F4, 0)] = (_clamp_int(int(v[(0x607A, 0)]) - int(round(self._position)), "i32")
+                          if s is State.OPERATION_ENABLED and int(v[(0x6061, 0)]) == Mode.CYCLIC_SYNC_POSITION else 0)
         v[(0x606C, 0)] = _clamp_int(int(round(self._velocity)), "i32")
         v[(0x6077, 0)] = _clamp_int(int(round(self._torque)), "i16")
 

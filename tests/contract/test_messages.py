@@ -385,7 +385,7 @@ def test_decode_mutated_valid_messages(msg, mutation, data):
 def test_published_messages_ignore_unknown_fields_and_words():
     """The evolution rule (docs/contract.md): an older reader ignores a newer writer's optional
     fields and open-vocabulary words in published messages; commands stay strict."""
-    body = m.to_dict(EXAMPLES[0]) | {"future_field": 12, "objects": {"0x60FD": 3}}
+    body = m.to_dict(EXAMPLES[0]) | {"future_field": 12, "vendor_block": {"0x2205": 3}}
     assert m.from_dict(body) == EXAMPLES[0]
     ev = m.from_dict(m.to_dict(EXAMPLES[4]) | {"kind": "audit", "requester": "alice"})
     assert ev.kind == "audit"

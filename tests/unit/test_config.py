@@ -19,7 +19,8 @@ def test_example_file_loads_with_every_key():
     x, y = cfg.drives
     assert (x.slave, x.axis, x.mode) == (0, "x", 8)
     assert x.identity.vendor_id == 0xABC and x.identity.revision is None
-    assert x.pdo.rx_pdo == 0x1600 and x.pdo.tx_pdo == 0x1A00
+    assert x.pdo is None and x.mapping is not None and x.mapping.policy == "drive"
+    assert [(s.index, s.type, s.value) for s in x.sdos] == [(0x6065, "u32", 10000)]
     assert x.policy.auto_reset.enabled and x.policy.auto_reset.max_attempts == 2
     assert x.policy.auto_reset.backoff_s == 1.0  # inherited from [defaults.auto_reset]
     assert (y.axis, y.identity, y.pdo) == ("y", None, None)

@@ -16,8 +16,8 @@ from enum import IntEnum
 from typing import Callable, Mapping
 
 from bus_agent.bus.base import ALState
-from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
 from bus_agent.sim.drive_model import Emcy, ObjectEntry, SdoAbort
+from bus_agent.sim.ecat.profiles import FLEXIBLE, PdoCatalog
 from bus_agent.sim.ecat.sii import MBX_IN_SIZE, MBX_OUT_SIZE, SmType
 
 log = logging.getLogger(__name__)
@@ -87,8 +87,6 @@ class SdoAbortCode(IntEnum):
 
 
 SM_COMM_TYPES = (SmType.MBX_OUT, SmType.MBX_IN, SmType.OUTPUTS, SmType.INPUTS)  # 0x1C00:1..4
-PDO_SLOTS = 4  # 0x1600..0x1603, 0x1A00..0x1A03
-MAX_ENTRIES = 8  # subindexes per mapping object
 MAX_PDO_BYTES = 256
 SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
 SCRATCH_MAX = 512
@@ -97,28 +95,25 @@ _STRUCT_CODE = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32":
 
 
 class PdoConfig:
-    """0x1C00, 0x1C12/0x1C13 (PDO assignment) and 0x16xx/0x1Axx (PDO mapping) of one drive.
+    """0x1C00, 0x1C12/0x1C13 (PDO assignment) and 0x16xx/0x1Axx/0x1Bxx (PDO mapping) of one drive.
 
-    ``objects`` is the drive's object dictionary, used to validate mapped entries.
+    ``objects`` is the drive's object dictionary, used to validate mapped entries; ``catalog``
+    says which PDOs exist, their power-on content and what the master may change
+    (:mod:`bus_agent.sim.ecat.profiles`).
     """
 
-    def __init__(self, objects: Mapping[tuple[int, int], ObjectEntry]):
+    def __init__(self, objects: Mapping[tuple[int, int], ObjectEntry], catalog: PdoCatalog = FLEXIBLE):
         self._objects = objects
+        self.catalog = catalog
         self.reset()
 
     def reset(self) -> None:
-        """Power-on defaults: 0x1600/0x1A00 as in bus_agent.bus.pdo, assigned to SM2/SM3."""
-        self.assign: dict[int, list[int]] = {0x1C12: [RXPDO_INDEX, 0, 0, 0], 0x1C13: [TXPDO_INDEX, 0, 0, 0]}
-        self.assign_count = {0x1C12: 1, 0x1C13: 1}
-        self.maps: dict[int, list[int]] = {}
-        self.map_count: dict[int, int] = {}
-        for base, default in ((RXPDO_INDEX, RXPDO_DEFAULT), (TXPDO_INDEX, TXPDO_DEFAULT)):
-            for k in range(PDO_SLOTS):
-                self.maps[base + k] = [0] * MAX_ENTRIES
-                self.map_count[base + k] = 0
-            for i, (index, sub, bits, _code, _name) in enumerate(default):
-                self.maps[base][i] = mapping_entry(index, sub, bits)
-            self.map_count[base] = len(default)
+        """Power-on content of the catalogue (a power cycle forgets every change)."""
+        c = self.catalog
+        self.assign: dict[int, list[int]] = {k: list(v) + [0] * (c.max_pdos - len(v)) for k, v in c.assign.items()}
+        self.assign_count = {k: len(v) for k, v in c.assign.items()}
+        self.maps: dict[int, list[int]] = {p: list(v) + [0] * (c.max_entries - len(v)) for p, v in c.maps.items()}
+        self.map_count: dict[int, int] = {p: len(v) for p, v in c.maps.items()}
 
     def handles(self, index: int) -> bool:
         return index in (0x1C00, 0x1C12, 0x1C13) or index in self.maps
@@ -146,13 +141,13 @@ class PdoConfig:
         if index in self.assign:
             if sub == 0:
                 return bytes([self.assign_count[index]])
-            if 1 <= sub <= PDO_SLOTS:
+            if 1 <= sub <= self.catalog.max_pdos:
                 return struct.pack("<H", self.assign[index][sub - 1])
             raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
         if index in self.maps:
             if sub == 0:
                 return bytes([self.map_count[index]])
-            if 1 <= sub <= MAX_ENTRIES:
+            if 1 <= sub <= self.catalog.max_entries:
                 return struct.pack("<I", self.maps[index][sub - 1])
             raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
         raise SdoAbort(SdoAbortCode.NO_OBJECT)
@@ -164,9 +159,12 @@ class PdoConfig:
             raise SdoAbort(SdoAbortCode.READ_ONLY)
         if index not in self.assign and index not in self.maps:
             raise SdoAbort(SdoAbortCode.NO_OBJECT)
-        limit = PDO_SLOTS if index in self.assign else MAX_ENTRIES
+        c = self.catalog
+        limit = c.max_pdos if index in self.assign else c.max_entries
         if sub > limit:
             raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        if index not in c.writable_assign and index not in c.writable_maps:
+            raise SdoAbort(SdoAbortCode.READ_ONLY, f"0x{index:04X} is fixed in this drive")
         size = 1 if sub == 0 else (2 if index in self.assign else 4)
         if len(data) != size:
             raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
@@ -178,22 +176,25 @@ class PdoConfig:
         else:
             self._write_map(index, sub, value)
 
+    @staticmethod
+    def _same_side(assign: int, pdo: int) -> bool:
+        return 0x1600 <= pdo <= 0x17FF if assign == 0x1C12 else 0x1A00 <= pdo <= 0x1BFF
+
     def _write_assign(self, index: int, sub: int, value: int) -> None:
-        base = RXPDO_INDEX if index == 0x1C12 else TXPDO_INDEX
         table = self.assign[index]
         if sub == 0:
-            if value > PDO_SLOTS:
+            if value > self.catalog.max_pdos:
                 raise SdoAbort(SdoAbortCode.VALUE_RANGE)
-            if any(not (base <= table[k] < base + PDO_SLOTS) for k in range(value)):
+            if any(table[k] not in self.maps for k in range(value)):
                 raise SdoAbort(SdoAbortCode.VALUE_RANGE, "assignment references no PDO")
             if sum(self._pdo_bits(table[k]) for k in range(value)) > MAX_PDO_BYTES * 8:
                 raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
             self.assign_count[index] = value
             return
         if self.assign_count[index] != 0:
-            raise SdoAbort(SdoAbortCode.WRONG_STATE, "set subindex 0 to 0 before changing entries")
-        if value != 0 and not (base <= value < base + PDO_SLOTS):
-            raise SdoAbort(SdoAbortCode.VALUE_RANGE)
+            raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
+        if value != 0 and not (value in self.maps and self._same_side(index, value)):
+            raise SdoAbort(SdoAbortCode.VALUE_RANGE, f"PDO 0x{value:04X} is not offered by this drive")
         table[sub - 1] = value
 
     def _pdo_bits(self, pdo: int) -> int:
@@ -202,7 +203,7 @@ class PdoConfig:
     def _write_map(self, index: int, sub: int, value: int) -> None:
         entries = self.maps[index]
         if sub == 0:
-            if value > MAX_ENTRIES:
+            if value > self.catalog.max_entries:
                 raise SdoAbort(SdoAbortCode.VALUE_RANGE)
             if any(entries[k] == 0 for k in range(value)):
                 raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "empty mapping entry")
@@ -211,9 +212,9 @@ class PdoConfig:
             self.map_count[index] = value
             return
         if self.map_count[index] != 0:
-            raise SdoAbort(SdoAbortCode.WRONG_STATE, "set subindex 0 to 0 before changing entries")
+            raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
         if value != 0:
-            self.check_mappable(value, rx=index < TXPDO_INDEX)
+            self.check_mappable(value, rx=index < 0x1A00)
         entries[sub - 1] = value
 
     def check_mappable(self, entry: int, rx: bool) -> None:
@@ -242,9 +243,9 @@ class SdoServer:
     ``al_state`` returns the current AL state (PDO configuration writes depend on it).
     """
 
-    def __init__(self, model, al_state: Callable[[], ALState]):
+    def __init__(self, model, al_state: Callable[[], ALState], catalog: PdoCatalog = FLEXIBLE):
         self.model = model
-        self.pdo = PdoConfig(model.objects)
+        self.pdo = PdoConfig(model.objects, catalog)
         self._al_state = al_state
         self._scratch = b""
         self._sub0 = self._implicit_sub0(model.objects)

@@ -17,6 +17,7 @@ from bus_agent.bus.base import AL_ERROR_FLAG, ALState
 from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
+from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
 from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START,
                                     PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii)
 
@@ -98,12 +99,14 @@ class Esc:
     "al") — called from the datagram path, so it must be cheap.
     """
 
-    def __init__(self, position: int, profile: DriveProfile = PROFILES["generic"], *, last: bool = True,
-                 on_change: Callable[[str], None] = lambda kind: None):
+    def __init__(self, position: int, profile: DriveProfile | EcatProfile = PROFILES["generic"], *,
+                 last: bool = True, on_change: Callable[[str], None] = lambda kind: None):
         self.position = position
-        self.profile = profile
+        self.ecat_profile = as_ecat(profile)
+        self.profile = profile = self.ecat_profile.drive
         self.model = DriveModel(profile, serial=position + 1)
-        self.sdo = SdoServer(self.model, lambda: self.al_state)
+        catalog = self.ecat_profile.pdos
+        self.sdo = SdoServer(self.model, lambda: self.al_state, catalog)
         self.mailbox = Mailbox(self.sdo)
         self.last = last
         self.on_change = on_change
@@ -115,9 +118,18 @@ class Esc:
         self.sii = bytearray(build_sii(
             vendor_id=profile.vendor_id, product_code=profile.product_code, revision=profile.revision,
             serial=position + 1, name=profile.device_name,
-            rx_entries=[(i, s, b, self.model.objects[(i, s)].datatype) for i, s, b, _c, _n in RXPDO_DEFAULT],
-            tx_entries=[(i, s, b, self.model.objects[(i, s)].datatype) for i, s, b, _c, _n in TXPDO_DEFAULT]))
+            rx_entries=self._sii_entries(catalog, 0x1C12), tx_entries=self._sii_entries(catalog, 0x1C13)))
         self.power_on()
+
+    def _sii_entries(self, catalog: PdoCatalog, assign: int) -> list[tuple[int, int, int, str]]:
+        """(index, subindex, bits, datatype) of the power-on assigned PDOs, for the SII categories."""
+        out = []
+        for pdo in catalog.assign[assign]:
+            for e in catalog.maps[pdo]:
+                i, s, b = e >> 16, (e >> 8) & 0xFF, e & 0xFF
+                obj = self.model.objects.get((i, s))
+                out.append((i, s, b, obj.datatype if obj else "u8"))
+        return out
 
     # -- reset ----------------------------------------------------------------------------
     def power_on(self) -> None:

@@ -12,10 +12,13 @@ import logging
 import struct
 import time
 from enum import IntEnum
+from typing import Sequence
 
 from bus_agent.bus.base import ALState
-from bus_agent.sim.drive_model import PROFILES, DriveProfile
+
+from bus_agent.sim.drive_model import DriveProfile
 from bus_agent.sim.ecat.esc import MEM_SIZE, Esc
+from bus_agent.sim.ecat.profiles import EcatProfile, parse_profiles
 
 log = logging.getLogger(__name__)
 
@@ -56,18 +59,15 @@ _AUTO_INC = {Cmd.APRD, Cmd.APWR, Cmd.APRW, Cmd.ARMW, Cmd.BRD, Cmd.BWR, Cmd.BRW}
 class Segment:
     """``n`` ESCs with drive models, position 0 nearest to the master."""
 
-    def __init__(self, n: int, profile: DriveProfile | str = "generic"):
-        if isinstance(profile, str):
-            if profile not in PROFILES:
-                raise ValueError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
-            profile = PROFILES[profile]
+    def __init__(self, n: int, profile: DriveProfile | EcatProfile | str | Sequence[DriveProfile | EcatProfile | str] = "generic"):
         if not 1 <= n <= 1000:
             raise ValueError(f"drives must be 1..1000, got {n}")
+        profiles = parse_profiles(profile, n)
         self._plans: dict[tuple[int, int, int, int], tuple] = {}
         self._by_addr: dict[int, list[Esc]] | None = None
         self._active: bool | None = None
         self.escs: list[Esc] = []
-        self.escs = [Esc(k, profile, last=(k == n - 1), on_change=self._changed) for k in range(n)]
+        self.escs = [Esc(k, profiles[k], last=(k == n - 1), on_change=self._changed) for k in range(n)]
         self.frames = 0
         self._cursor = 0
         self._round_due = 0.0
@@ -295,7 +295,7 @@ class Segment:
 
     def status(self) -> list[dict]:
         """Per-slave snapshot for the control interface."""
-        return [{"slave": e.position, "present": e.present, "al_state": e.al_state.wire_name,
+        return [{"slave": e.position, "profile": e.ecat_profile.name, "present": e.present, "al_state": e.al_state.wire_name,
                  "al_error": e.al_error, "al_status_code": e.al_code, "station_address": e.station_address,
                  "drive_state": e.model.state.value, "statusword": e.model.statusword,
                  "controlword": e.model.read(0x6040, 0), "mode_display": e.model.read(0x6061, 0),
