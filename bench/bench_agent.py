@@ -51,6 +51,7 @@ import threading
 import time
 from array import array
 from pathlib import Path
+from typing import Callable
 
 from bench.common import (RESULTS, ROOT, free_port, main_result, percentile, pysoem_to_op, proc_cpu_s, segment, set_rt_priority,
                           stop_process, summary_ms)
@@ -104,8 +105,11 @@ def phase_bare(args) -> dict:
     from bus_agent.bus.pdo import RX_STRUCT
 
     m = pysoem.Master()
-    expected = pysoem_to_op(m, args.ifname, args.drives)
+    expected = pysoem_to_op(m, args.ifname, args.drives, dc_cycle_ns=args.cycle_us * 1000 if args.dc == "auto" else 0)
     slaves = list(m.slaves)
+    # outputs of each slave's size: the default 13-byte layout packed as any program would
+    pack = [(lambda: RX_STRUCT.pack(0, 0, 0, 0, 8)) if len(s.output) == RX_STRUCT.size
+            else (lambda n=len(s.output): bytes(n)) for s in slaves]
     period = args.cycle_us * 1000
     n = int(args.seconds * 1e9 / period)
     log = array("q", bytes(8 * n))
@@ -139,9 +143,9 @@ def phase_bare(args) -> dict:
         wkc = m.receive_processdata(args.receive_timeout_us, release_gil=True)
         if wkc != expected:
             wkc_errors += 1
-        for s in slaves:  # what any program does each cycle: read inputs, write outputs
+        for s, pk in zip(slaves, pack):  # what any program does each cycle: read inputs, write outputs
             _ = s.input
-            s.output = RX_STRUCT.pack(0, 0, 0, 0, 8)
+            s.output = pk()
         k += 1
     elapsed = (clock() - t0) / 1e9
     cpu = _cpu_s() - cpu0
@@ -232,14 +236,25 @@ def phase_agent(args) -> dict:
     from bus_agent.config import AgentConfig
     from bus_agent.cycle.cycle import Cycle
 
-    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us)
+    from bus_agent.bus.dc import DcConfig
+
+    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us, dc=DcConfig(mode=args.dc))
     cyc = Cycle(PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us), cfg, rt_priority=args.rt_priority)
     sink: deque = deque(maxlen=64)
     cyc.snapshot_sink = sink.append  # what a gateway does: enqueue only
     cyc.start()
     try:
         resets = _enable_all(cyc)
-        return {**_measure(cyc, args), "startup_fault_resets": resets}
+        n = int(args.seconds * 1e9 / (args.cycle_us * 1000))
+        cyc.dc_log = array("q", bytes(8 * n)) if cyc.dc_states and "sync0" in cyc.dc_states else None
+        out = _measure(cyc, args)
+        out["startup_fault_resets"] = resets
+        if cyc.dc_log is not None:
+            offs = sorted(cyc.dc_log[:cyc.period_log_len or n])
+            out["dc_offset_us"] = {"p50": round(percentile(offs, 0.5) / 1000, 1),
+                                   "p99": round(percentile(offs, 0.99) / 1000, 1),
+                                   "p1": round(percentile(offs, 0.01) / 1000, 1), "samples": len(offs)}
+        return out
     finally:
         cyc.stop()
 
@@ -323,6 +338,51 @@ def encoding_figures(drives: int, n: int = 2000) -> dict:
         f.due(snap, 0.0)   # the per-cycle check of bridge-out (nothing changed, not due)
     out["filter_check_us"] = round((time.perf_counter() - t0) / n * 1e6, 2)
     return out
+
+
+def codec_figures(drives: int, n: int = 3000) -> dict:
+    """CPU of one cycle's decode + encode of every drive: the fixed 13/15-byte structs (before
+    per-drive codecs) vs ``DriveCodec`` for the default layout and for the Omron-like predefined
+    0x1701/0x1B01 (in-process, best of 5 runs of ``n`` cycles)."""
+    from bus_agent.bus.codec import DriveCodec
+    from bus_agent.bus.mapping import DEFAULT_MAPPING, mapping_of
+    from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT, DriveInputs, DriveOutputs
+    from bus_agent.sim.ecat.profiles import OMRON_LIKE
+
+    recs = [DriveInputs() for _ in range(drives)]
+    outs = [DriveOutputs() for _ in range(drives)]
+    tx_raw = bytes(TX_STRUCT.size)
+
+    def fixed() -> None:
+        for rec, o in zip(recs, outs):
+            (rec.statusword, rec.position_actual, rec.velocity_actual, rec.torque_actual,
+             rec.modes_of_operation_display, rec.error_code) = TX_STRUCT.unpack_from(tx_raw)
+            RX_STRUCT.pack(o.controlword, o.target_position, o.target_velocity, o.target_torque, o.modes_of_operation)
+
+    def with_codec(codec: DriveCodec) -> "Callable[[], None]":
+        raw = bytes(codec.in_size)
+
+        def run() -> None:
+            for rec, o in zip(recs, outs):
+                codec.decode_into(rec, raw)
+                codec.encode(o)
+        return run
+
+    omron = mapping_of([(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C12]],
+                       [(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C13]])
+
+    def best_us(fn) -> float:
+        best = float("inf")
+        for _ in range(5):
+            t0 = time.perf_counter_ns()
+            for _ in range(n):
+                fn()
+            best = min(best, (time.perf_counter_ns() - t0) / n / 1000)
+        return round(best, 2)
+
+    f, d, o = best_us(fixed), best_us(with_codec(DriveCodec(DEFAULT_MAPPING))), best_us(with_codec(DriveCodec(omron)))
+    return {"drives": drives, "fixed_struct_us_per_cycle": f, "codec_default_us_per_cycle": d,
+            "codec_predefined_us_per_cycle": o, "ratio_default": round(d / f, 2), "ratio_predefined": round(o / f, 2)}
 
 
 def phase_load(args) -> dict:
@@ -531,7 +591,7 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, time
            "--drives", str(args.drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us),
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
            "--rate", str(args.query_rate), "--log-file", log_file, "--enable-rounds", str(args.enable_rounds),
-           "--gets-per-round", str(args.gets_per_round)]
+           "--gets-per-round", str(args.gets_per_round), "--profile", args.profile, "--dc", args.dc]
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s or seconds * 4 + 120)
     if p.returncode != 0:
         raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
@@ -568,7 +628,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
 
 
 def run(args) -> dict:
-    with segment("bag", args.drives, args.sim_rt_priority) as seg:
+    with segment("bag", args.drives, args.sim_rt_priority, args.profile) as seg:
         phases = ["bare", "agent"] + ([] if args.no_gateway else [f"gateway_{m}" for m in args.gateway_modes])
         # Phases alternate in rounds, so a burst of load from other work on the host lands on
         # all of them alike rather than on whichever phase happened to run then.
@@ -596,6 +656,7 @@ def run(args) -> dict:
                 "gateway_modes": [] if args.no_gateway else args.gateway_modes, "phases": results, "ratios": ratios,
                 "enable_latency": enable,
                 "bridge_encoding": encoding_figures(args.drives),
+                "profile": args.profile, "dc": args.dc, "codec_cost": codec_figures(args.drives),
                 "loadavg_1m": os.getloadavg()[0], "loadavg": list(os.getloadavg()), "cpus": os.cpu_count(),
                 "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
@@ -617,6 +678,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="enable_latency phase: enable/disable rounds of every drive (default 50, 0: skip)")
     p.add_argument("--gets-per-round", type=int, default=5,
                    help="enable_latency phase: bare zenoh gets per round (default 5)")
+    p.add_argument("--profile", default="generic",
+                   help="ecat-sim slave profile(s), e.g. omron1s:dc-required (predefined PDOs, DC SYNC0)")
+    p.add_argument("--dc", choices=("auto", "off"), default="auto",
+                   help="[dc] mode of the agent phases; auto also starts SYNC0 in the bare loop")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     # internal: one phase in this process
     p.add_argument("--phase", choices=sorted(PHASES), help=argparse.SUPPRESS)

@@ -47,8 +47,8 @@ class Segment:
 
 
 @contextlib.contextmanager
-def segment(prefix: str, drives: int, sim_rt_priority: int = 20) -> Iterator[Segment]:
-    """veth pair up, ``ecat-sim`` with ``drives`` drives on its far end (SCHED_FIFO
+def segment(prefix: str, drives: int, sim_rt_priority: int = 20, profile: str = "generic") -> Iterator[Segment]:
+    """veth pair up, ``ecat-sim`` with ``drives`` drives of ``profile`` on its far end (SCHED_FIFO
     ``sim_rt_priority``, 0: off), ready to be scanned; everything torn down on exit."""
     from bus_agent.sim.netns import pair_names, veth_down, veth_up
 
@@ -61,7 +61,7 @@ def segment(prefix: str, drives: int, sim_rt_priority: int = 20) -> Iterator[Seg
         with open(os.path.join(workdir, "sim.log"), "w") as sim_log:
             sim = subprocess.Popen(
                 [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim_if, "--drives", str(drives),
-                 "--control", ctl, "--rt-priority", str(sim_rt_priority)],
+                 "--control", ctl, "--rt-priority", str(sim_rt_priority), "--profile", profile],
                 cwd=ROOT, stdout=subprocess.PIPE, stderr=sim_log, text=True)
         ready, _, _ = select.select([sim.stdout], [], [], SIM_READY_TIMEOUT_S)
         if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):
@@ -74,9 +74,11 @@ def segment(prefix: str, drives: int, sim_rt_priority: int = 20) -> Iterator[Seg
         shutil.rmtree(workdir, ignore_errors=True)
 
 
-def pysoem_to_op(m, ifname: str, drives: int, receive_timeout_us: int = 2000) -> int:
+def pysoem_to_op(m, ifname: str, drives: int, receive_timeout_us: int = 2000, dc_cycle_ns: int = 0) -> int:
     """Open ``ifname`` with pysoem master ``m``, scan and map ``drives`` slaves, bring them to
-    SAFE-OP, then OP (process data flowing meanwhile); returns the expected working counter."""
+    SAFE-OP, then OP (process data flowing meanwhile); returns the expected working counter.
+    ``dc_cycle_ns``: config_dc, and SYNC0 at that cycle on every DC slave before OP."""
+    import struct
     import time
 
     import pysoem
@@ -84,9 +86,20 @@ def pysoem_to_op(m, ifname: str, drives: int, receive_timeout_us: int = 2000) ->
     m.open(ifname)
     if m.config_init() != drives:
         raise RuntimeError("config_init did not find every drive")
+    if dc_cycle_ns:
+        m.config_dc()
     m.config_map()
     if m.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
         raise RuntimeError("SAFE-OP not reached")
+    if dc_cycle_ns:
+        for s in m.slaves:
+            if struct.unpack("<H", bytes(s._fprd(0x0008, 2, 2000))[:2])[0] & 0x0004:
+                s.dc_sync(True, dc_cycle_ns)
+        until = time.monotonic() + 0.15  # SOEM starts SYNC0 100 ms after dc_sync
+        while time.monotonic() < until:
+            m.send_processdata()
+            m.receive_processdata(receive_timeout_us)
+            time.sleep(0.001)
     m.send_processdata()
     m.receive_processdata(receive_timeout_us)
     m.state = pysoem.OP_STATE

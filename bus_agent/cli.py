@@ -4,6 +4,7 @@
                                                # listens on tcp/127.0.0.1:7447 (drivectl's default)
     bus-agent --config /etc/zenoh-drives/agent.toml
     bus-agent --ifname eth1 --host h1 --connect tcp/router:7447
+    bus-agent scan --ifname eth1 [--json | --toml]   # read the segment (PRE-OP), no Zenoh
 
 Flags override the configuration file. Once everything is up it prints one line,
 ``bus-agent ready host=<host> drives=<a,b,..> backend=<sim|pysoem> listen=<eps> connect=<eps>``.
@@ -124,6 +125,11 @@ def _can_flags(args: argparse.Namespace) -> CanConfig | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["scan"]:
+        from bus_agent.bus.scan import main as scan_main  # reads a segment, controls nothing
+
+        return scan_main(argv[1:])
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bus_agent.cia402.states import Mode
+from bus_agent.bus.dc import DC_MODES, DcConfig
 from bus_agent.bus.mapping import POLICIES, SDO_TYPES, MappingError, MappingPolicy, SlaveSetup, StartupSdo
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX
 from bus_agent.motion.config import HomingConfig, MotionConfig, MotionConfigError
@@ -176,6 +177,7 @@ class AgentConfig:
     default_motion: MotionConfig = MotionConfig()
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
+    dc: DcConfig = DcConfig()           # [dc]: distributed clocks (SYNC0, the cycle kept in step)
     recorder: RecorderConfig = RecorderConfig()
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
 
@@ -282,6 +284,12 @@ def _validate(c: AgentConfig) -> None:
         raise ConfigError(f"recorder: need 0 <= pre_s + post_s < seconds <= 600 (got pre_s {r.pre_s:g}, "
                           f"post_s {r.post_s:g}, seconds {r.seconds:g}); seconds = 0 turns it off")
     _validate_policy(c.default_policy, "defaults")
+    if c.dc.mode not in DC_MODES:
+        raise ConfigError(f"dc.mode: {c.dc.mode!r} is not one of {', '.join(DC_MODES)}")
+    if not 0 <= c.dc.sync0_cycle_ns <= 1_000_000_000:
+        raise ConfigError(f"dc.sync0_cycle_ns: {c.dc.sync0_cycle_ns} outside 0 (the agent's cycle)..1000000000")
+    if abs(c.dc.sync0_shift_ns) >= max(c.dc.sync0_cycle_ns, c.cycle_us * 1000):
+        raise ConfigError(f"dc.sync0_shift_ns: {c.dc.sync0_shift_ns} must be smaller than the SYNC0 cycle")
     slaves: dict[int, int] = {}
     axes: dict[str, int] = {}
     for i, d in enumerate(c.drives):
@@ -553,6 +561,10 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     cy = t.table("cycle")
     rt_priority = cy.get("rt_priority", int, 0)
     cy.done()
+    dct = t.table("dc")
+    dc = DcConfig(mode=dct.get("mode", str, "auto"), sync0_cycle_ns=dct.get("sync0_cycle_ns", int, 0),
+                  sync0_shift_ns=dct.get("sync0_shift_ns", int, 0), before_safeop=dct.get("before_safeop", bool, False))
+    dct.done()
     rc = t.table("recorder")
     recorder = RecorderConfig(seconds=rc.get("seconds", _NUM, 10.0), pre_s=rc.get("pre_s", _NUM, 5.0),
                               post_s=rc.get("post_s", _NUM, 1.0))
@@ -608,6 +620,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         default_motion=default_motion,
         gateway=t.get("gateway", str, "process"),
         rt_priority=rt_priority,
+        dc=dc,
         recorder=recorder,
         can=_can(t.table("can")) if "can" in t.data else None,
     )

@@ -78,6 +78,8 @@ class DriveSnapshot:
     #: Other mapped input objects: names (CiA 402 table, else '0xIIII:SS') and their values.
     object_names: tuple[str, ...] = ()
     objects: tuple[int, ...] = ()
+    #: DC state of the drive's slave: "sync0" (SYNC0 running), "off" (DC capable, not used), "none".
+    dc: str = "none"
     # motion layer (bus_agent.motion): PLCopen axis state, homed, 0x607A written, following error
     axis_state: str = "disabled"
     homed: bool = False
@@ -110,6 +112,8 @@ class CycleStats:
     overruns: int = 0
     wkc_errors: int = 0
     expected_wkc: int = 0
+    dc_offset_p50_us: float = 0.0  # frame-to-SYNC0 phase (DC), over the statistics window
+    dc_offset_p99_us: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -223,6 +223,10 @@ class AgentStatus:
     al_states: dict = _f({}, keys=NAME, values=AL_STATE, doc="axis -> AL state name")
     leases: dict = _f({}, keys=NAME, values=NAME, doc="axis -> lease holder, for leased axes")
     groups: dict = _f({}, keys=NAME, values=Meta(list, {"items": MEMBER}), doc="group name -> list of member keys 'host/axis'")
+    dc: dict = _f({}, keys=NAME, values=Meta(str, {"choices": ("sync0", "off", "none")}),
+                  doc="axis -> DC state of its slave: sync0 (SYNC0 running), off (DC capable, unused), none")
+    dc_offset_p50_us: float = _f(0.0, doc="frame-to-SYNC0 offset (time since SYNC0 as the frame passed), median")
+    dc_offset_p99_us: float = _f(0.0, doc="frame-to-SYNC0 offset, 99th percentile (0 without DC)")
     instance: str = _f("", max_len=64, doc="this agent process' random id, new at every start: two ids under one host name are a conflict")
     conflict: str = _f("", max_len=400, doc="another agent publishes under this host name ('' if none): commands are refused by supervisors")
     commands: dict = _f({}, keys=NAME, values=Meta(int, {"range": U64}),

@@ -409,3 +409,6 @@ class SlaveSetup:
 
     policy: MappingPolicy = MappingPolicy()
     sdos: tuple[StartupSdo, ...] = ()
+    #: DC: (SYNC0 cycle ns, shift ns) to start before OP, None = no SYNC0 (bus_agent.bus.dc)
+    sync0: tuple[int, int] | None = None
+    sync0_before_safeop: bool = False     # start SYNC0 in PRE-OP (drives that need it before SAFE-OP)

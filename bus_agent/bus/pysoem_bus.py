@@ -57,8 +57,11 @@ RECOVER_TIMEOUT_US = MGMT_TIMEOUT_US
 #: keeps its last known status for this long before it reads NONE. A frame that comes back
 #: without the slave's working counter (the slave is silent) reads NONE at once.
 NO_FRAME_GRACE_S = 0.05
+#: SOEM's dc_sync starts SYNC0 100 ms (SyncDelay) after now: wait this long before the next AL state.
+SYNC0_START_S = 0.12
 # ESC registers (ETG.1000.4 Table 31 ff.)
 _REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
+_REG_FEATURES = 0x0008       # ESC features: bit 2 = distributed clocks
 _REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
 _REG_FMMU0 = 0x0600          # 16 bytes per FMMU
 _REG_SM0 = 0x0800            # 8 bytes per SyncManager
@@ -92,6 +95,9 @@ class PysoemBus:
         self._inputs: list[DriveInputs] = []
         self._expected_wkc = 0
         self._setups: dict[int, SlaveSetup] = {}
+        self._dc_capable: list[bool] = []
+        self._sync0: dict[int, tuple[int, int]] = {}
+        self._sync0_armed_at: dict[int, float] = {}
         self._preop_values: dict[tuple[int, int], bytes | BusError] = {}
         self._mappings: dict[int, SlaveMapping] = {}
         self._codecs: list[DriveCodec] = []
@@ -134,6 +140,7 @@ class PysoemBus:
             raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
         self._slaves = list(m.slaves)
         self._inputs = [DriveInputs() for _ in self._slaves]
+        self._dc_capable = [self._read_dc_capable(s) for s in self._slaves]
         self._opened = True
         infos = []
         for pos, s in enumerate(self._slaves):
@@ -141,6 +148,42 @@ class PysoemBus:
             log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.ifname, pos, s.name, s.man, s.id, s.rev)
         return infos
+
+    @staticmethod
+    def _read_dc_capable(s: Any) -> bool:
+        """ESC feature register 0x0008 bit 2: distributed clocks available."""
+        try:
+            return bool(struct.unpack("<H", bytes(s._fprd(_REG_FEATURES, 2, 2000))[:2])[0] & 0x0004)
+        except Exception:
+            return False
+
+    def dc_capable(self, position: int) -> bool:
+        """True when the slave's ESC has distributed clocks (0x0008 bit 2), read at open()."""
+        return self._dc_capable[position]
+
+    def dc_states(self) -> list[str]:
+        """Per slave: "sync0" (SYNC0 started), "off" (DC capable, unused) or "none"."""
+        return ["sync0" if p in self._sync0 else "off" if cap else "none" for p, cap in enumerate(self._dc_capable)]
+
+    @property
+    def dc_active(self) -> bool:
+        return bool(self._sync0)
+
+    def dc_time_ns(self) -> int:
+        """System time of the reference clock from the last frame's FRMW (0x0910). Cycle-safe."""
+        return self._master.dc_time
+
+    def _start_sync0(self, positions: Sequence[int]) -> None:
+        """``dc_sync`` (SOEM ecx_dcsync0: 0x0981 = 0, 0x0990 start = whole cycles after now + 100 ms
+        + shift, 0x09A0 cycle, 0x0981 = 3) for each slave; SYNC0 runs from the start time on."""
+        for pos in positions:
+            cycle_ns, shift_ns = self._sync0[pos]
+            try:
+                self._slaves[pos].dc_sync(True, cycle_ns, shift_ns)
+            except Exception as e:
+                raise BusError(f"slave {pos} ({self._slaves[pos].name!r}): SYNC0 not started: {e}") from None
+            self._sync0_armed_at[pos] = time.monotonic()
+            log.info("%s: slave %d: SYNC0 %d ns, shift %d ns", self.ifname, pos, cycle_ns, shift_ns)
 
     def _abort_open(self) -> None:
         try:
@@ -244,6 +287,16 @@ class PysoemBus:
                 raise BusError(f"slave {pos}: mapping setup must be a SlaveSetup, got {type(setup).__name__}")
             setups[pos] = setup
         self._setups = setups
+        self._sync0 = {pos: st.sync0 for pos, st in setups.items() if st.sync0 is not None}
+        before_safeop = any(st.sync0_before_safeop for st in setups.values() if st.sync0 is not None)
+        if self._sync0:
+            # PRE-OP: find the DC slaves, latch and set offsets and delays; from here on every
+            # process-data frame carries the FRMW of the reference clock (master.dc_time)
+            found = m.config_dc()
+            if not found:
+                raise BusError(f"{self.ifname}: config_dc found no DC slave, although slave(s) "
+                               f"{sorted(self._sync0)} report DC in 0x0008")
+        m.manual_state_change = before_safeop  # config_map requests SAFE-OP by itself otherwise
         for pos, s in enumerate(self._slaves):
             s.config_func = self._config_func
         try:
@@ -269,12 +322,20 @@ class PysoemBus:
             self._codecs.append(codec)
             log.info("%s: slave %d: %s; absent actual values: %s; other objects: %s", self.ifname, pos,
                      describe(mp), ", ".join(codec.absent_inputs) or "none", ", ".join(codec.extra_names) or "none")
+        if before_safeop:
+            self._start_sync0(sorted(self._sync0))
+            self._wait_sync0_start()
+            m.state = pysoem.SAFEOP_STATE
+            m.write_state()
         self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
+        if self._sync0 and not before_safeop:
+            self._start_sync0(sorted(self._sync0))
         self._expected_wkc = m.expected_wkc
         # Outputs must flow while OP is requested, or the SM watchdog trips on the way.
         for pos in range(len(self._slaves)):
             self.set_outputs(pos, DriveOutputs())
         self.exchange()
+        self._wait_sync0_start(exchange=True)
         m.state = pysoem.OP_STATE
         m.write_state()
         self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
@@ -282,6 +343,17 @@ class PysoemBus:
         log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
                  self._expected_wkc)
         return self._expected_wkc
+
+    def _wait_sync0_start(self, exchange: bool = False) -> None:
+        """Until every started SYNC0's start time (armed + 100 ms) has passed: a drive that
+        needs SYNC0 refuses the next state before its first pulse."""
+        if not self._sync0_armed_at:
+            return
+        until = max(self._sync0_armed_at.values()) + SYNC0_START_S
+        while time.monotonic() < until:
+            if exchange:
+                self.exchange()
+            time.sleep(0.001)
 
     def _read_esc_config(self) -> None:
         """Read back each slave's SM (0x0800) and FMMU (0x0600) registers as SOEM programmed
@@ -462,6 +534,17 @@ class PysoemBus:
                 self._recover_step.pop(position, None)  # start again from INIT
             return False
         if state == ALState.SAFEOP:
+            if position in self._sync0 and step == "to_safeop":
+                # a power cycle reset the slave's DC unit: SYNC0 again, OP after its first pulse
+                try:
+                    self._start_sync0([position])
+                except BusError as e:
+                    log.warning("%s", e)
+                    return False
+                self._recover_step[position] = "sync0"
+                return False
+            if step == "sync0" and time.monotonic() - self._sync0_armed_at.get(position, 0.0) < SYNC0_START_S:
+                return False
             self._write_al_control(position, int(ALState.OP))
             self._recover_step[position] = "to_op"
             return False

@@ -25,6 +25,7 @@ cycles). See docs/agent-cycle.md for the decisions (outcomes, NMT, shutdown, GC)
 from __future__ import annotations
 
 import collections
+import dataclasses
 import gc
 import logging
 import sys
@@ -35,6 +36,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 from bus_agent.bus.base import ALState, Bus, BusError, SlaveALStatus, SlaveInfo, al_status_text
+from bus_agent.bus.dc import DcSync
+from bus_agent.bus.mapping import SlaveSetup
 from bus_agent.cia402.controller import (DISABLED_IN_FAULT, ControllerConfig, ControllerEvent, DriveController, EventKind,
                                          Goal)
 from bus_agent.cia402.states import Mode, State, decode_statusword
@@ -92,6 +95,7 @@ NMT_TARGET = {"start": ALState.OP, "stop": ALState.SAFEOP, "preop": ALState.PREO
 _VALID_MODES = frozenset(int(m) for m in Mode)
 SUPPORTED_DRIVE_MODES = 0x6502
 _MODE_UNWRITTEN = -129  # no i8: the first cycle writes 0x6060 by SDO
+_CSX_MODES = (int(Mode.CYCLIC_SYNC_POSITION), int(Mode.CYCLIC_SYNC_VELOCITY), int(Mode.CYCLIC_SYNC_TORQUE))
 
 
 def decode_supported_modes(bits: int) -> frozenset[int]:
@@ -143,6 +147,7 @@ class _Drive:
     mode_written: int = 0
     mode_display_sdo: int = 0
     error_code_sdo: int = 0
+    dc: str = "none"                    # DC state of the slave (bus dc_states)
 
 
 @dataclass(slots=True)
@@ -231,9 +236,16 @@ class Cycle(MotionMixin):
         self._no_answer_since: dict[int, int] = {}
         self._epoch: dict[int, int] = {}
         self._mgmt = Management(bus, clock_ns, self.period_ns, config.host)
+        self._dc: DcSync | None = None
+        self._dc_time: Callable[[], int] = lambda: 0
+        self._dc_adjust_ns = 0
+        self._dc_offsets = array("q", bytes(8 * STATS_WINDOW))
+        self.dc_states: tuple[str, ...] = ()
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.
         self.period_log = array("q", bytes(8 * record_periods)) if record_periods else None
         self.period_log_len = 0
+        #: Optional record of frame-to-SYNC0 offsets (ns), beside period_log (benchmarks).
+        self.dc_log: array | None = None
         #: The flight recorder (created in :meth:`open`; None when ``[recorder] seconds = 0``).
         self.recorder: Recorder | None = None
 
@@ -265,7 +277,7 @@ class Cycle(MotionMixin):
                 if dc.identity is None:
                     log.info("slave %d (%s) axis %s: identity not configured, accepting vendor 0x%08X product 0x%08X",
                              dc.slave, info.name, dc.axis, ident.vendor_id, ident.product_code)
-            overrides = {dc.slave: dc.setup for dc in configs if dc.needs_setup}
+            overrides = {k: v for k, v in self._slave_setups(configs).items() if v != SlaveSetup()}
             self.bus.start(overrides or None)
             supported = {dc.slave: self._read_supported_modes(dc) for dc in configs}
             for dc in configs:
@@ -282,6 +294,7 @@ class Cycle(MotionMixin):
             self._close_bus()
             raise
         self._by_axis = {d.axis: d for d in self.drives}
+        self._start_dc()
         self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
         self._al_status = [SlaveALStatus(ALState.OP, False, 0)] * len(self.slaves)
         for d in self.drives:
@@ -297,6 +310,33 @@ class Cycle(MotionMixin):
         log.info("host %s: %d slave(s) in OP, %d drive(s) %s, expected working counter %d",
                  self.config.host, len(self.slaves), len(self.drives), ",".join(self.axes), self.bus.expected_wkc)
         return self.slaves
+
+    def _slave_setups(self, configs: Sequence[DriveConfig]) -> dict[int, SlaveSetup]:
+        """Mapping policy, start-up SDOs and SYNC0 per slave. ``[dc] mode = "auto"``: SYNC0 at the
+        cycle time for DC-capable slaves whose mode is cyclic synchronous (8/9/10)."""
+        dcc = self.config.dc
+        capable = getattr(self.bus, "dc_capable", None)
+        out = {}
+        for dc in configs:
+            s0 = None
+            if dcc.mode == "auto" and capable is not None and dc.mode in _CSX_MODES and capable(dc.slave):
+                s0 = (dcc.sync0_cycle_ns or self.period_ns, dcc.sync0_shift_ns)
+            out[dc.slave] = dataclasses.replace(dc.setup, sync0=s0, sync0_before_safeop=dcc.before_safeop and s0 is not None)
+        return out
+
+    def _start_dc(self) -> None:
+        """After start(): the PI that keeps the cycle in step with SYNC0, per-slave DC states."""
+        states = getattr(self.bus, "dc_states", None)
+        if states is None:
+            return
+        st = states()
+        self.dc_states = tuple(st)
+        for d in self.drives:
+            d.dc = st[d.slave]
+        if getattr(self.bus, "dc_active", False):
+            dcc = self.config.dc
+            self._dc = DcSync(dcc.sync0_cycle_ns or self.period_ns, dcc.sync0_shift_ns, dcc.target_fraction)
+            self._dc_time = self.bus.dc_time_ns  # type: ignore[attr-defined]
 
     def _unmapped_objects(self, d: _Drive) -> None:
         """From the drive's codec: which objects are served by SDO and which are absent."""
@@ -485,7 +525,7 @@ class Cycle(MotionMixin):
             t0 = self.clock_ns()
             k = 0
             while True:
-                deadline = t0 + k * period
+                deadline = t0 + k * period + self._dc_adjust_ns
                 now = self.clock_ns()
                 if now < deadline:
                     self._wait_until(deadline)
@@ -564,6 +604,13 @@ class Cycle(MotionMixin):
 
         wkc = bus.exchange()
         self._last_wkc = wkc
+        dcs = self._dc
+        if dcs is not None and wkc > 0:
+            # keep the cycle in step with SYNC0: PI on the frame's phase (bus_agent.bus.dc)
+            self._dc_adjust_ns += dcs.step(self._dc_time())
+            self._dc_offsets[cycle % STATS_WINDOW] = dcs.offset_ns
+            if self.dc_log is not None and 0 < self.period_log_len <= len(self.dc_log):
+                self.dc_log[self.period_log_len - 1] = dcs.offset_ns
         all_op_wanted = self._nmt is None and all(s == ALState.OP for s in self._desired_al.values())
         wkc_bad = wkc != bus.expected_wkc
         if wkc_bad and all_op_wanted:
@@ -1160,7 +1207,7 @@ class Cycle(MotionMixin):
                 velocity=i.velocity_actual, torque=i.torque_actual, error_code=i.error_code,
                 error_text=self._error_text(d.slave, i.error_code),
                 al_state=d.al.state.wire_name if d.al.state in ALState else "none", lost=d.lost,
-                absent=d.absent, object_names=d.object_names, objects=i.extra,
+                absent=d.absent, object_names=d.object_names, objects=i.extra, dc=d.dc,
                 axis_state=d.motion.axis_state.value, homed=d.motion.homed, target_position=d.target_position,
                 following_error=following_error(d), motion_request_id=d.motion.request_id))
         return tuple(out)
@@ -1177,4 +1224,11 @@ class Cycle(MotionMixin):
             cycles=self.cycles, cycle_us=self.config.cycle_us,
             period_p50_us=ps[n // 2] / 1000, period_p99_us=ps[min(n - 1, (n * 99) // 100)] / 1000,
             period_max_us=self._period_max_ns / 1000, overruns=self.overruns, wkc_errors=self.wkc_errors,
-            expected_wkc=self.bus.expected_wkc)
+            expected_wkc=self.bus.expected_wkc, **self._dc_stats())
+
+    def _dc_stats(self) -> dict[str, float]:
+        if self._dc is None:
+            return {}
+        offs = sorted(self._dc_offsets[:min(self.cycles, STATS_WINDOW)] or [0])
+        n = len(offs)
+        return {"dc_offset_p50_us": offs[n // 2] / 1000, "dc_offset_p99_us": offs[min(n - 1, (n * 99) // 100)] / 1000}

@@ -598,6 +598,8 @@ class Gateway:
             axes=list(self.axes), al_states={d.axis: d.al_state for d in snap.drives} if snap else {},
             leases=dict(self._lease_holders), groups={g: list(ms) for g, ms in self.s.groups.items()},
             instance=self.instance, conflict=self._conflict_text[:400], commands=dict(self._command_counts),
+            dc={d.axis: d.dc for d in snap.drives} if snap else {},
+            dc_offset_p50_us=st.dc_offset_p50_us, dc_offset_p99_us=st.dc_offset_p99_us,
         )
 
     # ---- command thread ---------------------------------------------------------------------

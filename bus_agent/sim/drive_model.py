@@ -273,6 +273,7 @@ class DriveProfile:
     mode_echo_delay_steps: int = 0  # extra steps before 0x6061 echoes 0x6060
     torque_accel: float = 10_000.0  # increments/s^2 per per-mille of torque (PT/CST kinematics)
     power_on_position: int = 0   # absolute encoder: position at power-on = this * serial
+    power_on_mode: int = 0       # 0x6060/0x6061 at power-on (a drive's stored default mode)
 
 
 PROFILES: dict[str, DriveProfile] = {
@@ -354,6 +355,7 @@ class DriveModel:
         self._values[(0x1018, 3)] = p.revision
         self._values[(0x1018, 4)] = self.serial & 0xFFFFFFFF
         self._values[(0x6502, 0)] = p.supported_modes
+        self._values[(0x6060, 0)] = self._values[(0x6061, 0)] = p.power_on_mode
         # 0x60FD: manufacturer bits 16..31 carry the serial, so each drive's inputs differ
         self._values[(0x60FD, 0)] = (self.serial & 0xFFFF) << 16
         self._state = State.NOT_READY_TO_SWITCH_ON       # transition 0

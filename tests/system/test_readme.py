@@ -13,6 +13,7 @@ from typing import Iterator
 import pytest
 
 from bus_agent.sim.child import ChildProcess, free_port
+from supervisor.fleet import Fleet
 from supervisor.testbed import _env
 
 pytestmark = pytest.mark.timeout(240)
@@ -46,12 +47,22 @@ def test_demo_commands_run_as_written(demo: str) -> None:
     commands = [shlex.split(ln) for ln in lines if ln.startswith(".venv/bin/drivectl")]
     assert len(commands) >= 5
     outputs = []
-    for argv in commands:
-        extra = ["--duration", "2"] if argv[1] == "watch" else []
-        r = subprocess.run([sys.executable, "-m", "supervisor.cli", *argv[1:], *extra, "--connect", demo],
-                           capture_output=True, text=True, timeout=60, env=_env())
-        assert r.returncode == 0, (argv, r.stdout, r.stderr)
-        outputs.append((argv, r.stdout))
+    with Fleet(connect=[demo]) as fleet:
+        assert fleet.wait_for_agents(1, 20, drives=4)
+        for argv in commands:
+            extra = ["--duration", "2"] if argv[1] == "watch" else []
+            for _attempt in range(3):
+                # A loaded host can stall the demo's cycle past the simulated slaves' SM watchdog
+                # (100 ms): they drop out and the agent brings them back. Wait for that, and
+                # repeat a command refused only because of it; anything else fails the test.
+                assert fleet.wait_until(lambda f: all(not st.lost and st.al_state == "op"
+                                                      for st in f.drives().values()), 60)
+                r = subprocess.run([sys.executable, "-m", "supervisor.cli", *argv[1:], *extra, "--connect", demo],
+                                   capture_output=True, text=True, timeout=60, env=_env())
+                if r.returncode == 0 or "lost" not in r.stdout:
+                    break
+            assert r.returncode == 0, (argv, r.stdout, r.stderr)
+            outputs.append((argv, r.stdout))
     # the status right after the injected fault shows its meaning
     after_fault = [out for argv, out in outputs if argv[1:] == ["status", "*/axis1"]]
     assert after_fault and "continuous over-current" in after_fault[0]

@@ -90,6 +90,7 @@ SM_COMM_TYPES = (SmType.MBX_OUT, SmType.MBX_IN, SmType.OUTPUTS, SmType.INPUTS)  
 MAX_PDO_BYTES = 256
 SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
 SCRATCH_MAX = 512
+SYNC_PARAMETER_INDEXES = (0x1C32, 0x1C33)
 
 _STRUCT_CODE = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i"}
 
@@ -248,6 +249,8 @@ class SdoServer:
         self.pdo = PdoConfig(model.objects, catalog)
         self._al_state = al_state
         self._scratch = b""
+        #: (sync mode, SYNC0 cycle ns) for 0x1C32/0x1C33, set by the ESC
+        self.sync_info: Callable[[], tuple[int, int]] | None = None
         self._sub0 = self._implicit_sub0(model.objects)
         self._upload: tuple[int, int, bytes, int, int] | None = None  # index, sub, data, offset, toggle
         self._download: tuple[int, int, int, bytearray, int] | None = None  # index, sub, size, buf, toggle
@@ -265,10 +268,24 @@ class SdoServer:
         self._upload = None
         self._download = None
 
+    def _sync_parameter(self, index: int, sub: int) -> bytes:
+        """0x1C32/0x1C33 (SM output/input sync parameter, ETG.1020): sub 1 sync mode (0 free run,
+        2 DC SYNC0), sub 2 cycle time (ns)."""
+        mode, cycle_ns = self.sync_info() if self.sync_info is not None else (0, 0)
+        if sub == 0:
+            return bytes([2])
+        if sub == 1:
+            return struct.pack("<H", mode)
+        if sub == 2:
+            return struct.pack("<I", cycle_ns)
+        raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+
     # -- object access --------------------------------------------------------------------
     def read_object(self, index: int, sub: int) -> bytes:
         if self.pdo.handles(index):
             return self.pdo.read(index, sub)
+        if index in SYNC_PARAMETER_INDEXES:
+            return self._sync_parameter(index, sub)
         if index == SCRATCH_INDEX:
             if sub != 0:
                 raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
@@ -281,6 +298,11 @@ class SdoServer:
         if self.pdo.handles(index):
             self.pdo.write(index, sub, data, self._al_state())
             return
+        if index in SYNC_PARAMETER_INDEXES:
+            self._sync_parameter(index, sub)  # abort for a missing subindex first
+            if sub != 1 or len(data) != 2:
+                raise SdoAbort(SdoAbortCode.READ_ONLY if sub != 1 else SdoAbortCode.LENGTH_MISMATCH)
+            return  # the sync mode follows the DC activation (0x0981); a written one is accepted
         if index == SCRATCH_INDEX:
             if sub != 0:
                 raise SdoAbort(SdoAbortCode.NO_SUBINDEX)

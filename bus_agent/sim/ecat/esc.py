@@ -17,6 +17,7 @@ from bus_agent.bus.base import AL_ERROR_FLAG, ALState
 from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
+from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_SYS_TIME, DcClock
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
 from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START,
                                     PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii)
@@ -69,8 +70,13 @@ class AlStatusCode:
     SM_WATCHDOG = 0x001B
     INVALID_OUTPUT_CONFIG = 0x001D
     INVALID_INPUT_CONFIG = 0x001E
+    SYNC_ERROR = 0x001A
+    INVALID_DC_SYNC = 0x0030
 
 
+#: dc-required: outputs missing for this many SYNC0 cycles in OP is a sync error (0x001A)
+#: (as long as the SM watchdog at 1 kHz: a start-up gap is not a sync error).
+SYNC_ERROR_CYCLES = 100
 EEP_STATUS_R64 = 0x0040  # 8-byte reads supported
 EEP_CMD_READ, EEP_CMD_WRITE, EEP_CMD_RELOAD = 0x01, 0x02, 0x04
 SM_STATUS_MBX_FULL = 0x08
@@ -112,6 +118,8 @@ class Esc:
         self.on_change = on_change
         self.mem = bytearray(MEM_SIZE)
         self.mv = memoryview(self.mem)
+        self.dc = DcClock(self.mem) if self.ecat_profile.dc else None
+        self.sdo.sync_info = self._sync_info
         self.ro = bytearray(REG_END)
         self.present = True
         self.wkc_fault = False
@@ -141,7 +149,10 @@ class Esc:
         self._set8(Reg.SM_COUNT, 4)
         self._set8(Reg.RAM_SIZE, 4)
         self._set8(Reg.PORT_DESC, 0x0F)  # ports 0 and 1: MII
-        self._set16(Reg.FEATURES, 0x0000)  # no DC: SOEM skips DC configuration
+        # bit 2 DC available, bit 3 64-bit DC; 0: SOEM skips DC configuration
+        self._set16(Reg.FEATURES, 0x000C if self.dc is not None else 0x0000)
+        if self.dc is not None:
+            self.dc.power_on()
         self._set16(Reg.ALIAS, U16.unpack_from(self.sii, 0x04 * 2)[0])
         # DL status: PDI operational, link port 0, port 0 open and communicating, ports 2/3 closed;
         # port 1 open with communication unless this is the last slave (loop closed).
@@ -198,6 +209,8 @@ class Esc:
         read mailbox."""
         n = len(dst)
         end = ado + n
+        if self.dc is not None and ado < REG_SYS_TIME + 8 and end > REG_SYS_TIME:
+            self.dc.render()
         if end > MEM_SIZE:
             if ado >= MEM_SIZE:
                 return True
@@ -232,11 +245,14 @@ class Esc:
             return True
         reg_end = min(end, REG_END)
         old_act = bytes(self.mem[Reg.SM0 + 6: Reg.SM0 + 32: 8]) if ado < 0x0820 and reg_end > 0x0800 else b""
+        dc_before = bytes(self.mem[DC_FIRST:DC_END]) if self.dc is not None and ado < DC_END and reg_end > DC_FIRST else None
         self.mv[ado:reg_end] = src[: reg_end - ado]
         for s, e in RO_RANGES:
             if s < reg_end and ado < e:
                 a, b = max(s, ado), min(e, reg_end)
                 self.mem[a:b] = self.ro[a:b]
+        if dc_before is not None and self.dc is not None:
+            self.dc.written(ado, reg_end, dc_before)
         if ado < 0x0012 and reg_end > 0x0010:
             self.on_change("address")
         if ado <= Reg.AL_CONTROL < reg_end:
@@ -381,6 +397,9 @@ class Esc:
                 self._fail(ALState.INIT, AlStatusCode.INVALID_MAILBOX_CONFIG)
                 return
             self.mailbox.reset()
+        if target == ALState.OP and self._needs_sync0():
+            self._fail(self.al_state, AlStatusCode.INVALID_DC_SYNC)
+            return
         if target == ALState.SAFEOP and self.al_state == ALState.PREOP:
             code = self._pd_sms_check()
             if code:
@@ -413,6 +432,31 @@ class Esc:
         if state != self.al_state:
             self._enter(state)
         self._render_al()
+
+    # -- distributed clocks ---------------------------------------------------------------
+    def _sync_info(self) -> tuple[int, int]:
+        """(0x1C32:01 sync mode, SYNC0 cycle ns)."""
+        if self.dc is None:
+            return 0, 0
+        return self.dc.sync_mode(), self.dc.sync0[1] if self.dc.sync0 else 0
+
+    def _needs_sync0(self) -> bool:
+        """dc-required: cyclic synchronous modes (8/9/10) need SYNC0 running."""
+        if self.dc is None or not self.ecat_profile.dc_required:
+            return False
+        return int(self.model.read(0x6061, 0)) in (8, 9, 10) and not self.dc.sync0_running()
+
+    def check_sync(self, now: float) -> None:
+        """In OP: a dc-required drive in mode 8/9/10 without SYNC0 -> SAFE-OP + 0x0030; outputs
+        not in step with SYNC0 for :data:`SYNC_ERROR_CYCLES` pulses -> SAFE-OP + 0x001A."""
+        dc = self.dc
+        if dc is None or not self.ecat_profile.dc_required or self.al_state != ALState.OP:
+            return
+        if self._needs_sync0():
+            self._fail(ALState.SAFEOP, AlStatusCode.INVALID_DC_SYNC)
+        elif dc.sync0 is not None and now - self.out_time > SYNC_ERROR_CYCLES * dc.sync0[1] / 1e9:
+            log.warning("slave %d: sync error: no outputs for %d SYNC0 cycles", self.position, SYNC_ERROR_CYCLES)
+            self._fail(ALState.SAFEOP, AlStatusCode.SYNC_ERROR)
 
     def watchdog_expired(self) -> None:
         """SM watchdog in OP: outputs missing too long -> SAFE-OP + 0x001B."""

@@ -12,11 +12,15 @@ power-on, and what the master may change (ETG.1000.6 §5.6.7.4). One segment can
   (0x06010003), a PDO it does not offer is out of range (0x06090030); 0x6060, 0x6061 and 0x606C
   are served by SDO only.
 - ``roassign``: the generic drive with a read-only 0x1C12 and 0x1600 (writes: 0x06010002).
+
+Modifiers: ``:dc`` makes a profile DC capable (0x0008 bit 2, system time, SYNC0); ``:dc-required``
+also refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030) and raises a sync error (0x001A) when
+process data stops arriving in step with SYNC0.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
@@ -77,12 +81,15 @@ class EcatProfile:
     description: str
     drive: DriveProfile
     pdos: PdoCatalog = field(default=FLEXIBLE)
+    dc: bool = False           # DC capable (0x0008 bit 2; the registers SOEM uses; SYNC0)
+    dc_required: bool = False  # refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030); sync error 0x001A
 
 
 _OMRON_DRIVE = DriveProfile(
     name="omron1s", vendor_id=0x00000ABC, product_code=0x00402101, revision=0x00010000,
     device_name="SimPredefined1S", supported_modes=DRIVE_PROFILES["generic"].supported_modes,
-    statusword_extra=0x0200, not_ready_on_power_up=False, mode_echo_delay_steps=2, power_on_position=100_000)
+    statusword_extra=0x0200, not_ready_on_power_up=False, mode_echo_delay_steps=2, power_on_position=100_000,
+    power_on_mode=8)
 _RO_DRIVE = DriveProfile(
     name="roassign", vendor_id=0x00000ABC, product_code=0x00402102, revision=0x00010000,
     device_name="SimReadOnlyAssign", supported_modes=DRIVE_PROFILES["generic"].supported_modes,
@@ -98,15 +105,26 @@ PROFILES: dict[str, EcatProfile] = {
 }
 
 
+#: Profile modifiers: ``omron1s:dc``, ``generic:dc-required``.
+MODIFIERS: dict[str, dict[str, bool]] = {"dc": {"dc": True}, "dc-required": {"dc": True, "dc_required": True}}
+
+
 def as_ecat(profile: "EcatProfile | DriveProfile | str") -> EcatProfile:
     """An EcatProfile from a profile, a drive model profile (flexible mapping) or a name."""
     if isinstance(profile, EcatProfile):
         return profile
     if isinstance(profile, DriveProfile):
         return PROFILES.get(profile.name) or EcatProfile(profile.name, profile.device_name, profile)
-    if profile not in PROFILES:
-        raise ValueError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
-    return PROFILES[profile]
+    name, _, mods = profile.partition(":")
+    if name not in PROFILES:
+        raise ValueError(f"unknown profile {name!r}; known: {', '.join(PROFILES)} (modifiers :dc, :dc-required)")
+    base = PROFILES[name]
+    if not mods:
+        return base
+    if mods not in MODIFIERS:
+        raise ValueError(f"profile {profile!r}: unknown modifier {mods!r}; known: {', '.join(MODIFIERS)}")
+    mod = MODIFIERS[mods]
+    return replace(base, name=profile, dc=mod.get("dc", False), dc_required=mod.get("dc_required", False))
 
 
 def parse_profiles(spec: "str | EcatProfile | DriveProfile | Sequence[EcatProfile | DriveProfile | str]",

@@ -292,6 +292,7 @@ class Segment:
                 log.warning("slave %d: SM watchdog expired (%.0f ms without outputs)",
                             esc.position, (now - esc.out_time) * 1e3)
                 esc.watchdog_expired()
+            esc.check_sync(now)
 
     def status(self) -> list[dict]:
         """Per-slave snapshot for the control interface."""
@@ -299,4 +300,5 @@ class Segment:
                  "al_error": e.al_error, "al_status_code": e.al_code, "station_address": e.station_address,
                  "drive_state": e.model.state.value, "statusword": e.model.statusword,
                  "controlword": e.model.read(0x6040, 0), "mode_display": e.model.read(0x6061, 0),
-                 "error_code": e.model.error_code, "wkc_fault": e.wkc_fault} for e in self.escs]
+                 "error_code": e.model.error_code, "wkc_fault": e.wkc_fault,
+                 "dc": e.dc.status() if e.dc is not None else None} for e in self.escs]

@@ -1,0 +1,115 @@
+"""Distributed clocks of one simulated ESC: system time, receive-time latches, SYNC0 (ETG.1000.4 §9).
+
+The registers SOEM uses (``ecx_configdc``, ``ecx_dcsync0``, the FRMW of every process-data frame):
+
+| register | what |
+|---|---|
+| 0x0900..0x090F | receive times of ports 0..3 (u32), latched by a write to 0x0900 |
+| 0x0910 | system time (u64) = local time + 0x0920; a write (FRMW of the reference's time) is the time control loop: the difference goes to 0x092C |
+| 0x0918 | receive time of the processing unit (u64), latched with 0x0900 |
+| 0x0920 / 0x0928 | system time offset (u64) / propagation delay (u32) |
+| 0x092C | system time difference (u32: bit 31 = sign, magnitude in ns) |
+| 0x0980 / 0x0981 | cyclic unit control / activation (bit 0 cyclic operation, bit 1 SYNC0, bit 2 SYNC1) |
+| 0x098E | SYNC0 status |
+| 0x0990 | start time of cyclic operation (u64, system time) |
+| 0x09A0 / 0x09A4 | SYNC0 / SYNC1 cycle time (u32, ns) |
+
+Local time is the host's monotonic clock since the ESC's power-on. SYNC0 fires at ``start + k *
+cycle`` once ``start`` is reached; a start time already past when activated never fires (SOEM#784).
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+
+U32 = struct.Struct("<I")
+U64 = struct.Struct("<Q")
+MASK64 = (1 << 64) - 1
+
+REG_RECV_TIME0 = 0x0900
+REG_SYS_TIME = 0x0910
+REG_RECV_TIME_PU = 0x0918
+REG_SYS_OFFSET = 0x0920
+REG_SYS_DELAY = 0x0928
+REG_SYS_DIFF = 0x092C
+REG_ACTIVATION = 0x0981
+REG_SYNC0_STATUS = 0x098E
+REG_START0 = 0x0990
+REG_CYCLE0 = 0x09A0
+DC_FIRST, DC_END = 0x0900, 0x09B0
+
+SYNC_MODE_FREE_RUN = 0
+SYNC_MODE_SM = 1
+SYNC_MODE_SYNC0 = 2
+
+
+class DcClock:
+    """DC unit of one ESC over its register memory ``mem`` (a bytearray shared with the ESC)."""
+
+    def __init__(self, mem: bytearray, clock_ns=time.monotonic_ns) -> None:
+        self.mem = mem
+        self.clock_ns = clock_ns
+        self.power_on()
+
+    def power_on(self) -> None:
+        self.boot_ns = self.clock_ns()
+        self.sync0: tuple[int, int] | None = None  # (start system time, cycle ns)
+        self.sync0_late = False
+
+    def local_ns(self) -> int:
+        return self.clock_ns() - self.boot_ns
+
+    def system_ns(self) -> int:
+        return (self.local_ns() + U64.unpack_from(self.mem, REG_SYS_OFFSET)[0]) & MASK64
+
+    def render(self) -> None:
+        """Before a read of 0x0910: the current system time."""
+        U64.pack_into(self.mem, REG_SYS_TIME, self.system_ns())
+
+    def written(self, ado: int, end: int, before: bytes) -> None:
+        """After a write to [ado, end) of the DC registers; ``before`` = 0x0900..0x09B0 as it was."""
+        mem = self.mem
+        if ado <= REG_RECV_TIME0 < end:
+            local = self.local_ns()
+            for port in range(4):  # port k's return time: a little later downstream
+                U32.pack_into(mem, REG_RECV_TIME0 + 4 * port, (local + 40 * port) & 0xFFFFFFFF)
+            U64.pack_into(mem, REG_RECV_TIME_PU, local)
+        elif ado < REG_RECV_TIME0 + 16 and end > REG_RECV_TIME0:
+            mem[REG_RECV_TIME0:REG_RECV_TIME0 + 16] = before[0:16]  # read-only latches
+        if ado < REG_SYS_TIME + 8 and end > REG_SYS_TIME:
+            # FRMW of the reference clock: the time control loop sees the difference (same host
+            # clock here, so nothing drifts; the difference is reported, the clock not steered)
+            received = U64.unpack_from(mem, REG_SYS_TIME)[0]
+            diff = received - self.system_ns()
+            U32.pack_into(mem, REG_SYS_DIFF, min(abs(diff), 0x7FFFFFFF) | (0x80000000 if diff < 0 else 0))
+            self.render()
+        if ado <= REG_ACTIVATION < end:
+            act = mem[REG_ACTIVATION]
+            start = U64.unpack_from(mem, REG_START0)[0]
+            cycle = U32.unpack_from(mem, REG_CYCLE0)[0]
+            if act & 0x03 == 0x03 and cycle > 0:
+                self.sync0 = (start, cycle)
+                self.sync0_late = start < self.system_ns()
+            else:
+                self.sync0 = None
+                self.sync0_late = False
+
+    def sync0_running(self) -> bool:
+        """SYNC0 pulses are being generated (activated, start time reached, not activated late)."""
+        return self.sync0 is not None and not self.sync0_late and self.system_ns() >= self.sync0[0]
+
+    def sync0_events(self) -> int:
+        """SYNC0 pulses since the start time (0 while not running)."""
+        if not self.sync0_running():
+            return 0
+        start, cycle = self.sync0  # type: ignore[misc]
+        return (self.system_ns() - start) // cycle + 1
+
+    def sync_mode(self) -> int:
+        """0x1C32:01 / 0x1C33:01: 0 free run, 1 SM event, 2 DC SYNC0."""
+        return SYNC_MODE_SYNC0 if self.sync0 is not None else SYNC_MODE_FREE_RUN
+
+    def status(self) -> dict:
+        return {"sync0": self.sync0_running(), "sync0_cycle_ns": self.sync0[1] if self.sync0 else 0,
+                "sync0_late": self.sync0_late, "system_time_ns": self.system_ns()}

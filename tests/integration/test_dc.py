@@ -1,0 +1,85 @@
+"""Distributed clocks over pysoem and ``ecat-sim`` (root): SYNC0 started before OP on DC-capable
+drives in cyclic synchronous modes, the cycle kept in step (offset reported), and a clear refusal
+when DC is off on a drive that requires it. Also the simulated ESC's DC unit without a network."""
+
+from __future__ import annotations
+
+import struct
+import time
+
+import pytest
+
+from bus_agent.bus.base import ALState, BusError
+from bus_agent.bus.dc import DcConfig
+from bus_agent.sim.ecat.esc import Esc
+from bus_agent.sim.ecat.profiles import as_ecat
+from tests.integration.test_real_drives import Agent, _slaves, _wait
+
+pytestmark = [pytest.mark.root, pytest.mark.timeout(120)]
+
+
+def test_dc_auto_starts_sync0_and_keeps_the_cycle_in_step(ecat_segment):
+    ifname, control = ecat_segment(3, "omron1s:dc-required*2,generic")
+    agent = Agent(ifname)  # no configuration: [dc] mode = "auto", mode 8 (CSP)
+    agent.cycle.start()
+    try:
+        _wait(lambda: agent.cycle.latest is not None and agent.cycle.latest.stats.cycles >= 500, 20,
+              "500 cycles (two statistics windows)")
+        slaves = _slaves(control)
+        assert [bool(s["dc"] and s["dc"]["sync0"]) for s in slaves] == [True, True, False]
+        assert slaves[0]["dc"]["sync0_cycle_ns"] == 1_000_000
+        assert [d.dc for d in agent.cycle.latest.drives] == ["sync0", "sync0", "none"]
+        assert struct.unpack("<H", agent.bus.sdo_read(0, 0x1C32, 1, 2))[0] == 2  # sync mode: DC SYNC0
+        st = agent.cycle.latest.stats
+        assert 0.0 < st.dc_offset_p50_us < 1000.0 and st.dc_offset_p99_us < 1000.0
+        outs = agent.cmd("enable", "axis0", "axis1", "axis2")
+        assert all(o.outcome == "done" for o in outs), outs
+        assert all(s["al_state"] == "op" and not s["al_error"] for s in _slaves(control))
+    finally:
+        agent.cycle.stop()
+
+
+def test_dc_off_on_a_dc_required_drive_is_refused_with_the_al_code(ecat_segment):
+    ifname, control = ecat_segment(1, "omron1s:dc-required")
+    agent = Agent(ifname, dc=DcConfig(mode="off"))
+    with pytest.raises(BusError, match=r"slave 0 .*0x0030 invalid DC SYNC configuration .*mode = \"auto\""):
+        agent.cycle.open()
+    st = _slaves(control)[0]
+    assert st["al_state"] == "init" or (st["al_state"] == "safeop" and st["al_status_code"] == 0x0030)
+
+
+def _reg(esc: Esc, ado: int, data: bytes) -> None:
+    assert esc.write(ado, memoryview(bytearray(data)))
+
+
+def _rd(esc: Esc, ado: int, n: int) -> bytes:
+    buf = bytearray(n)
+    esc.read(ado, memoryview(buf))
+    return bytes(buf)
+
+
+def test_esc_dc_unit_sync0_and_sync_error():
+    esc = Esc(0, as_ecat("generic:dc-required"))
+    assert struct.unpack("<H", _rd(esc, 0x0008, 2))[0] & 0x0004
+    _reg(esc, 0x0920, struct.pack("<Q", 10**12))  # offset: system time = local + 1000 s
+    t = struct.unpack("<Q", _rd(esc, 0x0910, 8))[0]
+    assert 10**12 <= t < 10**12 + 60 * 10**9
+    # FRMW of a reference 1 s ahead: the (positive) difference shows in 0x092C
+    _reg(esc, 0x0910, struct.pack("<Q", struct.unpack("<Q", _rd(esc, 0x0910, 8))[0] + 10**9))
+    diff = struct.unpack("<I", _rd(esc, 0x092C, 4))[0]
+    assert not diff & 0x80000000 and 5 * 10**8 <= diff <= 10**9
+    now = struct.unpack("<Q", _rd(esc, 0x0910, 8))[0]
+    _reg(esc, 0x0990, struct.pack("<Q", now - 1))  # a start time already past never fires
+    _reg(esc, 0x09A0, struct.pack("<I", 1_000_000))
+    _reg(esc, 0x0981, b"\x03")
+    assert not esc.dc.sync0_running() and esc.dc.sync0_late
+    _reg(esc, 0x0981, b"\x00")
+    _reg(esc, 0x0990, struct.pack("<Q", now + 2_000_000))
+    _reg(esc, 0x0981, b"\x03")
+    _wait(esc.dc.sync0_running, 2, "SYNC0 running after its start time")
+    # in OP with SYNC0 but no outputs for 100 SYNC0 cycles: sync error, SAFE-OP
+    esc.al_state = ALState.OP
+    esc.model.write(0x6060, 0, 8)
+    esc.out_time = time.monotonic() - 0.3
+    esc.check_sync(time.monotonic())
+    assert esc.al_state == ALState.SAFEOP and esc.al_error and esc.al_code == 0x001A
