@@ -345,3 +345,53 @@ def security_targets(r: Mapping[str, Any]) -> list[Target]:
     out.append(Target("fan-in missed, both transports", missed, 0,
                       bool(missed) and all(m == 0 for ms in missed.values() for m in ms)))
     return out
+
+
+# ---- flight recorder and dashboard (bench_recorder, bench_dashboard) -------------------------------
+
+#: The recorder may not raise the cycle's CPU by more than this ratio, nor cost more than this share
+#: of a 1 ms period per cycle (16 drives).
+RECORDER_CPU_RATIO_MAX = 1.10
+RECORDER_CALL_PCT_MAX = 2.0
+#: A state change reaches the dashboard page within this (the issue's "within a second").
+DASHBOARD_CHANGE_MS_MAX = 1000.0
+
+
+def recorder_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: r.get(k) for k in ("off", "on", "ratio_on_off", "record_call_us", "record_call_pct_of_period",
+                                  "memory_bytes", "loadavg_start")}
+
+
+def recorder_headline(r: Mapping[str, Any]) -> str:
+    off, on = r.get("off") or {}, r.get("on") or {}
+    return (f"16 drives, 1 kHz: jitter p99/p99.9 {on.get('jitter_p99_us')}/{on.get('jitter_p999_us')} us with the "
+            f"recorder, {off.get('jitter_p99_us')}/{off.get('jitter_p999_us')} us without; CPU {on.get('cpu_pct')} % "
+            f"vs {off.get('cpu_pct')} %; record() {r.get('record_call_us')} us CPU per cycle")
+
+
+def recorder_targets(r: Mapping[str, Any]) -> list[Target]:
+    ratio = (r.get("ratio_on_off") or {}).get("cpu_pct")
+    pct = r.get("record_call_pct_of_period")
+    return [Target("cycle CPU with / without the recorder", ratio, f"<= {RECORDER_CPU_RATIO_MAX}",
+                   None if ratio is None else ratio <= RECORDER_CPU_RATIO_MAX),
+            Target("record() CPU per cycle, % of the period", pct, f"<= {RECORDER_CALL_PCT_MAX}",
+                   None if pct is None else pct <= RECORDER_CALL_PCT_MAX)]
+
+
+def dashboard_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: r.get(k) for k in ("drives", "dashboard_cpu_idle_pct", "dashboard_cpu_changes_pct",
+                                  "change_to_page_ms", "change_to_subscriber_ms", "subscriber_missed",
+                                  "loadavg_start")}
+
+
+def dashboard_headline(r: Mapping[str, Any]) -> str:
+    page, sub = r.get("change_to_page_ms") or {}, r.get("change_to_subscriber_ms") or {}
+    return (f"{r.get('drives')} drives: change to page p50/max {page.get('p50')}/{page.get('max')} ms "
+            f"(a plain subscriber {sub.get('p50')}/{sub.get('max')} ms); dashboard CPU {r.get('dashboard_cpu_idle_pct')} % "
+            f"idle, {r.get('dashboard_cpu_changes_pct')} % with changes")
+
+
+def dashboard_targets(r: Mapping[str, Any]) -> list[Target]:
+    worst = (r.get("change_to_page_ms") or {}).get("max")
+    return [Target("state change to the page, max", worst, f"< {DASHBOARD_CHANGE_MS_MAX:g} ms",
+                   None if worst is None else worst < DASHBOARD_CHANGE_MS_MAX)]
