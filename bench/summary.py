@@ -47,11 +47,16 @@ def build_row(name: str, what: str, status: str, data: Mapping[str, Any] | None,
     if run:
         row["run"] = dict(run)
     if status in (OK, STALE) and data is not None:
+        try:
+            read = {"figures": figures(data), "headline": headline(data) if headline is not None else "",
+                    "targets": [asdict(t) for t in targets(data)]}
+        except (KeyError, TypeError, ValueError, ZeroDivisionError) as exc:
+            # a JSON this row cannot read says so instead of showing half its figures
+            row["status"] = f"failed: JSON not readable ({type(exc).__name__}: {exc})"
+            return row
         row["time"] = data.get("time")
         row["loadavg"] = data.get("loadavg") or data.get("loadavg_1m") or data.get("load_avg_1min_at_start")
-        row["figures"] = figures(data)
-        row["headline"] = headline(data) if headline is not None else ""
-        row["targets"] = [asdict(t) for t in targets(data)]
+        row.update(read)
     elif status in (OK, STALE):
         row["status"] = f"failed: no JSON from the {'run' if status == OK else 'earlier run'}"
     return row
@@ -110,6 +115,7 @@ def agent_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {
         "phases": {k: {"jitter_us": {q: v["jitter_us"][q] for q in JITTER_QUANTILES},
                        "period_us_max": v["period_us"]["max"], "overruns": v["overruns"], "cycles": v["cycles"],
+                       "startup_fault_resets": v.get("startup_fault_resets", 0),
                        "wkc_errors": v["wkc_errors"], "cpu_pct": v["cpu_pct"]} for k, v in ph.items()},
         "ratios": r["ratios"]}
     gp = ph.get("gateway_process")
@@ -131,6 +137,10 @@ def agent_headline(r: Mapping[str, Any]) -> str:
             j = ph[k]["jitter_us"]
             parts.append(f"{k} {j['p99']}/{j['p999']}/{j['max']} ({ph[k]['overruns']} overruns)")
     text = "jitter p99/p99.9/max us: " + ", ".join(parts)
+    resets = sum(v.get("startup_fault_resets", 0) for v in ph.values()) + (r.get("enable_latency") or {}).get(
+        "startup_fault_resets", 0)
+    if resets:
+        text += f"; {resets} drive faults from start-up stalls reset by the benchmark"
     en = r.get("enable_latency") or {}
     lat, beyond, bare = en.get("latency") or {}, en.get("beyond_cycles") or {}, en.get("bare_get") or {}
     if lat:
