@@ -159,24 +159,53 @@ def phase_bare(args) -> dict:
             "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(list(log[1:]), period)}
 
 
-def _enable_all(cyc, timeout_s: float = 10.0) -> None:
+def _command_all(cyc, op: str, axes, timeout_s: float = 10.0) -> list:
+    """Submit ``op`` for ``axes`` to the cycle; its outcomes, one per axis."""
     from bus_agent.runtime import DriveCommand
 
     done = threading.Semaphore(0)
-    outs = []
+    outs: list = []
 
     def on(o):
         outs.append(o)
         done.release()
 
-    assert cyc.submit(DriveCommand(request_id="bench-enable", op="enable", axes=cyc.axes, on_outcome=on,
-                                   received_ns=time.monotonic_ns(), timeout_s=timeout_s))
-    for _ in cyc.axes:
+    assert cyc.submit(DriveCommand(request_id=f"bench-{op}-{time.monotonic_ns()}", op=op, axes=tuple(axes),
+                                   on_outcome=on, received_ns=time.monotonic_ns(), timeout_s=timeout_s))
+    for _ in axes:
         if not done.acquire(timeout=timeout_s + 2):
-            raise RuntimeError("enable did not finish")
-    bad = [o for o in outs if o.outcome != "done"]
+            raise RuntimeError(f"{op} did not finish")
+    return outs
+
+
+def _ready(cyc) -> int:
+    """Every slave in OP and no drive in fault; the number of drives fault-reset to get there.
+
+    On a loaded host the start-up can stall the process data past the slaves' SM watchdog: the
+    agent brings such a slave back to OP itself, but its drive reports the communication loss as a
+    fault (0x8130), which the agent never resets on its own. The benchmark resets it explicitly,
+    once, and reports how many it reset (``startup_fault_resets``)."""
+    deadline = time.monotonic() + 30.0
+    while not (cyc.latest is not None and all(d.al_state == "op" and not d.lost for d in cyc.latest.drives)):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"slaves not in OP: {[(d.axis, d.al_state) for d in cyc.latest.drives]}")
+        time.sleep(0.05)
+    faulted = [d.axis for d in cyc.latest.drives if d.state in ("fault", "fault_reaction_active")]
+    if faulted:
+        print(f"bench_agent: start-up faults on {len(faulted)} drive(s), reset explicitly", file=sys.stderr)
+        bad = [o for o in _command_all(cyc, "fault_reset", faulted) if o.outcome != "done"]
+        if bad:
+            raise RuntimeError(f"fault reset failed: {bad[:3]}")
+    return len(faulted)
+
+
+def _enable_all(cyc, timeout_s: float = 10.0) -> int:
+    """:func:`_ready`, then enable every drive; the start-up fault resets."""
+    resets = _ready(cyc)
+    bad = [o for o in _command_all(cyc, "enable", cyc.axes, timeout_s) if o.outcome != "done"]
     if bad:
         raise RuntimeError(f"enable failed: {bad[:3]}")
+    return resets
 
 
 def _measure(cyc, args) -> dict:
@@ -215,10 +244,11 @@ def phase_agent(args) -> dict:
     cyc.snapshot_sink = sink.append  # what a gateway does: enqueue only
     cyc.start()
     try:
-        _enable_all(cyc)
+        resets = _enable_all(cyc)
         n = int(args.seconds * 1e9 / (args.cycle_us * 1000))
         cyc.dc_log = array("q", bytes(8 * n)) if cyc.dc_states and "sync0" in cyc.dc_states else None
         out = _measure(cyc, args)
+        out["startup_fault_resets"] = resets
         if cyc.dc_log is not None:
             offs = sorted(cyc.dc_log[:cyc.period_log_len or n])
             out["dc_offset_us"] = {"p50": round(percentile(offs, 0.5) / 1000, 1),
@@ -244,7 +274,7 @@ def _phase_gateway(args, mode: str) -> dict:
     agent.start()
     load = None
     try:
-        _enable_all(agent.cycle)
+        resets = _enable_all(agent.cycle)
         load = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "load", "--connect", ep,
                                  "--host", "bench", "--drives", str(args.drives), "--rate", str(args.query_rate),
                                  "--seconds", str(args.seconds + 5)],
@@ -254,6 +284,7 @@ def _phase_gateway(args, mode: str) -> dict:
         child = bridge.pid if bridge is not None else None
         fwd0, gcpu0, t0 = (bridge.forwarded if bridge else 0), (proc_cpu_s(child) if child else 0.0), time.monotonic()
         res = _measure(agent.cycle, args)
+        res["startup_fault_resets"] = resets
         if bridge is not None and child:
             el = time.monotonic() - t0
             res["gateway_process_cpu_pct"] = round(100 * (proc_cpu_s(child) - gcpu0) / el, 1)
@@ -526,6 +557,7 @@ def phase_enable_latency(args) -> dict:
         if not ready or echo.stdout.readline().strip() != "echo ready":
             raise RuntimeError("echo queryable did not start")
         cyc = agent.cycle
+        resets = _ready(cyc)
         ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
         client = subprocess.Popen(
             [sys.executable, "-m", "bench.bench_agent", "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
@@ -538,6 +570,7 @@ def phase_enable_latency(args) -> dict:
             raise RuntimeError(f"enable client failed ({client.returncode})")
         res = json.loads(out.strip().splitlines()[-1])
         res["cycle"] = {"cycles": cyc.cycles - c0, "overruns": cyc.overruns - ov0, "wkc_errors": cyc.wkc_errors - wk0}
+        res["startup_fault_resets"] = resets
         return res
     finally:
         for p in procs:
@@ -576,6 +609,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
     cpu = sum(p["cpu_s"] for p in parts)
     out = {"rounds": len(parts), "cycles": sum(p["cycles"] for p in parts), "seconds": round(seconds, 2),
            "overruns": sum(p["overruns"] for p in parts), "wkc_errors": sum(p["wkc_errors"] for p in parts),
+           "startup_fault_resets": sum(p.get("startup_fault_resets", 0) for p in parts),
            "cpu_pct": round(100 * cpu / seconds, 1) if seconds else None,
            "overruns_per_round": [p["overruns"] for p in parts],
            "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **_figures(periods, cycle_ns)}

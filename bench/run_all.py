@@ -79,6 +79,13 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("trust", "the audit trail per 16-drive command and error texts per status, next to the gateway's "
               "own work", "bench.bench_trust", ("--rounds", "2000"), ("--rounds", "200"), False,
               s.trust_figures, s.trust_headline, s.trust_targets),
+    Benchmark("recorder", "flight recorder cost: cycle jitter and CPU with and without it, 16 drives, 1 kHz",
+              "bench.bench_recorder", ("--seconds", "20", "--rounds", "3", "--rt-priority", "10"),
+              ("--seconds", "3", "--rounds", "1", "--rt-priority", "10"), False,
+              s.recorder_figures, s.recorder_headline, s.recorder_targets),
+    Benchmark("dashboard", "drives-dashboard with 1024 drives in headless chromium: CPU, change-to-page time",
+              "bench.bench_dashboard", ("--rounds", "20", "--idle-s", "10"), ("--rounds", "4", "--idle-s", "3"),
+              False, s.dashboard_figures, s.dashboard_headline, s.dashboard_targets),
 )
 
 

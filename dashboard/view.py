@@ -117,10 +117,14 @@ class FleetView:
         self._hosts[host] = (self.version, agent_row(host, alive, st, host in self.expected))
 
     def _set_row(self, ref: tuple[str, str]) -> None:
-        self.version += 1
         st = self._status.get(ref)
         alive = self._agents.get(ref[0], (False, None))[0]
-        self._rows[ref] = (self.version, drive_row(st, alive) if st is not None else offline_row(*ref))
+        row = drive_row(st, alive) if st is not None else offline_row(*ref)
+        old = self._rows.get(ref)
+        if old is not None and _same_row(old[1], row):
+            return  # a heartbeat: nothing the page shows changed, nothing to send
+        self.version += 1
+        self._rows[ref] = (self.version, row)
 
     # ---- reading (any thread) -------------------------------------------------------------------
 
@@ -162,6 +166,11 @@ class FleetView:
     def agents(self) -> dict[str, tuple[bool, AgentStatus | None]]:
         with self._lock:
             return dict(self._agents)
+
+
+def _same_row(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Equal but for the status time (heartbeats carry a new one)."""
+    return all(a.get(k) == v for k, v in b.items() if k != "time_ns")
 
 
 def summary(drives: Iterable[dict[str, Any]], hosts: Iterable[dict[str, Any]]) -> dict[str, Any]:

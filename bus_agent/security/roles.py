@@ -30,24 +30,36 @@ class RoleError(ValueError):
     """An unknown role or a role combination that makes no sense."""
 
 
-#: Drive ops (``.../drive/<axis>/cmd/<op>``) each commanding role may send.
+#: The motion ops (issue 10: ``bus_agent/motion``), granted here ahead of the agents that serve
+#: them: a grant for an op nobody serves opens nothing.
+MOTION_OPS = ("move", "jog", "home", "stop")
+#: Drive ops (``.../drive/<axis>/cmd/<op>``) each commanding role may send. Every op of the
+#: contract must appear here (tests/unit/test_security_roles.py): a new op is denied to everyone
+#: until somebody decides who may send it.
 ROLE_DRIVE_OPS: Mapping[str, tuple[str, ...]] = {
-    "operator": ("enable", "switch_on", "shutdown", "disable", "quick_stop", "halt", "set_mode", "lease", "release"),
-    "maintenance": ("fault_reset", "quick_stop", "disable", "set_mode"),
+    "operator": ("enable", "switch_on", "shutdown", "disable", "quick_stop", "halt", "set_mode", "lease", "release",
+                 *MOTION_OPS),
+    "maintenance": ("fault_reset", "quick_stop", "disable", "set_mode", "stop"),
 }
 #: Agent ops (``.../agent/cmd/<op>``) each commanding role may send.
 ROLE_AGENT_OPS: Mapping[str, tuple[str, ...]] = {
     "maintenance": ("nmt",),
 }
-#: What a role may read: "all" (status, events, agent status, agent and supervisor tokens) or
-#: "status" (the same without the supervisors' tokens).
+#: What a role may read: "all" (status, events, agent status, agent and supervisor tokens, the
+#: agents' flight recordings) or "status" (status, events, agent status and agent tokens).
 ROLE_READ: Mapping[str, str] = {"operator": "all", "maintenance": "all", "viewer": "status"}
+
+
+def _ops_text(role: str) -> str:
+    return ", ".join((*ROLE_DRIVE_OPS.get(role, ()), *ROLE_AGENT_OPS.get(role, ())))
+
+
 #: Roles and what they are for (``drives-pki issue --role``).
 ROLES: Mapping[str, str] = {
     "router": "a drives-router: links to other routers, forwards everything it was let in",
     "agent": "a bus agent; its principal name is its host name: publishes, serves and holds a token only there",
-    "operator": "enable, switch_on, shutdown, disable, quick_stop, halt, set_mode, lease, release; reads everything",
-    "maintenance": "fault_reset, quick_stop, disable, nmt, set_mode; reads everything",
+    "operator": f"{_ops_text('operator')}; reads everything",
+    "maintenance": f"{_ops_text('maintenance')}; reads everything",
     "viewer": "reads drive status, events and agent status only",
     "testbed": "simulator fault injection: serves and queries drives/@sim/** (test beds only)",
 }
@@ -60,6 +72,8 @@ DECLARATIONS = ("declare_subscriber", "declare_queryable", "declare_liveliness_s
 
 #: Keys everyone with "status" read access may read (subscribe, get, and receive).
 READ_STATUS = (keys.ALL_DRIVE_STATUS, keys.ALL_DRIVE_EVENTS, keys.ALL_AGENT_STATUS)
+#: What "all" readers may read beyond READ_STATUS and agent tokens.
+READ_ALL_EXTRA = (keys.ALL_SUPERVISORS, keys.agent_recording("*"))
 #: Command keys with any principal (declarations egress, router links).
 ANY_CMD = (keys.drive_cmd("*", "*", "*", "*"), keys.agent_cmd("*", "*", "*"))
 #: Every key form of the project (router links, declarations egress).
@@ -108,7 +122,7 @@ def grants(name: str, roles: Iterable[str]) -> list[Grant]:
     out: list[Grant] = [Grant("egress", DECLARATIONS, EVERY_KEY)]
     read = {ROLE_READ[r] for r in roles if r in ROLE_READ}
     if read:
-        kes = READ_STATUS + (keys.ALL_ALIVE,) + ((keys.ALL_SUPERVISORS,) if "all" in read else ())
+        kes = READ_STATUS + (keys.ALL_ALIVE,) + (READ_ALL_EXTRA if "all" in read else ())
         out += _both(("declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"),
                      ("put", "delete", "reply", "liveliness_token"), kes)
     cmd_kes = tuple(keys.drive_cmd("*", "*", op, name) for r in roles for op in ROLE_DRIVE_OPS.get(r, ())) + \

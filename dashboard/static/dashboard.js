@@ -22,15 +22,15 @@ const Dashboard = (() => {
     return () => version;
   }
 
-  function driveRow(tbody, d) {
+  function driveRow(tbody, d, rows) {
     const id = rowId("drive", d.host, d.axis);
-    let tr = document.getElementById(id);
+    let tr = rows.get(id);
     if (!tr) {
       tr = document.createElement("tr");
       tr.id = id;
-      const rows = Array.from(tbody.children);
-      const after = rows.find((r) => r.id > id);
-      tbody.insertBefore(tr, after || null);
+      rows.set(id, tr);
+      if (!tbody.lastElementChild || tbody.lastElementChild.id < id) tbody.appendChild(tr);
+      else tbody.insertBefore(tr, Array.from(tbody.children).find((r) => r.id > id) || null);
     }
     tr.replaceChildren(
       (() => { const td = cell(d.host); return td; })(),
@@ -80,9 +80,12 @@ const Dashboard = (() => {
     const drives = document.querySelector("#drives tbody");
     const agents = document.querySelector("#agents tbody");
     const events = document.getElementById("events");
+    const rows = new Map();
     live((ch) => {
       ch.hosts.forEach((h) => agentRow(agents, h));
-      ch.drives.forEach((d) => driveRow(drives, d));
+      // Rows arrive sorted on the first message: appending keeps the table sorted cheaply.
+      ch.drives.sort((a, b) => (a.host + "/" + a.axis < b.host + "/" + b.axis ? -1 : 1));
+      ch.drives.forEach((d) => driveRow(drives, d, rows));
       ch.events.forEach((e) => eventItem(events, e));
       document.getElementById("summary").textContent = summaryText(drives);
     });

@@ -153,7 +153,7 @@ mutated_field = st.one_of(msgpack_values, st.sampled_from(
 
 
 @given(any_message, st.data())
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 def test_schema_and_codec_agree_on_mutated_messages(msg, data):
     """For any one-field mutation with a JSON form, the codec accepts the map exactly when the
     real validator does; without a JSON form the codec rejects it unless the value sits in a

@@ -166,3 +166,9 @@ def test_departure_target_all_killed_agents_within_the_link_lease(departure: dic
     rounds, gone, fanin = s.supervisor_targets(data)
     assert gone.name == "4x16: killed agents reported gone (ms)" and gone.met is met
     assert "killed agents reported gone" in s.supervisor_headline(data)
+
+
+def test_a_json_the_row_cannot_read_is_a_failure_without_figures() -> None:
+    row = s.build_row("x", "fake", s.OK, {"time": "now"}, figures, targets, None, headline)
+    assert row["status"] == "failed: JSON not readable (KeyError: 'value')"
+    assert "figures" not in row and "targets" not in row

@@ -17,9 +17,11 @@ from bus_agent.gateway.zenoh_config import ZenohConfigError, make_zenoh_config
 from bus_agent.security import pki, principals
 from bus_agent.security.cli import main as pki_main
 from bus_agent.security.exposure import exposed_endpoints, is_loopback
-from bus_agent.security.roles import ROLE_AGENT_OPS, ROLE_DRIVE_OPS, RoleError, check_roles, compile_acl
+from bus_agent.security.roles import MOTION_OPS, ROLE_AGENT_OPS, ROLE_DRIVE_OPS, RoleError, check_roles, compile_acl
 from schemas import keys
 from schemas import messages as m
+from supervisor.results import DENIED, MISSING, aggregate
+from supervisor.selectors import DriveRef
 
 
 def _includes(rule_kes: list[str], key: str) -> bool:
@@ -37,12 +39,15 @@ P = [principals.Principal("alice", ("operator",)), principals.Principal("mia", (
      principals.Principal("r1", ("router",)), principals.Principal("tb", ("testbed",))]
 
 
-def test_role_tables_use_the_contracts_ops_only() -> None:
-    for ops in ROLE_DRIVE_OPS.values():
-        assert set(ops) <= set(m.DRIVE_OPS)
+def test_every_op_of_the_contract_has_a_role_and_no_role_has_an_unknown_op() -> None:
+    granted = {op for ops in ROLE_DRIVE_OPS.values() for op in ops}
+    assert set(m.DRIVE_OPS) <= granted, f"ops nobody may send: {set(m.DRIVE_OPS) - granted}"
+    assert granted <= set(m.DRIVE_OPS) | set(MOTION_OPS)
+    assert set(m.AGENT_OPS) <= {op for ops in ROLE_AGENT_OPS.values() for op in ops}
     for ops in ROLE_AGENT_OPS.values():
         assert set(ops) <= set(m.AGENT_OPS)
     assert "fault_reset" not in ROLE_DRIVE_OPS["operator"] and "enable" not in ROLE_DRIVE_OPS["maintenance"]
+    assert "move" not in ROLE_DRIVE_OPS["maintenance"]
 
 
 @pytest.mark.parametrize("roles, match", [((), "no role"), (("boss",), "unknown role"),
@@ -73,6 +78,9 @@ def test_acl_is_default_deny_and_each_role_gets_only_its_verbs() -> None:
     assert _allowed(acl, "vic", "ingress", "declare_subscriber", keys.ALL_DRIVE_STATUS)
     assert _allowed(acl, "vic", "egress", "put", keys.drive_status("h1", "axis0"))
     assert not _allowed(acl, "vic", "ingress", "declare_liveliness_subscriber", keys.ALL_SUPERVISORS)
+    assert _allowed(acl, "mia", "ingress", q, keys.agent_recording("h1"))       # flight recordings
+    assert _allowed(acl, "h1", "ingress", "declare_queryable", keys.agent_recording("h1"))
+    assert not _allowed(acl, "vic", "ingress", q, keys.agent_recording("h1"))
     for who in ("alice", "mia", "vic", "tb"):
         assert not _allowed(acl, who, "ingress", "put", keys.drive_status("h1", "axis0"))
         assert not _allowed(acl, who, "ingress", "declare_queryable", keys.drive_cmd("h1", "*", "*", "*"))
@@ -201,3 +209,11 @@ def test_requester_comes_from_the_key_never_the_payload() -> None:
     assert parsed.request.supervisor == "alice" and parsed.principal == "alice" and parsed.axes == ("axis0",)
     with pytest.raises(RequestError, match="holder"):
         parse_command(req, keys.drive_cmd("h1", "axis0", "lease", "bob"), "h1", ("axis0",), secure=True)
+
+
+def test_a_command_answered_by_no_one_at_once_is_denied_not_missing() -> None:
+    refs = [DriveRef("h1", "a"), DriveRef("h2", "a")]
+    res = aggregate("enable", "r", refs, {}, gone_hosts=["h2"], timeout_s=5.0, elapsed_s=0.01,
+                    denied_reason="denied at once: identity 'vic' may not enable")
+    assert [(r.outcome, "vic" in r.error) for r in res.results] == [(DENIED, True), (MISSING, False)]
+    assert [r.outcome for r in aggregate("enable", "r", refs[:1], {}, timeout_s=5.0).results] == [MISSING]

@@ -1,0 +1,136 @@
+"""``drives-dashboard`` serving 1024 drives: its CPU, and the time from a state change to the page.
+
+    python -m bench.bench_dashboard [--hosts 8] [--drives 128] [--rounds 20] [--idle-s 10] [--out FILE]
+
+A router, ``--hosts`` agents of ``--drives`` simulated drives each (20 ms cycle, one process, a
+gateway process each), the dashboard as a process with Debian's headless chromium showing ``/``.
+Per round one drive is faulted through the simulator's key space; the page records when its row
+turned ``fault`` (its clock) minus the agent's status time (the agent's clock, same machine): the
+change-to-browser time. In the same run a plain ``supervisor.Fleet`` subscriber timestamps the
+same status (the baseline: what Zenoh alone takes). Dashboard CPU is measured idle (heartbeats
+of every drive) and during the rounds. The machine's load average is recorded with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from bench.common import RESULTS, percentile, proc_cpu_s
+from bus_agent.sim.child import ChildProcess, free_port, wait_for
+from bus_agent.sim.control import sim_inject
+from schemas.messages import DriveStatus
+from supervisor.fleet import Fleet, zenoh_config
+from supervisor.testbed import start_agents, start_router
+
+
+def _stats(values: list[float]) -> dict[str, Any]:
+    v = sorted(values)
+    if not v:
+        return {"n": 0}
+    return {"n": len(v), "p50": round(percentile(v, 0.5), 1), "p99": round(percentile(v, 0.99), 1),
+            "max": round(v[-1], 1) if v else None}
+
+
+def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    load_start = os.getloadavg()
+    names = [f"bd{i}" for i in range(hosts)]
+    router, ep = start_router()
+    agents = dash = driver = None
+    profile = tempfile.mkdtemp(prefix="bench-dash-chromium-")
+    try:
+        agents = start_agents(names, drives, ep, cycle_us=20000, sm_watchdog_s=2.0, ready_timeout_s=240)
+        port = free_port()
+        dash = ChildProcess("drives-dashboard", [sys.executable, "-m", "dashboard.cli", "--connect", ep, "--http",
+                                                 f"127.0.0.1:{port}"], ready_marker="drives-dashboard ready")
+        assert dash.wait_ready(120), dash.output()
+        opts = webdriver.ChromeOptions()
+        opts.binary_location = "/usr/bin/chromium"
+        for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                     "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
+                     f"--user-data-dir={profile}"):
+            opts.add_argument(flag)
+        driver = webdriver.Chrome(service=Service(executable_path="/usr/bin/chromedriver"), options=opts)
+        driver.get(f"http://127.0.0.1:{port}/")
+        total = hosts * drives
+        wait_for(lambda: driver.execute_script("return document.querySelectorAll('#drives tbody tr').length;")
+                 >= total, 180, f"{total} rows on the page", poll_s=0.5)
+        pid = dash.popen.pid
+        c0, t0 = proc_cpu_s(pid), time.monotonic()
+        time.sleep(idle_s)
+        idle_cpu = 100 * (proc_cpu_s(pid) - c0) / (time.monotonic() - t0)
+        seen: dict[tuple[str, str], float] = {}
+        page_lag: list[float] = []
+        zenoh_lag: list[float] = []
+        missed = 0
+        with Fleet(connect=[ep]) as fleet, zenoh.open(zenoh_config("client", [ep])) as s:
+            def on_status(st: DriveStatus) -> None:
+                if st.state == "fault" and (st.host, st.axis) not in seen:
+                    seen[(st.host, st.axis)] = time.time() * 1e3 - st.time_ns / 1e6
+            fleet.on("status", on_status)
+            c1, t1 = proc_cpu_s(pid), time.monotonic()
+            for r in range(rounds):
+                host, slave = names[r % hosts], (r // hosts) % drives
+                axis = f"axis{slave}"
+                sim_inject(s, host, slave, "fault", error_code=0x2310)
+                key = f"{host}/{axis}"
+                upd = wait_for(lambda: (driver.execute_script("return window.dashboardUpdates[arguments[0]];", key)
+                                        or {}).get("state") == "fault" and
+                               driver.execute_script("return window.dashboardUpdates[arguments[0]];", key), 30,
+                               f"{key} fault on the page", poll_s=0.05)
+                page_lag.append(float(upd["lag_ms"]))
+                try:
+                    wait_for(lambda: (host, axis) in seen, 10, "the baseline subscriber")
+                    zenoh_lag.append(seen[(host, axis)])
+                except AssertionError:
+                    missed += 1  # reported: the subscriber never saw it (a starved machine drops links)
+            busy_cpu = 100 * (proc_cpu_s(pid) - c1) / (time.monotonic() - t1)
+        return {"benchmark": "dashboard", "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "drives": total, "hosts": hosts, "rounds": rounds, "cpus": os.cpu_count(),
+                "loadavg_start": [round(x, 2) for x in load_start],
+                "loadavg_end": [round(x, 2) for x in os.getloadavg()],
+                "dashboard_cpu_idle_pct": round(idle_cpu, 1), "dashboard_cpu_changes_pct": round(busy_cpu, 1),
+                "change_to_page_ms": _stats(page_lag), "change_to_subscriber_ms": _stats(zenoh_lag),
+                "subscriber_missed": missed,
+                "page_over_subscriber_p50": (round(percentile(sorted(page_lag), 0.5) /
+                                                   max(percentile(sorted(zenoh_lag), 0.5), 1e-3), 1)
+                                             if zenoh_lag else None)}
+    finally:
+        if driver is not None:
+            driver.quit()
+        shutil.rmtree(profile, ignore_errors=True)
+        for p in (dash, agents, router):
+            if p is not None:
+                p.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.bench_dashboard", description=__doc__.split("\n")[0])
+    p.add_argument("--hosts", type=int, default=8)
+    p.add_argument("--drives", type=int, default=128)
+    p.add_argument("--rounds", type=int, default=20)
+    p.add_argument("--idle-s", type=float, default=10.0)
+    p.add_argument("--out", type=Path, default=RESULTS / "bench_dashboard.json")
+    a = p.parse_args(argv)
+    result = run(a.hosts, a.drives, a.rounds, a.idle_s)
+    text = json.dumps(result, indent=2)
+    print(text)
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

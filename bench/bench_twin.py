@@ -1,0 +1,165 @@
+"""drives-twin: time from start to ready, and CPU at rest, next to the bare processes it runs.
+
+    python -m bench.bench_twin [--hosts 3,10,32] [--axes 2] [--rest-s 10] [--cycle-us 1000] [--out FILE]
+
+For each fleet size N (hosts of ``--axes`` simulated drives each), in the same run:
+
+- **bare** (the baseline): a ``drives-router`` and N ``bus-agent --sim`` processes started at once,
+  each connected straight to the router; ready when every agent printed its readiness line. This
+  is what a person starting the parts by hand gets, without knowing whether the drives answer.
+- **twin**: ``drives-twin --fleet`` for the same fleet (router, N agents with the fleet's axis
+  names, a link relay per host, the twin's own supervisor); ready when it prints its ready line,
+  which it does only once every expected drive answered on Zenoh.
+
+Then both rest for ``--rest-s`` seconds and the CPU time of every process of the tree (the
+agents' gateway children included) is summed: the twin's own process (relays, supervisor,
+monitor) is reported apart. Ratios twin / bare. The machine's load average is recorded before
+and after: on a shared machine compare within one run. Needs no root.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from bench.common import RESULTS, ROOT, proc_cpu_s
+from bus_agent.sim.child import ChildProcess, free_port
+
+READY_TIMEOUT_S = 600.0
+
+
+def descendants(pid: int) -> list[int]:
+    """``pid`` and every live process below it (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            children.setdefault(ppid, []).append(int(d))
+    out, todo = [pid], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def tree_cpu_s(roots: list[int]) -> dict[int, float]:
+    """CPU seconds (user + system) of every process under ``roots``."""
+    cpu = {}
+    for r in roots:
+        for p in descendants(r):
+            try:
+                cpu[p] = proc_cpu_s(p)
+            except (OSError, ValueError, IndexError):
+                pass
+    return cpu
+
+
+def rest_cpu(roots: list[int], rest_s: float, own: int | None = None) -> dict[str, float]:
+    """Percent of one core used by the trees under ``roots`` over ``rest_s`` (and by ``own`` alone)."""
+    before = tree_cpu_s(roots)
+    t0 = time.monotonic()
+    time.sleep(rest_s)
+    after = tree_cpu_s(roots)
+    dt = time.monotonic() - t0
+    total = sum(after[p] - before[p] for p in after if p in before)
+    out = {"cpu_pct_total": round(100 * total / dt, 1), "processes": len(after)}
+    if own is not None and own in after and own in before:
+        out["cpu_pct_twin_process"] = round(100 * (after[own] - before[own]) / dt, 1)
+    return out
+
+
+def run_bare(hosts: int, axes: int, rest_s: float, cycle_us: int) -> dict[str, Any]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    t0 = time.monotonic()
+    procs = [ChildProcess("router", [sys.executable, "-m", "bus_agent.router", "--listen", ep],
+                          ready_marker="drives-router ready")]
+    procs += [ChildProcess(f"agent b{i}", [sys.executable, "-m", "bus_agent.cli", "--sim", str(axes), "--host", f"b{i}",
+                                           "--connect", ep, "--mode", "client", "--cycle-us", str(cycle_us),
+                                           "--log-level", "WARNING"], ready_marker="bus-agent ready")
+              for i in range(hosts)]
+    try:
+        for p in procs:
+            if not p.wait_ready(READY_TIMEOUT_S):
+                raise RuntimeError(f"{p.name} not ready:\n{p.output()}")
+        ready_s = time.monotonic() - t0
+        return {"ready_s": round(ready_s, 3), **rest_cpu([p.pid for p in procs], rest_s)}
+    finally:
+        for p in procs:
+            p.stop(30)
+
+
+def run_twin(hosts: int, axes: int, rest_s: float, cycle_us: int) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="bench-twin-") as tmp:
+        fleet = Path(tmp, "fleet.toml")
+        fleet.write_text("".join(f'[hosts.t{i}]\naxes = [{", ".join(f"{chr(34)}a{j}{chr(34)}" for j in range(axes))}]\n'
+                                 f"cycle_us = {cycle_us}\n" for i in range(hosts)))
+        t0 = time.monotonic()
+        p = ChildProcess("drives-twin", [sys.executable, "-m", "twin.cli", "--fleet", str(fleet), "--ready-timeout",
+                                         str(READY_TIMEOUT_S)], ready_marker="drives-twin ready", stdin=True)
+        try:
+            if not p.wait_ready(READY_TIMEOUT_S):
+                raise RuntimeError(f"drives-twin not ready:\n{p.output()}")
+            ready_s = time.monotonic() - t0
+            rest = rest_cpu([p.pid], rest_s, own=p.pid)
+            tree = descendants(p.pid)
+            t1 = time.monotonic()
+            p.popen.send_signal(signal.SIGTERM)
+            code = p.popen.wait(120)
+            stop_s = time.monotonic() - t1
+            left = [q for q in tree if Path(f"/proc/{q}").exists()]
+            return {"ready_s": round(ready_s, 3), **rest, "stop_s": round(stop_s, 3), "exit_code": code,
+                    "left_after_stop": len(left)}
+        finally:
+            p.stop(60)
+
+
+def run(sizes: list[int], axes: int, rest_s: float, cycle_us: int) -> dict[str, Any]:
+    result: dict[str, Any] = {
+        "benchmark": "bench_twin", "axes_per_host": axes, "rest_s": rest_s, "cycle_us": cycle_us,
+        "cpus": os.cpu_count(), "loadavg_before": [round(x, 2) for x in os.getloadavg()], "sizes": {},
+    }
+    for n in sizes:
+        bare = run_bare(n, axes, rest_s, cycle_us)
+        twin = run_twin(n, axes, rest_s, cycle_us)
+        result["sizes"][str(n)] = {
+            "bare": bare, "twin": twin,
+            "ready_ratio": round(twin["ready_s"] / bare["ready_s"], 2),
+            "cpu_ratio": round(twin["cpu_pct_total"] / bare["cpu_pct_total"], 2) if bare["cpu_pct_total"] else None,
+            "loadavg_after": [round(x, 2) for x in os.getloadavg()],
+        }
+        print(f"{n} hosts: twin ready {twin['ready_s']:.2f} s (bare {bare['ready_s']:.2f} s), CPU at rest "
+              f"{twin['cpu_pct_total']} % (bare {bare['cpu_pct_total']} %), load {os.getloadavg()[0]:.1f}",
+              file=sys.stderr, flush=True)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.bench_twin", description=__doc__.split("\n\n")[0])
+    p.add_argument("--hosts", default="3,10,32", help="fleet sizes (hosts), comma-separated")
+    p.add_argument("--axes", type=int, default=2, help="simulated drives per host")
+    p.add_argument("--rest-s", type=float, default=10.0, help="how long to measure CPU at rest")
+    p.add_argument("--cycle-us", type=int, default=1000, help="cycle period of every agent")
+    p.add_argument("--out", type=Path, default=RESULTS / "bench_twin.json")
+    args = p.parse_args(argv)
+    result = run([int(x) for x in args.hosts.split(",")], args.axes, args.rest_s, args.cycle_us)
+    text = json.dumps(result, indent=2)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    os.chdir(ROOT)
+    sys.exit(main())
