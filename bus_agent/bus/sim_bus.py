@@ -196,12 +196,12 @@ class SimBus:
     def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
         """Configure the default PDO mapping and bring every slave SAFE-OP -> OP.
         Returns the expected working counter (3 per slave). Raises BusError."""
-        if mapping_override:
-            raise BusError(f"segment {self.segment_name}: the sim bus exchanges only the default "
-                           "PDO mapping (bus_agent.bus.pdo); mapping_override is not supported")
         with self._lock:
             if not self._opened:
                 raise BusError(f"segment {self.segment_name}: start() before open()")
+        for pos, setup in (mapping_override or {}).items():
+            self._apply_setup(pos, setup)
+        with self._lock:
             for pos, sl in enumerate(self._slaves):
                 if not sl.plugged:
                     raise BusError(f"segment {self.segment_name}: slave {pos} does not answer (unplugged)")
@@ -289,6 +289,24 @@ class SimBus:
             log.info("segment %s slave %d: recover -> %s", self.segment_name, position,
                      "OP" if ok else sl.al_state.wire_name)
             return ok
+
+    def _apply_setup(self, position: int, setup: object) -> None:
+        """What a real segment does in PRE-OP, as far as simulated drives can honour it: their
+        mapping is the project's default layout, so policies ``drive`` and ``default`` both mean
+        it; start-up SDOs are written through the model. Anything else is refused by name."""
+        policy = getattr(getattr(setup, "policy", None), "policy", "drive")
+        if policy not in ("drive", "default"):
+            raise BusError(f"segment {self.segment_name}: slave {position}: mapping policy {policy!r} is not "
+                           "supported by the sim bus (its drives have the default layout: use policy "
+                           "'drive' or 'default', or ecat-sim for other layouts)")
+        if getattr(setup, "sync0", None) is not None:
+            raise BusError(f"segment {self.segment_name}: slave {position}: the sim bus has no distributed "
+                           "clocks: set dc = \"off\" (or use ecat-sim)")
+        for sdo in getattr(setup, "sdos", ()):
+            try:
+                self.sdo_write(position, sdo.index, sdo.subindex, sdo.data)
+            except SimSdoError as e:
+                raise BusError(f"segment {self.segment_name}: slave {position}: start-up SDO {sdo}: {e}") from None
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """CoE SDO upload through the model (PRE-OP, SAFE-OP or OP). Raises BusError/SimSdoError."""

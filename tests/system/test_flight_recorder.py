@@ -54,8 +54,14 @@ def test_recording_around_an_injected_fault(bed: str, tmp_path: Path) -> None:
     assert r.returncode == 1 and "no window frozen by a fault trigger" in r.stdout, r.stdout + r.stderr
     assert not out.exists()
     with zenoh.open(zenoh_config("client", [bed])) as s:
-        sim_inject(s, HOST, 1, "fault", error_code=0x7500)
         with Fleet(connect=[bed]) as f:
+            # the recording must be able to hold >= 1 s before the fault: on a fast machine the
+            # agent may have run less than that since its start, so wait for its cycle count
+            def ran_enough(fl: Fleet) -> bool:
+                info = fl.agents().get(HOST)
+                return info is not None and info.status is not None and info.status.cycles >= 2000
+            assert f.wait_until(ran_enough, 30)
+            sim_inject(s, HOST, 1, "fault", error_code=0x7500)
             assert f.wait_until(lambda fl: (st := fl.status(f"{HOST}/axis1")) is not None and st.state == "fault", 10)
     csv_path = tmp_path / "fault.csv"
     # The window closes post_s (1 s) after the fault; the agent answers as soon as it is frozen.

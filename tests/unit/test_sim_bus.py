@@ -6,6 +6,8 @@ import struct
 
 import pytest
 
+from bus_agent.bus.mapping import MappingPolicy, SlaveSetup, StartupSdo
+
 from bus_agent.bus.base import ALState, Bus, BusError
 from bus_agent.bus.sim_bus import AL_INVALID_OUTPUT_CONFIG, AL_INVALID_STATE_CHANGE, AL_SM_WATCHDOG, SimBus, SimSdoError
 from bus_agent.cia402.states import State, decode_statusword
@@ -67,8 +69,21 @@ def test_start_before_open_and_mapping_override_refused() -> None:
     with pytest.raises(BusError, match="before open"):
         bus.start()
     bus.open()
-    with pytest.raises(BusError, match="mapping"):
-        bus.start({0: object()})
+    predefined = SlaveSetup(MappingPolicy(policy="predefined", rx=(0x1701,), tx=(0x1B01,)))
+    with pytest.raises(BusError, match="slave 0: mapping policy 'predefined' is not supported"):
+        bus.start({0: predefined})
+    with pytest.raises(BusError, match="no distributed clocks"):
+        bus.start({0: SlaveSetup(sync0=(1_000_000, 0))})
+
+
+def test_start_applies_startup_sdos_and_the_default_policies() -> None:
+    bus = SimBus(2)
+    bus.open()
+    window = StartupSdo(0x6065, 0, "u32", 12345)
+    assert bus.start({0: SlaveSetup(MappingPolicy(policy="default"), sdos=(window,)),
+                      1: SlaveSetup(MappingPolicy(policy="drive"))}) == 6
+    assert int.from_bytes(bus.sdo_read(0, 0x6065, 0, 4), "little") == 12345
+    assert int.from_bytes(bus.sdo_read(1, 0x6065, 0, 4), "little") != 12345
 
 
 def test_bad_constructor_arguments() -> None:
