@@ -283,8 +283,11 @@ def test_one_agent_per_host_name(bed: Bed) -> None:
     from bus_agent.sim.child import ChildProcess, free_port
 
     second = start_cli_agent_raw(bed.ep, "t1")
-    assert second.popen.wait(60) == 3, second.output()
-    assert "host name 't1' is taken" in second.output()
+    try:
+        assert second.popen.wait(60) == 3, second.output()
+        assert "host name 't1' is taken" in second.output()
+    finally:
+        second.stop()  # an agent that wrongly started must not outlive the test
     # A partition: c1 runs on the bed's router; another c1 comes up behind a router that is not
     # there yet (nothing to see at its start), then that router appears and links to the bed's.
     bed.start("c1", 1)
