@@ -19,8 +19,6 @@ and after: on a shared machine compare within one run. Needs no root.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import signal
 import sys
@@ -29,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.common import RESULTS, ROOT, proc_cpu_s
+from bench.common import ROOT, bench_parser, proc_cpu_s, write_result
 from bus_agent.sim.child import ChildProcess, descendants, free_port, running
 
 READY_TIMEOUT_S = 600.0
@@ -127,18 +125,14 @@ def run(sizes: list[int], axes: int, rest_s: float, cycle_us: int) -> dict[str, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_twin", description=__doc__.split("\n\n")[0])
+    p = bench_parser("bench_twin", __doc__)
     p.add_argument("--hosts", default="3,10,32", help="fleet sizes (hosts), comma-separated")
     p.add_argument("--axes", type=int, default=2, help="simulated drives per host")
     p.add_argument("--rest-s", type=float, default=10.0, help="how long to measure CPU at rest")
     p.add_argument("--cycle-us", type=int, default=1000, help="cycle period of every agent")
-    p.add_argument("--out", type=Path, default=RESULTS / "bench_twin.json")
     args = p.parse_args(argv)
     result = run([int(x) for x in args.hosts.split(",")], args.axes, args.rest_s, args.cycle_us)
-    text = json.dumps(result, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_result(result, args.out)
     return 0
 
 
