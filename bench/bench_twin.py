@@ -28,34 +28,16 @@ from pathlib import Path
 from typing import Any
 
 from bench.common import ROOT, bench_parser, proc_cpu_s, write_result
-from bus_agent.sim.child import ChildProcess, free_port
+from bus_agent.sim.child import ChildProcess, descendants, free_port, running
 
 READY_TIMEOUT_S = 600.0
-
-
-def descendants(pid: int) -> list[int]:
-    """``pid`` and every live process below it (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                continue
-            children.setdefault(ppid, []).append(int(d))
-    out, todo = [pid], [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            out.append(c)
-            todo.append(c)
-    return out
 
 
 def tree_cpu_s(roots: list[int]) -> dict[int, float]:
     """CPU seconds (user + system) of every process under ``roots``."""
     cpu = {}
     for r in roots:
-        for p in descendants(r):
+        for p in {r, *descendants(r)}:
             try:
                 cpu[p] = proc_cpu_s(p)
             except (OSError, ValueError, IndexError):
@@ -115,7 +97,7 @@ def run_twin(hosts: int, axes: int, rest_s: float, cycle_us: int) -> dict[str, A
             p.popen.send_signal(signal.SIGTERM)
             code = p.popen.wait(120)
             stop_s = time.monotonic() - t1
-            left = [q for q in tree if Path(f"/proc/{q}").exists()]
+            left = running(tree)
             return {"ready_s": round(ready_s, 3), **rest, "stop_s": round(stop_s, 3), "exit_code": code,
                     "left_after_stop": len(left)}
         finally:
