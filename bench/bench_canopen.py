@@ -37,14 +37,15 @@ CHANNEL = "239.74.163.99"
 def _bare(args, period_us: int) -> dict:
     import can
 
-    from bus_agent.bus.canopen import mapping as m
+    from bus_agent.bus.canopen.cob import SYNC_COB_ID
+    from bus_agent.bus.canopen.pdo import PdoFrames, default_mapping
     from bus_agent.bus.canopen.nmt import NmtCommand, nmt_frame
     from bus_agent.bus.pdo import DriveOutputs
     from bus_agent.sim.canopen.segment import open_can
 
     bus = open_can(CHANNEL, "udp_multicast")
     ids = list(range(1, args.nodes + 1))
-    codecs = [m.Codec(m.default_layout(n), n) for n in ids]
+    codecs = [PdoFrames(default_mapping(n)) for n in ids]
     tpdo_ids = {cob for c in codecs for cob in c.tpdo_cob_ids}
     got = [0]
 
@@ -58,7 +59,7 @@ def _bare(args, period_us: int) -> dict:
     time.sleep(0.5)
     frames = [can.Message(arbitration_id=cob, data=data, is_extended_id=False)
               for c in codecs for cob, data in c.rpdo_frames(DriveOutputs(modes_of_operation=8))]
-    frames.append(can.Message(arbitration_id=m.SYNC_COB_ID, data=b"", is_extended_id=False))
+    frames.append(can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False))
     period = period_us * 1000
     missed = seen = 0
 
