@@ -40,44 +40,20 @@ bench/results/bench_agent.json. Needs root (veth, raw sockets).
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import os
-import resource
 import select
 import subprocess
 import sys
 import threading
 import time
 from array import array
-from pathlib import Path
 from typing import Callable
 
-from bench.common import (RESULTS, ROOT, free_port, main_result, percentile, pysoem_to_op, proc_cpu_s, segment, set_rt_priority,
-                          stop_process, summary_ms)
+from bench.common import (ROOT, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
+                          pysoem_to_op, quantiles, segment, self_cpu_s, stop_process, summary_ms)
 
-DEFAULT_OUT = RESULTS / "bench_agent.json"
-SPIN_NS = 150_000
 ECHO_KEY = "bench/echo"
-
-
-def _cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
-
-
-def _figures(periods: list[int], cycle_ns: int) -> dict:
-    if not periods:
-        return {}
-    ps = sorted(periods)
-    js = sorted(abs(p - cycle_ns) for p in periods)
-
-    def q(v: list[int], f: float) -> float:
-        return round(percentile(v, f) / 1000, 1)
-
-    return {"samples": len(ps),
-            "period_us": {"p50": q(ps, 0.5), "p99": q(ps, 0.99), "p999": q(ps, 0.999), "max": round(ps[-1] / 1000, 1)},
-            "jitter_us": {"p50": q(js, 0.5), "p99": q(js, 0.99), "p999": q(js, 0.999), "max": round(js[-1] / 1000, 1)}}
 
 
 def jitter_ratios(results: dict) -> dict:
@@ -111,52 +87,27 @@ def phase_bare(args) -> dict:
     pack = [(lambda: RX_STRUCT.pack(0, 0, 0, 0, 8)) if len(s.output) == RX_STRUCT.size
             else (lambda n=len(s.output): bytes(n)) for s in slaves]
     period = args.cycle_us * 1000
-    n = int(args.seconds * 1e9 / period)
-    log = array("q", bytes(8 * n))
-    clock, sleep = time.monotonic_ns, time.sleep
-    wkc_errors = overruns = 0
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(0.0005)
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    set_rt_priority(args.rt_priority)
-    cpu0 = _cpu_s()
-    t0 = clock()
-    last = 0
-    k = 0
-    for i in range(n):
-        dl = t0 + k * period
-        rem = dl - clock() - SPIN_NS
-        if rem > 0:
-            sleep(rem / 1e9)
-        while clock() < dl:
-            pass
-        now = clock()
-        if now - dl > period:
-            overruns += 1
-            k = (now - t0) // period
-        if last:
-            log[i] = now - last
-        last = now
-        m.send_processdata(release_gil=True)
-        wkc = m.receive_processdata(args.receive_timeout_us, release_gil=True)
-        if wkc != expected:
+    wkc_errors = 0
+    send, receive, timeout_us = m.send_processdata, m.receive_processdata, args.receive_timeout_us
+
+    def step(_: int) -> None:
+        nonlocal wkc_errors
+        send(release_gil=True)
+        if receive(timeout_us, release_gil=True) != expected:
             wkc_errors += 1
         for s, pk in zip(slaves, pack):  # what any program does each cycle: read inputs, write outputs
             _ = s.input
             s.output = pk()
-        k += 1
-    elapsed = (clock() - t0) / 1e9
-    cpu = _cpu_s() - cpu0
-    gc.enable()
-    sys.setswitchinterval(old)
+
+    run = paced_loop(int(args.seconds * 1e9 / period), period, step, args.rt_priority)
     m.state = pysoem.INIT_STATE
     m.write_state()
     m.close()
-    _dump(args, log[1:])
-    return {"cycles": n, "seconds": round(elapsed, 2), "overruns": overruns, "wkc_errors": wkc_errors,
-            "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(list(log[1:]), period)}
+    periods = run.periods[1:]
+    _dump(args, periods)
+    return {"cycles": len(run.periods), "seconds": round(run.elapsed_s, 2), "overruns": run.overruns,
+            "wkc_errors": wkc_errors, "cpu_s": round(run.cpu_s, 3), "cpu_pct": round(100 * run.cpu_s / run.elapsed_s, 1),
+            **period_figures(list(periods), period)}
 
 
 def _command_all(cyc, op: str, axes, timeout_s: float = 10.0) -> list:
@@ -212,21 +163,21 @@ def _measure(cyc, args) -> dict:
     period = args.cycle_us * 1000
     n = int(args.seconds * 1e9 / period)
     ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
-    cpu0 = _cpu_s()
+    cpu0 = self_cpu_s()
     t0 = time.monotonic()
     cyc.period_log_len = 0
     cyc.period_log = array("q", bytes(8 * n))
     while cyc.period_log_len < n and time.monotonic() - t0 < args.seconds * 3 + 10:
         time.sleep(0.05)
     elapsed = time.monotonic() - t0
-    cpu = _cpu_s() - cpu0
+    cpu = self_cpu_s() - cpu0
     got = cyc.period_log_len
     log = list(cyc.period_log[:got])
     cyc.period_log = None
     _dump(args, array("q", log))
     return {"cycles": cyc.cycles - c0, "seconds": round(elapsed, 2), "overruns": cyc.overruns - ov0,
             "wkc_errors": cyc.wkc_errors - wk0, "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1),
-            **_figures(log, period)}
+            **period_figures(log, period)}
 
 
 def phase_agent(args) -> dict:
@@ -251,9 +202,7 @@ def phase_agent(args) -> dict:
         out["startup_fault_resets"] = resets
         if cyc.dc_log is not None:
             offs = sorted(cyc.dc_log[:cyc.period_log_len or n])
-            out["dc_offset_us"] = {"p50": round(percentile(offs, 0.5) / 1000, 1),
-                                   "p99": round(percentile(offs, 0.99) / 1000, 1),
-                                   "p1": round(percentile(offs, 0.01) / 1000, 1), "samples": len(offs)}
+            out["dc_offset_us"] = {**quantiles(offs, ("p50", "p99", "p1"), 1e-3), "samples": len(offs)}
         return out
     finally:
         cyc.stop()
@@ -612,7 +561,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
            "startup_fault_resets": sum(p.get("startup_fault_resets", 0) for p in parts),
            "cpu_pct": round(100 * cpu / seconds, 1) if seconds else None,
            "overruns_per_round": [p["overruns"] for p in parts],
-           "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **_figures(periods, cycle_ns)}
+           "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **period_figures(periods, cycle_ns)}
     for key in ("gateway_process_cpu_pct", "bridge_snapshots_per_s"):
         vals = [p[key] for p in parts if key in p]
         if vals:
@@ -662,7 +611,7 @@ def run(args) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_agent", description=__doc__.split("\n\n")[0])
+    p = bench_parser("bench_agent", __doc__)
     p.add_argument("--drives", type=int, default=16)
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--cycle-us", type=int, default=1000)
@@ -682,7 +631,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="ecat-sim slave profile(s), e.g. omron1s:dc-required (predefined PDOs, DC SYNC0)")
     p.add_argument("--dc", choices=("auto", "off"), default="auto",
                    help="[dc] mode of the agent phases; auto also starts SYNC0 in the bare loop")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     # internal: one phase in this process
     p.add_argument("--phase", choices=sorted(PHASES), help=argparse.SUPPRESS)
     p.add_argument("--ifname", help=argparse.SUPPRESS)

@@ -23,34 +23,29 @@ recorded before and after. JSON printed and written to bench/results/bench_canop
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import os
 import subprocess
 import sys
 import time
-from array import array
-from pathlib import Path
 
-from bench.bench_agent import _cpu_s, _figures
-from bench.common import RESULTS, ROOT, main_result, set_rt_priority, stop_process
+from bench.common import ROOT, bench_parser, main_result, paced_loop, period_figures, self_cpu_s, stop_process
 
-DEFAULT_OUT = RESULTS / "bench_canopen.json"
 CHANNEL = "239.74.163.99"
-SPIN_NS = 150_000
 
 
 def _bare(args, period_us: int) -> dict:
     import can
 
-    from bus_agent.bus.canopen import mapping as m
+    from bus_agent.bus.canopen.cob import SYNC_COB_ID
+    from bus_agent.bus.canopen.pdo import PdoFrames, default_mapping
     from bus_agent.bus.canopen.nmt import NmtCommand, nmt_frame
     from bus_agent.bus.pdo import DriveOutputs
     from bus_agent.sim.canopen.segment import open_can
 
     bus = open_can(CHANNEL, "udp_multicast")
     ids = list(range(1, args.nodes + 1))
-    codecs = [m.Codec(m.default_layout(n), n) for n in ids]
+    codecs = [PdoFrames(default_mapping(n)) for n in ids]
     tpdo_ids = {cob for c in codecs for cob in c.tpdo_cob_ids}
     got = [0]
 
@@ -64,55 +59,28 @@ def _bare(args, period_us: int) -> dict:
     time.sleep(0.5)
     frames = [can.Message(arbitration_id=cob, data=data, is_extended_id=False)
               for c in codecs for cob, data in c.rpdo_frames(DriveOutputs(modes_of_operation=8))]
-    frames.append(can.Message(arbitration_id=m.SYNC_COB_ID, data=b"", is_extended_id=False))
+    frames.append(can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False))
     period = period_us * 1000
-    n = int(args.seconds * 1e9 / period)
-    log = array("q", bytes(8 * n))
-    clock, sleep = time.monotonic_ns, time.sleep
-    overruns = missed = 0
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(0.0005)
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    set_rt_priority(args.rt_priority)
-    cpu0 = _cpu_s()
-    t0 = clock()
-    last = k = 0
-    seen = 0
-    for i in range(n):
-        dl = t0 + k * period
-        rem = dl - clock() - SPIN_NS
-        if rem > 0:
-            sleep(rem / 1e9)
-        while clock() < dl:
-            pass
-        now = clock()
-        if now - dl > period:
-            overruns += 1
-            k = (now - t0) // period
-        if last:
-            log[i] = now - last
-        last = now
+    missed = seen = 0
+
+    def step(i: int) -> None:
+        nonlocal missed, seen
         if i:  # the TPDOs of the previous SYNC
             arrived = got[0] - seen
             seen = got[0]
             missed += max(0, len(tpdo_ids) - arrived)
         for f in frames:
             bus.send(f)
-        k += 1
-    elapsed = (clock() - t0) / 1e9
-    cpu = _cpu_s() - cpu0
-    gc.enable()
-    sys.setswitchinterval(old)
-    set_rt_priority(0)
+
+    run = paced_loop(int(args.seconds * 1e9 / period), period, step, args.rt_priority)
     notifier.stop()
     bus.send(can.Message(arbitration_id=0, data=nmt_frame(NmtCommand.ENTER_PRE_OPERATIONAL, 0), is_extended_id=False))
     bus.shutdown()
+    n = len(run.periods)
     expected = len(tpdo_ids) * (n - 1)
-    return {"cycles": n, "seconds": round(elapsed, 2), "overruns": overruns, "frames_sent_per_cycle": len(frames),
+    return {"cycles": n, "seconds": round(run.elapsed_s, 2), "overruns": run.overruns, "frames_sent_per_cycle": len(frames),
             "tpdos_expected": expected, "tpdos_missed": missed, "tpdos_missed_pct": round(100 * missed / expected, 3),
-            "cpu_pct": round(100 * cpu / elapsed, 1), **_figures(list(log[1:]), period)}
+            "cpu_pct": round(100 * run.cpu_s / run.elapsed_s, 1), **period_figures(list(run.periods[1:]), period)}
 
 
 def _agent(args, period_us: int) -> dict:
@@ -128,13 +96,13 @@ def _agent(args, period_us: int) -> dict:
     cyc = Cycle(bus, cfg, record_periods=n, rt_priority=args.rt_priority)
     cyc.open()
     ov0, wk0 = cyc.overruns, cyc.wkc_errors
-    cpu0 = _cpu_s()
+    cpu0 = self_cpu_s()
     t0 = time.monotonic()
     cyc.start()
     while cyc.period_log_len < n and time.monotonic() - t0 < args.seconds * 3 + 10:
         time.sleep(0.05)
     elapsed = time.monotonic() - t0
-    cpu = _cpu_s() - cpu0
+    cpu = self_cpu_s() - cpu0
     got = cyc.period_log_len
     periods = list(cyc.period_log[:got]) if cyc.period_log is not None else []
     exchanges, sent, missed = bus.exchanges, bus.frames_sent, bus.missed_tpdos
@@ -144,7 +112,7 @@ def _agent(args, period_us: int) -> dict:
     return {"cycles": got, "seconds": round(elapsed, 2), "overruns": overruns, "wkc_errors": wkc_errors,
             "frames_sent_per_cycle": round(sent / max(1, exchanges), 2), "tpdos_expected": expected,
             "tpdos_missed": missed, "tpdos_missed_pct": round(100 * missed / expected, 3),
-            "cpu_pct": round(100 * cpu / max(elapsed, 1e-9), 1), **_figures(periods[1:], period)}
+            "cpu_pct": round(100 * cpu / max(elapsed, 1e-9), 1), **period_figures(periods[1:], period)}
 
 
 def inside(args) -> dict:
@@ -194,13 +162,12 @@ def run(args) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="bench_canopen", description=__doc__.split("\n\n")[0])
+    p = bench_parser("bench_canopen", __doc__)
     p.add_argument("--nodes", type=int, default=8)
     p.add_argument("--periods-us", type=lambda s: [int(x) for x in s.split(",")], default=[1000, 4000])
     p.add_argument("--seconds", type=float, default=10.0, help="per phase and period")
     p.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO of both loops (0: off)")
     p.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     if args.inside:
         print(json.dumps(inside(args)))

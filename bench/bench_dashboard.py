@@ -13,19 +13,15 @@ of every drive) and during the rounds. The machine's load average is recorded wi
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
 import shutil
 import sys
 import tempfile
 import time
-from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from bench.common import RESULTS, percentile, proc_cpu_s
+from bench.common import bench_parser, loadavg, percentile, proc_cpu_s, quantiles, run_stamp, write_result
 from bus_agent.sim.child import ChildProcess, free_port, wait_for
 from bus_agent.sim.control import sim_inject
 from schemas.messages import DriveStatus
@@ -33,19 +29,15 @@ from supervisor.fleet import Fleet, zenoh_config
 from supervisor.testbed import start_agents, start_router
 
 
-def _stats(values: list[float]) -> dict[str, Any]:
-    v = sorted(values)
-    if not v:
-        return {"n": 0}
-    return {"n": len(v), "p50": round(percentile(v, 0.5), 1), "p99": round(percentile(v, 0.99), 1),
-            "max": round(v[-1], 1) if v else None}
+def _stats(values_ms: list[float]) -> dict[str, Any]:
+    return {"n": len(values_ms), **quantiles(sorted(values_ms))} if values_ms else {"n": 0}
 
 
 def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
-    load_start = os.getloadavg()
+    load_start = loadavg()
     names = [f"bd{i}" for i in range(hosts)]
     router, ep = start_router()
     agents = dash = driver = None
@@ -97,10 +89,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                 except AssertionError:
                     missed += 1  # reported: the subscriber never saw it (a starved machine drops links)
             busy_cpu = 100 * (proc_cpu_s(pid) - c1) / (time.monotonic() - t1)
-        return {"benchmark": "dashboard", "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "drives": total, "hosts": hosts, "rounds": rounds, "cpus": os.cpu_count(),
-                "loadavg_start": [round(x, 2) for x in load_start],
-                "loadavg_end": [round(x, 2) for x in os.getloadavg()],
+        return {"benchmark": "dashboard", **run_stamp(load_start), "drives": total, "hosts": hosts, "rounds": rounds,
                 "dashboard_cpu_idle_pct": round(idle_cpu, 1), "dashboard_cpu_changes_pct": round(busy_cpu, 1),
                 "change_to_page_ms": _stats(page_lag), "change_to_subscriber_ms": _stats(zenoh_lag),
                 "subscriber_missed": missed,
@@ -117,18 +106,13 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_dashboard", description=__doc__.split("\n")[0])
+    p = bench_parser("bench_dashboard", __doc__)
     p.add_argument("--hosts", type=int, default=8)
     p.add_argument("--drives", type=int, default=128)
     p.add_argument("--rounds", type=int, default=20)
     p.add_argument("--idle-s", type=float, default=10.0)
-    p.add_argument("--out", type=Path, default=RESULTS / "bench_dashboard.json")
     a = p.parse_args(argv)
-    result = run(a.hosts, a.drives, a.rounds, a.idle_s)
-    text = json.dumps(result, indent=2)
-    print(text)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(text + "\n")
+    write_result(run(a.hosts, a.drives, a.rounds, a.idle_s), a.out)
     return 0
 
 

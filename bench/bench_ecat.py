@@ -11,16 +11,12 @@ bench/results/bench_ecat.json. Needs root (veth, raw sockets).
 
 from __future__ import annotations
 
-import argparse
 import gc
 import os
 import sys
 import time
-from pathlib import Path
 
-from bench.common import RESULTS, main_result, percentile, pysoem_to_op, proc_cpu_s, segment, set_rt_priority
-
-DEFAULT_OUT = RESULTS / "bench_ecat.json"
+from bench.common import bench_parser, main_result, percentile, pysoem_to_op, proc_cpu_s, segment, set_rt_priority
 
 
 def run(args) -> dict:
@@ -97,14 +93,13 @@ def _measure(m, seg, control, args, pysoem) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_ecat", description=__doc__.split("\n\n")[0])
+    p = bench_parser("bench_ecat", __doc__)
     p.add_argument("--drives", type=int, default=16)
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--cycle-us", type=int, default=1000)
     p.add_argument("--timeout-us", type=int, default=2000, help="receive_processdata timeout")
     p.add_argument("--sim-rt-priority", type=int, default=20, help="SCHED_FIFO priority of ecat-sim (0: off)")
     p.add_argument("--master-rt-priority", type=int, default=10, help="SCHED_FIFO priority of this master (0: off)")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     return main_result("bench_ecat", lambda: run(args), args.out)
 

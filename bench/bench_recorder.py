@@ -13,15 +13,11 @@ recorded with the figures.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
-from bench.common import RESULTS, percentile
+from bench.common import bench_parser, loadavg, quantiles, run_stamp, write_result
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.config import AgentConfig, RecorderConfig
 from bus_agent.cycle.cycle import Cycle
@@ -45,8 +41,7 @@ def phase(drives: int, seconds: float, record: bool, rt_priority: int) -> dict[s
     assert cycle.period_log is not None
     periods = sorted(abs(p - 1_000_000) / 1000 for p in cycle.period_log[start_len:end_len])
     return {"record": record, "cycles": len(periods), "overruns": overruns,
-            "jitter_us": {"p50": percentile(periods, 0.5), "p99": percentile(periods, 0.99),
-                          "p999": percentile(periods, 0.999), "max": periods[-1] if periods else None},
+            "jitter_us": quantiles(periods, ("p50", "p99", "p999", "max"), digits=3),
             "cpu_pct": round(100 * (cpu1 - cpu0) / (t1 - t0), 1),
             "memory_bytes": cycle.recorder.memory_bytes if cycle.recorder else 0}
 
@@ -68,14 +63,13 @@ def record_call_ns(drives: int, calls: int = 20000) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_recorder", description=__doc__.split("\n")[0])
+    p = bench_parser("bench_recorder", __doc__)
     p.add_argument("--drives", type=int, default=16)
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--rt-priority", type=int, default=0)
-    p.add_argument("--out", type=Path, default=RESULTS / "bench_recorder.json")
     a = p.parse_args(argv)
-    load_start = os.getloadavg()
+    load_start = loadavg()
     phases = []
     for _ in range(a.rounds):
         for record in (False, True):
@@ -92,10 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     off, on = merged(False), merged(True)
     call_ns = record_call_ns(a.drives)
     result = {
-        "benchmark": "recorder", "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "drives": a.drives, "cycle_us": 1000, "seconds_per_phase": a.seconds, "rounds": a.rounds,
-        "rt_priority": a.rt_priority, "loadavg_start": [round(x, 2) for x in load_start],
-        "loadavg_end": [round(x, 2) for x in os.getloadavg()], "cpus": os.cpu_count(),
+        "benchmark": "recorder", **run_stamp(load_start), "drives": a.drives, "cycle_us": 1000,
+        "seconds_per_phase": a.seconds, "rounds": a.rounds, "rt_priority": a.rt_priority,
         "off": off, "on": on,
         "ratio_on_off": {k: (round(on[k] / off[k], 2) if off[k] else None)
                          for k in ("jitter_p99_us", "jitter_p999_us", "cpu_pct")},
@@ -104,10 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         "memory_bytes": next((x["memory_bytes"] for x in phases if x["record"]), 0),
         "phases": phases,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(text + "\n")
+    write_result(result, a.out)
     return 0
 
 

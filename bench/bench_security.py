@@ -28,7 +28,6 @@ The PKI is made fresh in a temporary directory (``drives-pki``'s code, in-proces
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import logging
@@ -38,13 +37,12 @@ import signal
 import statistics
 import sys
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
 from bench.bench_supervisor import SECURE_PRINCIPALS, Watcher, host_names, report_figures
-from bench.common import RESULTS, percentile, thread_cpu_ns
+from bench.common import bench_parser, loadavg, percentile, run_stamp, thread_cpu_ns, write_result
 from bus_agent.security import pki as pki_mod
 from supervisor.fleet import Fleet
 from supervisor.testbed import Proc, start_agents, start_router
@@ -221,14 +219,13 @@ def summarize(enable: dict[str, Any], fanin: dict[str, Any]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = bench_parser("bench_security", __doc__)
     p.add_argument("--quick", action="store_true", help="defaults 20 enable rounds, 4x16 fan-in, 6 fan-in rounds")
     p.add_argument("--rounds", type=int, help="enable rounds per transport (default 50)")
     p.add_argument("--fanin", help="AGENTSxDRIVES of the fan-in (default 32x32 = 1024 drives)")
     p.add_argument("--fanin-rounds", type=int, help="fan-in windows per transport, alternating (default 12)")
     p.add_argument("--per-process", type=int, default=8)
     p.add_argument("--sm-watchdog-s", type=float, default=5.0)
-    p.add_argument("--out", "--output", dest="output", default=str(RESULTS / "bench_security.json"), help="JSON file")
     args = p.parse_args(argv)
     # SIGTERM unwinds like an exception, so every router, agent and watcher started is stopped.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -239,10 +236,9 @@ def main(argv: list[str] | None = None) -> int:
             setattr(args, name, quick if args.quick else full)
     fa, _, fd = args.fanin.partition("x")
     n_agents, n_drives = int(fa), int(fd)
+    load_start = loadavg()
     d = Path(tempfile.mkdtemp(prefix="bench-pki-"))
-    result: dict[str, Any] = {"bench": "security", "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                              "cpus": os.cpu_count(), "python": sys.version.split()[0],
-                              "load_avg_at_start": [round(x, 2) for x in os.getloadavg()],
+    result: dict[str, Any] = {"bench": "security", "python": sys.version.split()[0],
                               "settings": {"rounds": args.rounds, "fanin": args.fanin,
                                            "fanin_rounds": args.fanin_rounds, "quick": args.quick}}
     try:
@@ -250,21 +246,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"== enable 1x16, {args.rounds} rounds on each transport, alternating", flush=True)
         result["enable"] = enable_rounds(str(d), args.rounds)
         print(json.dumps(result["enable"]), flush=True)
-        result["load_avg_after_enable"] = [round(x, 2) for x in os.getloadavg()]
+        result["loadavg_after_enable"] = loadavg()
         print(f"== fan-in {args.fanin}, {args.fanin_rounds} windows on each transport, alternating", flush=True)
         rows = fanin_rounds(str(d), n_agents, n_drives, args.fanin_rounds,
                             per_process=args.per_process, sm_watchdog_s=args.sm_watchdog_s)
     finally:
         shutil.rmtree(d, ignore_errors=True)
     result["fanin"] = {"drives": n_agents * n_drives, **fanin_summary(rows), "rounds": rows}
-    print(json.dumps({k: v for k, v in result["fanin"].items() if k != "rounds"}, indent=1), flush=True)
-    result["load_avg_at_end"] = [round(x, 2) for x in os.getloadavg()]
     result["summary"] = summarize(result["enable"], result["fanin"])
-    print(json.dumps(result["summary"], indent=1))
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
-    print(f"written {out}")
+    result.update(run_stamp(load_start))
+    write_result(result, args.out)
+    print(f"written {args.out}")
     return 0
 
 

@@ -16,19 +16,16 @@ Needs no root: the zenoh session is a peer with no links, so puts cost what they
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import os
 import statistics
 import tempfile
 import time
-from pathlib import Path
 from typing import Any, Callable
 
 import zenoh
 
-from bench.common import RESULTS
+from bench.common import bench_parser, loadavg, run_stamp, write_result
 from bus_agent import runtime as rt
 from bus_agent.gateway import gateway as gwmod
 from bus_agent.gateway.gateway import Gateway, GatewaySettings, parse_command
@@ -65,7 +62,7 @@ def _per_op_us(fn: Callable[[], None], rounds: int, repeats: int = 5) -> float:
 
 
 def run(rounds: int) -> dict[str, Any]:
-    load_start = os.getloadavg()
+    load_start = loadavg()
     session = zenoh.open(make_zenoh_config("peer", (), ()))
     log_file = tempfile.NamedTemporaryFile(prefix="bench_trust", suffix=".log", delete=False)
     handler = logging.FileHandler(log_file.name)
@@ -119,21 +116,15 @@ def run(rounds: int) -> dict[str, Any]:
         "audit_ratio": round(audit_us / base_us, 3),
         "status_encode_us": round(encode_us, 2), "error_text_us": round(describe_us, 3),
         "error_text_ratio": round(describe_us / encode_us, 4),
-        "loadavg_start": [round(x, 2) for x in load_start], "loadavg_end": [round(x, 2) for x in os.getloadavg()],
-        "cpus": os.cpu_count(), "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **run_stamp(load_start),
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_trust", description=__doc__.split("\n\n")[0])
+    p = bench_parser("bench_trust", __doc__)
     p.add_argument("--rounds", type=int, default=2000, help="commands per measurement (5 measurements)")
-    p.add_argument("--out", type=Path, default=RESULTS / "bench_trust.json")
     args = p.parse_args(argv)
-    result = run(args.rounds)
-    text = json.dumps(result, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_result(run(args.rounds), args.out)
     return 0
 
 

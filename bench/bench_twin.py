@@ -19,8 +19,6 @@ and after: on a shared machine compare within one run. Needs no root.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import signal
 import sys
@@ -29,35 +27,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.common import RESULTS, ROOT, proc_cpu_s
-from bus_agent.sim.child import ChildProcess, free_port
+from bench.common import ROOT, bench_parser, proc_cpu_s, write_result
+from bus_agent.sim.child import ChildProcess, descendants, free_port, running
 
 READY_TIMEOUT_S = 600.0
-
-
-def descendants(pid: int) -> list[int]:
-    """``pid`` and every live process below it (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                continue
-            children.setdefault(ppid, []).append(int(d))
-    out, todo = [pid], [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            out.append(c)
-            todo.append(c)
-    return out
 
 
 def tree_cpu_s(roots: list[int]) -> dict[int, float]:
     """CPU seconds (user + system) of every process under ``roots``."""
     cpu = {}
     for r in roots:
-        for p in descendants(r):
+        for p in {r, *descendants(r)}:
             try:
                 cpu[p] = proc_cpu_s(p)
             except (OSError, ValueError, IndexError):
@@ -117,7 +97,7 @@ def run_twin(hosts: int, axes: int, rest_s: float, cycle_us: int) -> dict[str, A
             p.popen.send_signal(signal.SIGTERM)
             code = p.popen.wait(120)
             stop_s = time.monotonic() - t1
-            left = [q for q in tree if Path(f"/proc/{q}").exists()]
+            left = running(tree)
             return {"ready_s": round(ready_s, 3), **rest, "stop_s": round(stop_s, 3), "exit_code": code,
                     "left_after_stop": len(left)}
         finally:
@@ -145,18 +125,14 @@ def run(sizes: list[int], axes: int, rest_s: float, cycle_us: int) -> dict[str, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bench_twin", description=__doc__.split("\n\n")[0])
+    p = bench_parser("bench_twin", __doc__)
     p.add_argument("--hosts", default="3,10,32", help="fleet sizes (hosts), comma-separated")
     p.add_argument("--axes", type=int, default=2, help="simulated drives per host")
     p.add_argument("--rest-s", type=float, default=10.0, help="how long to measure CPU at rest")
     p.add_argument("--cycle-us", type=int, default=1000, help="cycle period of every agent")
-    p.add_argument("--out", type=Path, default=RESULTS / "bench_twin.json")
     args = p.parse_args(argv)
     result = run([int(x) for x in args.hosts.split(",")], args.axes, args.rest_s, args.cycle_us)
-    text = json.dumps(result, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_result(result, args.out)
     return 0
 
 

@@ -1,5 +1,6 @@
 """What the benchmarks share: the virtual segment (veth pair + ``ecat-sim``), real-time
-priority, process CPU time and percentiles.
+priority, the bare drift-free timing loop, process CPU time, percentiles, and writing a result
+(time stamp, load average, JSON printed and written).
 
 A benchmark that needs a segment writes::
 
@@ -13,16 +14,21 @@ Needs root (veth pairs, raw sockets).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import gc
 import json
 import logging
 import os
+import resource
 import select
 import shutil
 import socket
 import subprocess
 import sys
 import tempfile
+import time
+from array import array
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -33,6 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 #: How long ecat-sim may take to print its ready line.
 SIM_READY_TIMEOUT_S = 20.0
+#: The timing loops sleep until this long before a deadline, then spin (as the agent's cycle does).
+SPIN_NS = 150_000
 
 
 @dataclass(frozen=True)
@@ -125,17 +133,42 @@ def stop_process(p: subprocess.Popen, timeout_s: float = 5.0) -> None:
         p.wait()
 
 
+def bench_parser(name: str, doc: str | None) -> argparse.ArgumentParser:
+    """The argument parser of ``python -m bench.<name>``: described by the first paragraph of
+    ``doc`` (the module's docstring), with ``--out FILE`` (default bench/results/<name>.json)."""
+    p = argparse.ArgumentParser(prog=f"python -m bench.{name}", description=(doc or "").split("\n\n")[0])
+    p.add_argument("--out", type=Path, default=RESULTS / f"{name}.json", help="the JSON result")
+    return p
+
+
+def write_result(result: dict, out: Path) -> None:
+    """Print ``result`` as JSON and write it to ``out`` (its folder made if missing)."""
+    text = json.dumps(result, indent=2)
+    print(text)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text + "\n")
+
+
 def main_result(name: str, run: Callable[[], dict], out: Path) -> int:
     """The shell of a root benchmark: refuse without root, else ``run()``, print the JSON and
     write it to ``out``."""
     if os.geteuid() != 0:
         print(f"{name}: needs root (veth pairs, raw sockets)", file=sys.stderr)
         return 1
-    text = json.dumps(run(), indent=2)
-    print(text)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text + "\n")
+    write_result(run(), out)
     return 0
+
+
+def loadavg() -> list[float]:
+    """The machine's 1, 5 and 15 minute load averages, rounded to 0.01."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def run_stamp(loadavg_start: list[float]) -> dict:
+    """What every result carries: UTC time, CPU count, load average at the start (taken by the
+    caller with :func:`loadavg`) and now."""
+    return {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "cpus": os.cpu_count(),
+            "loadavg_start": loadavg_start, "loadavg_end": loadavg()}
 
 
 def set_rt_priority(prio: int, *, required: bool = False) -> None:
@@ -170,6 +203,92 @@ def thread_cpu_ns(pid: int) -> dict[str, int]:
             continue  # the thread ended meanwhile
         out[name] = out.get(name, 0) + ns
     return out
+
+
+def self_cpu_s() -> float:
+    """User + system CPU time of this process in seconds (getrusage)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+@dataclass(frozen=True)
+class PacedRun:
+    """What :func:`paced_loop` measured: ``periods[i]`` is the start of cycle i minus the start of
+    cycle i-1 in ns (``periods[0]`` is 0: no cycle before it)."""
+
+    periods: array
+    overruns: int
+    elapsed_s: float
+    cpu_s: float
+
+
+def paced_loop(cycles: int, period_ns: int, step: Callable[[int], None], rt_priority: int = 0) -> PacedRun:
+    """The bare loop any program would write, timed as the agent's cycle is: ``step(i)`` on
+    drift-free deadlines t0 + k * period (sleep until :data:`SPIN_NS` before, then spin), GC
+    frozen and off, a 0.5 ms switch interval, SCHED_FIFO ``rt_priority`` (0: off). A cycle that
+    starts more than a period late is an overrun and the deadlines skip ahead (no catch-up burst).
+    The baseline the cycle benchmarks compare the agent with."""
+    log = array("q", bytes(8 * cycles))
+    clock, sleep = time.monotonic_ns, time.sleep
+    overruns = 0
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(0.0005)
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    set_rt_priority(rt_priority)
+    cpu0 = self_cpu_s()
+    t0 = clock()
+    last = k = 0
+    try:
+        for i in range(cycles):
+            dl = t0 + k * period_ns
+            rem = dl - clock() - SPIN_NS
+            if rem > 0:
+                sleep(rem / 1e9)
+            while clock() < dl:
+                pass
+            now = clock()
+            if now - dl > period_ns:
+                overruns += 1
+                k = (now - t0) // period_ns
+            if last:
+                log[i] = now - last
+            last = now
+            step(i)
+            k += 1
+        return PacedRun(log, overruns, (clock() - t0) / 1e9, self_cpu_s() - cpu0)
+    finally:
+        gc.enable()
+        sys.setswitchinterval(old)
+
+
+#: Quantile names and their ranks, for :func:`quantiles`.
+QUANTILES = {"p1": 0.01, "p50": 0.5, "p99": 0.99, "p999": 0.999}
+
+
+def quantiles(sorted_values: Sequence[float], names: Sequence[str] = ("p50", "p99", "max"), scale: float = 1.0,
+              digits: int = 1) -> dict:
+    """``{name: value * scale}`` rounded to ``digits`` for names of :data:`QUANTILES` and ``max``,
+    of an ascending sequence (nan if empty, max None)."""
+    out: dict = {}
+    for name in names:
+        if name == "max":
+            out[name] = round(sorted_values[-1] * scale, digits) if sorted_values else None
+        else:
+            out[name] = round(percentile(sorted_values, QUANTILES[name]) * scale, digits)
+    return out
+
+
+def period_figures(periods: Sequence[int], cycle_ns: int) -> dict:
+    """Cycle start-to-start periods in ns: sample count, period and jitter |period - cycle_ns|
+    p50/p99/p99.9/max in us ({} if none)."""
+    if not periods:
+        return {}
+    ps = sorted(periods)
+    js = sorted(abs(p - cycle_ns) for p in periods)
+    names = ("p50", "p99", "p999", "max")
+    return {"samples": len(ps), "period_us": quantiles(ps, names, 1e-3), "jitter_us": quantiles(js, names, 1e-3)}
 
 
 def percentile(sorted_values: Sequence[float], q: float) -> float:

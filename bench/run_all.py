@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from bench import summary as s
-from bench.common import RESULTS, ROOT
+from bench.common import RESULTS, ROOT, loadavg
 
 
 @dataclass(frozen=True)
@@ -100,13 +100,9 @@ def _load(path: Path) -> dict | None:
         return None
 
 
-def _loadavg() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
-
-
 def run_one(b: Benchmark, quick: bool, path: Path) -> tuple[str, dict[str, Any]]:
     """Run benchmark ``b`` writing ``path``; (status, time stamps and load around the run)."""
-    run: dict[str, Any] = {"started": utc_now(), "loadavg_start": _loadavg()}
+    run: dict[str, Any] = {"started": utc_now(), "loadavg_start": loadavg()}
     if b.root and os.geteuid() != 0:
         print(f"run_all: {b.name} skipped: needs root (veth pairs, raw sockets)", file=sys.stderr)
         return "skipped: needs root", run
@@ -114,7 +110,7 @@ def run_one(b: Benchmark, quick: bool, path: Path) -> tuple[str, dict[str, Any]]
     print(f"run_all: {b.name}: {' '.join(argv[1:])}", file=sys.stderr, flush=True)
     t0_wall, t0 = time.time(), time.monotonic()
     rc = subprocess.run(argv, cwd=ROOT, stdout=subprocess.DEVNULL).returncode
-    run.update(finished=utc_now(), seconds=round(time.monotonic() - t0, 1), loadavg_end=_loadavg(),
+    run.update(finished=utc_now(), seconds=round(time.monotonic() - t0, 1), loadavg_end=loadavg(),
                argv=argv[2:])
     if rc != 0:
         status = f"failed (exit {rc})"
@@ -129,7 +125,7 @@ def run_one(b: Benchmark, quick: bool, path: Path) -> tuple[str, dict[str, Any]]
 def collect(quick: bool, only: set[str] | None, summarize_only: bool, out: Path) -> dict[str, Any]:
     """Run the selected benchmarks; the summary of this invocation."""
     summary: dict[str, Any] = {"time": utc_now(), "mode": "quick" if quick else "full", "cpus": os.cpu_count(),
-                               "loadavg_start": _loadavg(), "rows": []}
+                               "loadavg_start": loadavg(), "rows": []}
     for b in BENCHMARKS:
         path = out / f"bench_{b.name}.json"
         if summarize_only or (only is not None and b.name not in only):
@@ -142,7 +138,7 @@ def collect(quick: bool, only: set[str] | None, summarize_only: bool, out: Path)
         status, run = run_one(b, quick, path)
         data = _load(path) if status == s.OK else None
         summary["rows"].append(s.build_row(b.name, b.what, status, data, b.figures, b.targets, run, b.headline))
-    summary["loadavg_end"] = _loadavg()
+    summary["loadavg_end"] = loadavg()
     summary["targets"] = s.overall(summary["rows"])
     return summary
 

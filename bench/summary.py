@@ -29,6 +29,18 @@ class Target:
     note: str = ""
 
 
+def at_most(name: str, measured: float | None, limit: float, unit: str = "", note: str = "") -> Target:
+    """Target ``measured <= limit`` (undecided when nothing was measured)."""
+    return Target(name, measured, f"<= {limit:g}{unit}", None if measured is None else measured <= limit, note)
+
+
+def picked(*keys: str) -> Callable[[Mapping[str, Any]], dict[str, Any]]:
+    """A ``figures`` function: the JSON's values of ``keys`` (None where absent)."""
+    def figures(r: Mapping[str, Any]) -> dict[str, Any]:
+        return {k: r.get(k) for k in keys}
+    return figures
+
+
 def _ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 2) if a is not None and b else None
 
@@ -55,7 +67,8 @@ def build_row(name: str, what: str, status: str, data: Mapping[str, Any] | None,
             row["status"] = f"failed: JSON not readable ({type(exc).__name__}: {exc})"
             return row
         row["time"] = data.get("time")
-        row["loadavg"] = data.get("loadavg") or data.get("loadavg_1m") or data.get("load_avg_1min_at_start")
+        row["loadavg"] = (data.get("loadavg") or data.get("loadavg_1m") or data.get("load_avg_1min_at_start")
+                          or data.get("loadavg_start") or data.get("load_before"))
         row.update(read)
     elif status in (OK, STALE):
         row["status"] = f"failed: no JSON from the {'run' if status == OK else 'earlier run'}"
@@ -79,9 +92,7 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, int]:
 ECAT_MISSED_PCT_MAX = 0.1
 
 
-def ecat_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("drives", "seconds", "rtt_us", "missed", "missed_pct", "wkc_errors", "overruns",
-                                  "sim_cpu_pct")}
+ecat_figures = picked("drives", "seconds", "rtt_us", "missed", "missed_pct", "wkc_errors", "overruns", "sim_cpu_pct")
 
 
 def ecat_headline(r: Mapping[str, Any]) -> str:
@@ -269,9 +280,8 @@ def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
 AUDIT_RATIO_MAX = 1.0
 
 
-def trust_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("command_existing_us", "command_audit_us", "audit_ratio", "status_encode_us",
-                                  "error_text_us", "error_text_ratio", "loadavg_start")}
+trust_figures = picked("command_existing_us", "command_audit_us", "audit_ratio", "status_encode_us", "error_text_us",
+                       "error_text_ratio", "loadavg_start")
 
 
 def trust_headline(r: Mapping[str, Any]) -> str:
@@ -282,8 +292,7 @@ def trust_headline(r: Mapping[str, Any]) -> str:
 
 def trust_targets(r: Mapping[str, Any]) -> list[Target]:
     ratio = r.get("audit_ratio")
-    return [Target("audit trail / existing per-command gateway work", ratio, f"<= {AUDIT_RATIO_MAX}",
-                   None if ratio is None else ratio <= AUDIT_RATIO_MAX)]
+    return [at_most("audit trail / existing per-command gateway work", ratio, AUDIT_RATIO_MAX)]
 
 
 # ---- the README table -----------------------------------------------------------------------------
@@ -351,11 +360,9 @@ def canopen_targets(r: Mapping[str, Any]) -> list[Target]:
         return []
     ratio = v["ratios"].get("agent_p999_jitter_over_bare")
     missed = v["agent"]["tpdos_missed_pct"]
-    return [Target("4 ms SYNC: jitter p99.9 agent / bare", ratio, f"<= {CANOPEN_JITTER_RATIO_MAX} x",
-                   None if ratio is None else ratio <= CANOPEN_JITTER_RATIO_MAX),
+    return [at_most("4 ms SYNC: jitter p99.9 agent / bare", ratio, CANOPEN_JITTER_RATIO_MAX, " x"),
             Target("4 ms SYNC: TPDOs missed %", missed, f"< {CANOPEN_MISSED_PCT_MAX}", missed < CANOPEN_MISSED_PCT_MAX)]
-def security_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {"enable": r.get("enable"), "fanin": r.get("fanin"), "summary": r.get("summary")}
+security_figures = picked("enable", "fanin", "summary")
 
 
 def security_headline(r: Mapping[str, Any]) -> str:
@@ -375,7 +382,7 @@ def security_targets(r: Mapping[str, Any]) -> list[Target]:
     for key, name in (("enable_wall_p50_ratio", "TLS+ACL / TCP: 16-drive enable wall p50"),
                       ("fanin_watcher_cpu_per_msg_ratio", "TLS+ACL / TCP: fan-in watcher CPU per message")):
         v = sm.get(key)
-        out.append(Target(name, v, f"<= {limit}", None if v is None else v <= limit))
+        out.append(at_most(name, v, limit))
     missed = sm.get("fanin_missed", {})
     out.append(Target("fan-in missed, both transports", missed, 0,
                       bool(missed) and all(m == 0 for m in missed.values())))
@@ -392,9 +399,8 @@ RECORDER_CALL_PCT_MAX = 2.0
 DASHBOARD_CHANGE_MS_MAX = 1000.0
 
 
-def recorder_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("off", "on", "ratio_on_off", "record_call_us", "record_call_pct_of_period",
-                                  "memory_bytes", "loadavg_start")}
+recorder_figures = picked("off", "on", "ratio_on_off", "record_call_us", "record_call_pct_of_period", "memory_bytes",
+                          "loadavg_start")
 
 
 def recorder_headline(r: Mapping[str, Any]) -> str:
@@ -407,16 +413,12 @@ def recorder_headline(r: Mapping[str, Any]) -> str:
 def recorder_targets(r: Mapping[str, Any]) -> list[Target]:
     ratio = (r.get("ratio_on_off") or {}).get("cpu_pct")
     pct = r.get("record_call_pct_of_period")
-    return [Target("cycle CPU with / without the recorder", ratio, f"<= {RECORDER_CPU_RATIO_MAX}",
-                   None if ratio is None else ratio <= RECORDER_CPU_RATIO_MAX),
-            Target("record() CPU per cycle, % of the period", pct, f"<= {RECORDER_CALL_PCT_MAX}",
-                   None if pct is None else pct <= RECORDER_CALL_PCT_MAX)]
+    return [at_most("cycle CPU with / without the recorder", ratio, RECORDER_CPU_RATIO_MAX),
+            at_most("record() CPU per cycle, % of the period", pct, RECORDER_CALL_PCT_MAX)]
 
 
-def dashboard_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("drives", "dashboard_cpu_idle_pct", "dashboard_cpu_changes_pct",
-                                  "change_to_page_ms", "change_to_subscriber_ms", "subscriber_missed",
-                                  "loadavg_start")}
+dashboard_figures = picked("drives", "dashboard_cpu_idle_pct", "dashboard_cpu_changes_pct", "change_to_page_ms",
+                           "change_to_subscriber_ms", "subscriber_missed", "loadavg_start")
 
 
 def dashboard_headline(r: Mapping[str, Any]) -> str:
@@ -428,5 +430,4 @@ def dashboard_headline(r: Mapping[str, Any]) -> str:
 
 def dashboard_targets(r: Mapping[str, Any]) -> list[Target]:
     worst = (r.get("change_to_page_ms") or {}).get("max")
-    return [Target("state change to the page, max", worst, f"< {DASHBOARD_CHANGE_MS_MAX:g} ms",
-                   None if worst is None else worst < DASHBOARD_CHANGE_MS_MAX)]
+    return [at_most("state change to the page, max", worst, DASHBOARD_CHANGE_MS_MAX, " ms")]

@@ -8,6 +8,7 @@ applies CLI flags and re-validates. Bad input raises :class:`ConfigError` and bu
 from __future__ import annotations
 
 import dataclasses
+import logging
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,8 @@ from bus_agent.motion.config import HomingConfig, MotionConfig, MotionConfigErro
 from bus_agent.security.exposure import exposed_endpoints, refusal
 from schemas.keys import InvalidKey, validate_name
 
+log = logging.getLogger(__name__)
+
 ZENOH_MODES = ("peer", "client", "router")
 #: What a drive does when its lease holder disappears (carried out by the gateway as a DriveCommand).
 LEASE_REACTIONS = ("quick_stop_then_disable", "quick_stop", "disable")
@@ -29,9 +32,12 @@ REFLEXES = ("quick_stop", "disable")
 SIM_PROFILES = ("generic", "indy7")
 #: Where the Zenoh gateway runs: a child process (the cycle keeps its GIL) or threads of the agent.
 GATEWAY_MODES = ("process", "thread")
-#: CAN backend: python-can interfaces and PDO policies (bus_agent/bus/canopen, docs/canopen.md).
+#: CAN backend: python-can interfaces and PDO policies (bus_agent/bus/canopen, docs/canopen.md):
+#: the EtherCAT backend's policy names (bus_agent.bus.mapping.POLICIES) but ``predefined``.
 CAN_INTERFACES = ("socketcan", "udp_multicast")
-CAN_PDO_POLICIES = ("node", "default", "explicit")
+CAN_PDO_POLICIES = tuple(p for p in POLICIES if p != "predefined")
+#: Earlier words for a policy, still read with a deprecation warning.
+CAN_PDO_ALIASES = {"node": "drive"}
 
 
 class ConfigError(ValueError):
@@ -144,7 +150,7 @@ class CanNode:
     """``[[can.nodes]]``: one CANopen node (slave position = its place in the list)."""
 
     node_id: int
-    pdo: str = "default"                       # CAN_PDO_POLICIES
+    pdo: str = "default"                       # CAN_PDO_POLICIES ("node": alias of "drive")
     eds: str | None = None                     # EDS file of the drive (names objects; optional)
     rpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per RPDO 1..4
     tpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per TPDO 1..4
@@ -159,6 +165,8 @@ class CanConfig:
     interface: str = "socketcan"
     nodes: tuple[CanNode, ...] = ()
     heartbeat_ms: int = 200
+    #: 0x1019: 0 = SYNC without data; 2..240 = SYNC carries a counter 1..N (written to every node)
+    sync_counter: int = 0
 
 
 @dataclass(frozen=True)
@@ -328,6 +336,9 @@ def _validate_can(c: CanConfig) -> None:
         raise ConfigError("can.nodes: at least one node id")
     if not 1 <= c.heartbeat_ms <= 0xFFFF:
         raise ConfigError(f"can.heartbeat_ms: {c.heartbeat_ms} must be 1..65535")
+    if isinstance(c.sync_counter, bool) or c.sync_counter != 0 and not 2 <= c.sync_counter <= 240:
+        raise ConfigError(f"can.sync_counter: {c.sync_counter} must be 0 (SYNC without counter) or 2..240 "
+                          "(0x1019: the counter runs 1..N; 1 and 241..255 are reserved)")
     seen: set[int] = set()
     for i, n in enumerate(c.nodes):
         key = f"can.nodes[{i}]"
@@ -337,7 +348,9 @@ def _validate_can(c: CanConfig) -> None:
             raise ConfigError(f"{key}.id: node {n.node_id} listed twice")
         seen.add(n.node_id)
         if n.pdo not in CAN_PDO_POLICIES:
-            raise ConfigError(f"{key}.pdo: {n.pdo!r} is not one of {', '.join(CAN_PDO_POLICIES)}")
+            why = (": 'predefined' assigns fixed EtherCAT PDOs, a CANopen node has no PDO assignment; use 'drive' "
+                   "(its own mapping)" if n.pdo == "predefined" else "")
+            raise ConfigError(f"{key}.pdo: {n.pdo!r} is not one of {', '.join(CAN_PDO_POLICIES)}{why}")
         if (n.pdo == "explicit") != bool(n.rpdo or n.tpdo):
             raise ConfigError(f"{key}: rpdo/tpdo are given exactly when pdo = \"explicit\"")
         for side, pdos in (("rpdo", n.rpdo), ("tpdo", n.tpdo)):
@@ -367,12 +380,18 @@ def _can(t: _Table) -> CanConfig:
             st = _Table(s, f"can.nodes[{i}].sdo[{j}]")
             sdos.append((st.get("index", int), st.get("subindex", int, 0), st.get("value", int), st.get("size", int)))
             st.done()
-        nodes.append(CanNode(node_id=n.get("id", int), pdo=n.get("pdo", str, "default"), eds=n.get("eds", str, None),
+        pdo = n.get("pdo", str, "default")
+        if pdo in CAN_PDO_ALIASES:
+            log.warning("can.nodes[%d].pdo: %r is deprecated, say %r (the same policy, as for EtherCAT drives)",
+                        i, pdo, CAN_PDO_ALIASES[pdo])
+            pdo = CAN_PDO_ALIASES[pdo]
+        nodes.append(CanNode(node_id=n.get("id", int), pdo=pdo, eds=n.get("eds", str, None),
                              rpdo=tuple(tuple(p) for p in n.get("rpdo", list, [])),
                              tpdo=tuple(tuple(p) for p in n.get("tpdo", list, [])), startup_sdos=tuple(sdos)))
         n.done()
     cfg = CanConfig(channel=t.get("channel", str), interface=t.get("interface", str, "socketcan"),
-                    nodes=tuple(nodes), heartbeat_ms=t.get("heartbeat_ms", int, 200))
+                    nodes=tuple(nodes), heartbeat_ms=t.get("heartbeat_ms", int, 200),
+                    sync_counter=t.get("sync_counter", int, 0))
     t.done()
     return cfg
 

@@ -117,6 +117,8 @@ ERROR_CODES: dict[int, str] = {
     0x8200: "protocol error",
     0x8210: "PDO not processed due to length error",
     0x8220: "PDO length exceeded",
+    0x8240: "unexpected SYNC data length",
+    0x8250: "RPDO timeout",
     0x8300: "torque control",
     0x8311: "excess torque",
     0x8312: "difficult start-up",

@@ -2,6 +2,7 @@
 
     drives-twin --fleet fleet.toml                        # router on a free loopback port
     drives-twin --fleet fleet.toml --listen tcp/127.0.0.1:7447 --backend ecat   # root
+    drives-twin --cleanup                                 # what twins killed with SIGKILL left
 
 Starts a router and one bus agent per host of the fleet file with exactly its host, axis and
 group names (``twin.Twin``), waits until every expected drive answers and prints one line::
@@ -21,8 +22,11 @@ with one line ``ok <detail>`` or ``error <reason>``::
 
 SIGINT or SIGTERM stops everything cleanly (agents' ordered shutdown first; no process, veth or
 namespace left). If a child exits unasked, the twin says which on stderr, stops everything and
-exits 1. Exit codes: 0 stopped on request; 1 a child died; 2 bad command line or fleet file;
-3 start-up failed (a child did not start or a drive did not answer in time).
+exits 1. SIGKILL cannot be handled: the children die with the twin all the same (parent-death
+signal), and the next start or ``drives-twin --cleanup`` removes the work directory and the ecat
+backend's namespaces it left. Exit codes: 0 stopped on request; 1 a child died; 2 bad command
+line or fleet file (``--cleanup``: something could not be removed); 3 start-up failed (a child
+did not start or a drive did not answer in time).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from typing import Callable, Sequence
 from supervisor.fleetfile import FleetFileError
 
 from .plan import BACKENDS, PlanError
+from .stale import clean_stale
 from .twin import READY_TIMEOUT_S, Twin, TwinError
 
 EXIT_OK, EXIT_CHILD_DIED, EXIT_USAGE, EXIT_STARTUP = 0, 1, 2, 3
@@ -47,7 +52,10 @@ EXIT_OK, EXIT_CHILD_DIED, EXIT_USAGE, EXIT_STARTUP = 0, 1, 2, 3
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="drives-twin", description="Run a simulated twin of a fleet file: a Zenoh "
                                 "router and one bus agent per host, with fault injection on standard input.")
-    p.add_argument("--fleet", required=True, metavar="TOML", help="the fleet file ([hosts.NAME] axes = [...], [groups])")
+    p.add_argument("--fleet", metavar="TOML", help="the fleet file ([hosts.NAME] axes = [...], [groups])")
+    p.add_argument("--cleanup", action="store_true",
+                   help="only remove what twins killed with SIGKILL left (work directories; namespaces and "
+                        "veth pairs of the ecat backend, as root) and exit; every start does this too")
     p.add_argument("--listen", metavar="EP", help="the router's endpoint for supervisors (default: a free loopback port)")
     p.add_argument("--backend", choices=BACKENDS, default="sim",
                    help="sim: in-process drive models (no root); ecat: pysoem against ecat-sim per host namespace (root)")
@@ -134,9 +142,16 @@ def _serve_stdin(twin: Twin, stop: threading.Event) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.cleanup:
+        done = clean_stale()
+        print("\n".join(done) or "drives-twin cleanup: nothing left by a dead twin", flush=True)
+        return EXIT_USAGE if any(line.startswith(("kept", "could not")) for line in done) else EXIT_OK
+    if not args.fleet:
+        parser.error("--fleet is required (or --cleanup)")
     stop = threading.Event()
     died: list[str] = []
 

@@ -15,7 +15,8 @@ A monitor thread watches the children: one that exits without being asked to is 
 :attr:`Twin.unexpected_exits` and reported through ``on_unexpected_exit`` (the CLI then stops
 everything). :meth:`stop` stops agents first (their ordered shutdown), then simulators and the
 router, closes the links and removes namespaces and the work directory; it is idempotent and runs
-also after a failed start.
+also after a failed start. Every child dies with the twin's process (``bus_agent.sim.child``); what
+a SIGKILLed twin leaves (work directory, namespaces) the next start removes (``twin.stale``).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from schemas.messages import DriveStatus
 from .ecat import EcatHost, ecat_down, ecat_plan, ecat_up, prerequisites
 from .plan import BACKENDS, HostPlan, PlanError, check_host, parse_ref, plan
 from .relay import RelayHub
+from .stale import WORKDIR_PREFIX, clean_stale, write_owner
 
 log = logging.getLogger(__name__)
 
@@ -110,8 +112,12 @@ class Twin:
         if self.backend == "ecat" and (why := prerequisites()):
             raise TwinError(why)
         self.started_monotonic = time.monotonic()
-        self.workdir = tempfile.mkdtemp(prefix="drives-twin-")
+        clean_stale()  # what a SIGKILLed twin left (work directory, namespaces): it may block our names
+        self.workdir = tempfile.mkdtemp(prefix=WORKDIR_PREFIX)
+        if self.backend == "ecat":
+            self.ecat_hosts = {h: ecat_plan(self.prefix, i + 1) for i, h in enumerate(self.expected.hosts)}
         try:
+            write_owner(self.workdir, self.ecat_hosts)  # before any namespace exists
             self._start()
         except BaseException:
             self.stop()
@@ -123,8 +129,6 @@ class Twin:
         self._hub = RelayHub()
         links = {h: self._hub.add(h, os.path.join(self.workdir, f"{h}.link"), self.router_socket)
                  for h in self.expected.hosts}
-        if self.backend == "ecat":
-            self.ecat_hosts = {h: ecat_plan(self.prefix, i + 1) for i, h in enumerate(self.expected.hosts)}
         self.plans = {p.name: p for p in plan(self.expected, self.backend, {h: r.endpoint for h, r in links.items()},
                                               {h: e.master for h, e in self.ecat_hosts.items()})}
         self.router = self._spawn_router()

@@ -8,7 +8,13 @@ A mapping entry is the CoE u32 ``index << 16 | subindex << 8 | bit length``; ind
 and still takes its bits. Outputs (RxPDO, SM2) and inputs (TxPDO, SM3) each start at bit 0 of
 the slave's process image and accumulate in assignment order.
 
-Mapping policies (``[drives.mapping] policy = ...`` in the agent's TOML):
+The CANopen backend (bus_agent/bus/canopen) builds the same :class:`SlaveMapping` from its
+PDOs (mapping objects 0x1600+n / 0x1A00+n, each carried by one CAN frame of at most 8 bytes
+under the COB-ID in :attr:`SlaveMapping.cob_ids`): ``layout(..., pdo_bytes=True)`` starts every
+PDO on a byte, so each frame is one slice of the process image (:func:`pdo_spans`).
+
+Mapping policies (``[drives.mapping] policy = ...`` in the agent's TOML; on CAN ``pdo = ...``
+per node, without ``predefined``):
 
 - ``drive`` (default): read and use the drive's own mapping; refused when it lacks a required
   object (0x6040 in the outputs, 0x6041 in the inputs).
@@ -166,6 +172,8 @@ class SlaveMapping:
     tx_pdos: tuple[int, ...]
     rx: tuple[MappedEntry, ...]
     tx: tuple[MappedEntry, ...]
+    #: CAN: (PDO mapping index, COB-ID) of every PDO; empty on EtherCAT (PDOs go by sync manager).
+    cob_ids: tuple[tuple[int, int], ...] = ()
 
     @property
     def out_bits(self) -> int:
@@ -190,8 +198,9 @@ class SlaveMapping:
         return any(e.key == (index, subindex) for e in self.tx)
 
 
-def layout(pdos: Sequence[tuple[int, Sequence[int]]]) -> tuple[MappedEntry, ...]:
-    """Entries with bit offsets, in assignment order, from ``(pdo index, [u32 entries])``."""
+def layout(pdos: Sequence[tuple[int, Sequence[int]]], pdo_bytes: bool = False) -> tuple[MappedEntry, ...]:
+    """Entries with bit offsets, in assignment order, from ``(pdo index, [u32 entries])``.
+    ``pdo_bytes`` (CAN: one frame per PDO): a padding entry fills each PDO to a whole byte."""
     out = []
     offset = 0
     for pdo, entries in pdos:
@@ -199,11 +208,32 @@ def layout(pdos: Sequence[tuple[int, Sequence[int]]]) -> tuple[MappedEntry, ...]
             index, sub, bits = split_entry(raw)
             out.append(MappedEntry(index, sub, bits, offset, pdo))
             offset += bits
+        if pdo_bytes and offset % 8:
+            out.append(MappedEntry(0, 0, 8 - offset % 8, offset, pdo))
+            offset += 8 - offset % 8
     return tuple(out)
 
 
-def mapping_of(rx: Sequence[tuple[int, Sequence[int]]], tx: Sequence[tuple[int, Sequence[int]]]) -> SlaveMapping:
-    return SlaveMapping(tuple(p for p, _ in rx), tuple(p for p, _ in tx), layout(rx), layout(tx))
+def mapping_of(rx: Sequence[tuple[int, Sequence[int]]], tx: Sequence[tuple[int, Sequence[int]]],
+               cob_ids: Sequence[tuple[int, int]] = ()) -> SlaveMapping:
+    """The mapping of these PDOs; with ``cob_ids`` (CAN) every PDO starts on a byte."""
+    pdo_bytes = bool(cob_ids)
+    return SlaveMapping(tuple(p for p, _ in rx), tuple(p for p, _ in tx), layout(rx, pdo_bytes),
+                        layout(tx, pdo_bytes), tuple(cob_ids))
+
+
+def pdo_spans(entries: Sequence[MappedEntry]) -> tuple[tuple[int, int, int], ...]:
+    """``(pdo, first byte, byte count)`` of each PDO in the image, in order; for a layout whose
+    PDOs start on a byte (``pdo_bytes``), each span is what one CAN frame carries."""
+    spans: list[tuple[int, int, int]] = []
+    for e in entries:
+        end = (e.bit_offset + e.bits + 7) // 8
+        if spans and spans[-1][0] == e.pdo:
+            pdo, start, _n = spans[-1]
+            spans[-1] = (pdo, start, end - start)
+        else:
+            spans.append((e.pdo, e.bit_offset // 8, end - e.bit_offset // 8))
+    return tuple(spans)
 
 
 def _default_pdo(entries: Sequence[tuple[int, int, int, str, str]]) -> list[int]:
@@ -247,10 +277,17 @@ def check_mapping(m: SlaveMapping) -> list[str]:
 
 
 def describe(m: SlaveMapping) -> str:
-    """``RxPDO 0x1701 [6040 607A 60B8 60FE:01], TxPDO 0x1B01 [...]`` for error messages."""
+    """``RxPDO 0x1701 [6040 607A 60B8 60FE:01], TxPDO 0x1B01 [...]`` for error messages; on CAN
+    each PDO with its COB-ID: ``RxPDO 0x1600@0x201 [6040 607A 6060] 0x1601@0x301 [...]``."""
+    def items(entries: Sequence[MappedEntry]) -> str:
+        return " ".join(f"{e.index:04X}" + (f":{e.subindex:02X}" if e.subindex else "") for e in entries)
+
     def side(name: str, pdos: tuple[int, ...], entries: tuple[MappedEntry, ...]) -> str:
-        items = " ".join(f"{e.index:04X}" + (f":{e.subindex:02X}" if e.subindex else "") for e in entries)
-        return f"{name} {','.join(f'0x{p:04X}' for p in pdos) or 'none'} [{items}]"
+        if not cobs:
+            return f"{name} {','.join(f'0x{p:04X}' for p in pdos) or 'none'} [{items(entries)}]"
+        return f"{name} " + (" ".join(f"0x{p:04X}@0x{cobs.get(p, 0):03X} [{items([e for e in entries if e.pdo == p and not e.padding])}]"
+                                      for p in pdos) or "none")
+    cobs = dict(m.cob_ids)
     return side("RxPDO", m.rx_pdos, m.rx) + ", " + side("TxPDO", m.tx_pdos, m.tx)
 
 

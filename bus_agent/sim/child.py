@@ -4,6 +4,13 @@ One implementation for the loopback bed (``supervisor.testbed``), the system tes
 multi-host bed: each child runs in its own session (so a kill reaches its whole process group),
 its stdout and stderr are collected line by line for failure messages, and a readiness marker in
 its output says when it is up. Not for production.
+
+Every child dies with this process: it starts under util-linux's ``setpriv --pdeathsig KILL``
+(``prctl(PR_SET_PDEATHSIG)``, kept across the exec of the command), so a bed, a twin or a test
+run that is itself SIGKILLed leaves no orphan router, agent or simulator behind. The kernel sends
+that signal when the *thread* that forked the child ends, so children are forked on the main
+thread or on one long-lived spawner thread (a child started from a short-lived thread, such as
+a command handler, would otherwise die with that thread).
 """
 
 from __future__ import annotations
@@ -14,11 +21,28 @@ import socket
 import subprocess
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Sequence, TypeVar
 
 ROOT = Path(__file__).resolve().parents[2]
 T = TypeVar("T")
+#: Prefix of every child's argv: the child gets SIGKILL when its forking thread (see below) ends.
+DIE_WITH_PARENT = ("setpriv", "--pdeathsig", "KILL", "--")
+
+_spawner: ThreadPoolExecutor | None = None
+_spawner_lock = threading.Lock()
+
+
+def _on_lasting_thread(fn: Callable[[], T]) -> T:
+    """``fn()`` on the main thread, or on the one spawner thread that lives as long as the process."""
+    global _spawner
+    if threading.current_thread() is threading.main_thread():
+        return fn()
+    with _spawner_lock:
+        if _spawner is None:
+            _spawner = ThreadPoolExecutor(1, thread_name_prefix="child-spawner")
+    return _spawner.submit(fn).result()
 
 
 def free_port() -> int:
@@ -39,6 +63,45 @@ def wait_for(pred: Callable[[], T], timeout_s: float = 10.0, what: str = "condit
         if time.monotonic() >= deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(poll_s)
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below ``pid`` (from /proc), whatever its session; ``pid`` itself not included."""
+    children: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue  # gone meanwhile
+            children.setdefault(ppid, []).append(int(d))
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.add(c)
+            todo.append(c)
+    return out
+
+
+def running(pids: set[int]) -> set[int]:
+    """Those of ``pids`` still running (a zombie counts as gone: it runs no code)."""
+    left = set()
+    for p in pids:
+        try:
+            if Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+                left.add(p)
+        except (OSError, IndexError):
+            pass
+    return left
+
+
+def cmdline(pid: int) -> str:
+    """The command line of process ``pid`` ("" if it is gone)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""
 
 
 def child_env() -> dict[str, str]:
@@ -62,9 +125,9 @@ class ChildProcess:
         self.lines: list[str] = []
         self.stop_timed_out = False
         self._ready = threading.Event()
-        self.popen = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                      stdin=subprocess.PIPE if stdin else subprocess.DEVNULL, cwd=ROOT,
-                                      env=child_env(), start_new_session=True)
+        self.popen = _on_lasting_thread(lambda: subprocess.Popen(
+            [*DIE_WITH_PARENT, *self.argv], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL, cwd=ROOT, env=child_env(), start_new_session=True))
         self._reader = threading.Thread(target=self._pump, name=f"{name}-out", daemon=True)
         self._reader.start()
 

@@ -10,12 +10,12 @@ import re
 import signal
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-from bus_agent.sim.child import ChildProcess, wait_for
+from bus_agent.sim.child import cmdline, descendants, running, wait_for
 from supervisor.fleet import Fleet
+from tests.system.twinbed import TwinCli
 from twin import Twin, TwinError
 
 pytestmark = [pytest.mark.timeout(300)]
@@ -36,64 +36,6 @@ axes = ["belt"]
 line = ["press/feed", "conv/belt"]
 arm = ["robot/j1", "robot/j2"]
 """
-
-
-def descendants(pid: int) -> set[int]:
-    """Every live process below ``pid`` (from /proc), whatever its session."""
-    children: dict[int, list[int]] = {}
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                stat = Path(f"/proc/{d}/stat").read_text()
-            except OSError:
-                continue
-            ppid = int(stat.rsplit(")", 1)[1].split()[1])
-            children.setdefault(ppid, []).append(int(d))
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            out.add(c)
-            todo.append(c)
-    return out
-
-
-def alive(pids: set[int]) -> set[int]:
-    """Those of ``pids`` still running (zombies count as gone)."""
-    left = set()
-    for p in pids:
-        try:
-            if Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
-                left.add(p)
-        except OSError:
-            pass
-    return left
-
-
-def cmdline(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return ""
-
-
-class TwinCli(ChildProcess):
-    def __init__(self, fleet: Path, *extra: str) -> None:
-        super().__init__("drives-twin", [sys.executable, "-m", "twin.cli", "--fleet", str(fleet), *extra],
-                         ready_marker="drives-twin ready", stdin=True)
-
-    @property
-    def endpoint(self) -> str:
-        line = next(ln for ln in self.lines if ln.startswith("drives-twin ready"))
-        return dict(w.split("=", 1) for w in line.split()[2:])["endpoint"]
-
-    def command(self, line: str, timeout_s: float = 30.0) -> str:
-        n = len(self.lines)
-        assert self.popen.stdin is not None
-        self.popen.stdin.write(line + "\n")
-        self.popen.stdin.flush()
-        return wait_for(lambda: next((ln for ln in self.lines[n:] if ln.startswith(("ok ", "error "))), None),
-                        timeout_s, f"answer to {line!r}")
 
 
 @pytest.fixture
@@ -131,7 +73,7 @@ def test_cli_reproduces_the_fleet_injects_faults_and_stops_clean_on_sigterm(flee
             assert "robot/j1=switch_on_disabled" in cli.command("status")
         cli.popen.send_signal(signal.SIGTERM)
         assert cli.popen.wait(90) == 0
-        wait_for(lambda: not alive(procs), 10, "no child of the twin left")
+        wait_for(lambda: not running(procs), 10, "no child of the twin left")
         assert "drives-twin stopped" in cli.output()
     finally:
         cli.kill()
@@ -147,7 +89,29 @@ def test_cli_agent_killed_is_reported_and_everything_stops(fleet_file):
         assert cli.popen.wait(90) == 1
         out = cli.output()
         assert "bus-agent robot exited unexpectedly (exit code -9)" in out
-        wait_for(lambda: not alive(procs), 10, "no child of the twin left")
+        wait_for(lambda: not running(procs), 10, "no child of the twin left")
+    finally:
+        cli.kill()
+
+
+def test_cli_sigkilled_takes_every_child_with_it_and_cleanup_removes_its_work_directory(tmp_path):
+    two = tmp_path / "two.toml"
+    two.write_text('[hosts.k1]\naxes = ["a"]\n[hosts.k2]\naxes = ["b"]\n')
+    cli = TwinCli(two)
+    try:
+        cli.expect_ready(120)
+        procs = descendants(cli.pid)  # router, two agents, their gateway processes
+        assert sum("bus_agent.cli" in cmdline(p) for p in procs) == 2 and len(procs) >= 5
+        workdir = cli.workdir()
+        os.kill(cli.pid, signal.SIGKILL)  # no handler runs: nothing is stopped in order
+        cli.popen.wait(10)
+        wait_for(lambda: not running(procs), 20, f"no child of the SIGKILLed twin left ({running(procs)})")
+        assert workdir.is_dir()  # only the next start or --cleanup can remove it
+        done = subprocess.run([sys.executable, "-m", "twin.cli", "--cleanup"], capture_output=True, text=True,
+                              timeout=60)
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert f"removed work directory {workdir} of dead twin {cli.pid}" in done.stdout
+        assert not workdir.exists()
     finally:
         cli.kill()
 
@@ -175,7 +139,7 @@ def test_cli_bad_fleet_failed_start_and_sigint(tmp_path, fleet_file):
         procs = descendants(cli.pid)
         cli.popen.send_signal(signal.SIGINT)
         assert cli.popen.wait(90) == 0
-        wait_for(lambda: not alive(procs), 10, "no child of the twin left")
+        wait_for(lambda: not running(procs), 10, "no child of the twin left")
     finally:
         cli.kill()
 
@@ -221,5 +185,5 @@ def test_twin_cut_restore_kill_restart_and_repeated_start_stop():
                 assert twin.unexpected_exits == exits
             workdir = twin.workdir
         assert not os.path.exists(workdir)
-        wait_for(lambda: not alive(pids), 10, "the twin's processes gone")
+        wait_for(lambda: not running(pids), 10, "the twin's processes gone")
     assert not seen[0] & seen[1]  # separate runs

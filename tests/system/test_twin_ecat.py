@@ -1,6 +1,7 @@
 """drives-twin's ecat backend (root): each host a network namespace with its own veth pair, ecat-sim on
 one end and the agent's pysoem on the other; faults through ecat-sim; nothing left after a stop,
-also when an agent died first."""
+also when an agent died first; a twin killed with SIGKILL takes its children with it, and the next
+start removes the namespace it left."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import subprocess
 
 import pytest
 
-from bus_agent.sim.child import wait_for
+from bus_agent.sim.child import descendants, running, wait_for
 from tests.conftest import require, require_root
+from tests.system.twinbed import TwinCli
 from twin import Twin
 
 pytestmark = [pytest.mark.timeout(240), pytest.mark.root]
@@ -48,3 +50,23 @@ def test_ecat_twin_runs_pysoem_per_namespace_and_leaves_nothing():
     assert "bus-agent e1 exited unexpectedly" in exits[0]
     assert leftovers(prefix) == []
     assert not os.path.exists(twin.workdir)
+
+
+def test_ecat_twin_sigkilled_takes_its_children_and_the_next_start_removes_its_namespace(tmp_path):
+    require_root()
+    fleet = tmp_path / "fleet.toml"
+    fleet.write_text('[hosts.k1]\naxes = ["a"]\n')
+    cli = TwinCli(fleet, "--backend", "ecat")
+    try:
+        cli.expect_ready(120)
+        prefix = f"tw{cli.pid % 100000}"
+        procs = descendants(cli.pid)  # router, ecat-sim and agent (in the namespace), the gateway
+        assert len(procs) >= 4
+        os.kill(cli.pid, signal.SIGKILL)
+        cli.popen.wait(10)
+        wait_for(lambda: not running(procs), 20, f"no child of the SIGKILLed twin left ({running(procs)})")
+        assert leftovers(prefix) == [f"{prefix}h1"]  # its namespace (the veth pair inside) outlived it
+    finally:
+        cli.kill()
+    with Twin({"hosts": {"s1": {"axes": ["a"]}}}):  # any start (here the sim backend) cleans up
+        assert leftovers(prefix) == []

@@ -1,5 +1,5 @@
 """The CANopen backend's pure parts and the simulated node, without a bus: NMT table (seed 001),
-heartbeat consumer, PDO layout and codec, EMCY decoding, PDO policies against a simulated node,
+heartbeat consumer, PDO mapping and frames on the shared codec, EMCY texts, the SYNC counter, PDO policies against a simulated node,
 the node's NMT/SYNC/SDO behaviour, and the [can] configuration."""
 
 from __future__ import annotations
@@ -10,15 +10,17 @@ import pytest
 from canopen.sdo import SdoAbortedError
 
 from bus_agent.bus.base import ALState
-from bus_agent.bus.canopen import emcy, mapping as m, pdo
+from bus_agent.bus.canopen import emcy, pdo
 from bus_agent.bus.canopen.heartbeat import HeartbeatConsumer
 from bus_agent.bus.canopen.nmt import (AL_OF_NMT, NMT_FOR_AL, NmtCommand, NmtState, after_command, decode_command,
                                        decode_heartbeat, nmt_frame)
-from bus_agent.bus.pdo import DriveInputs, DriveOutputs
+from bus_agent.bus.mapping import MappingError, SlaveMapping, describe, pdo_spans
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs, mapping_entry
 from bus_agent.cli import _parser, build_config
 from bus_agent.config import ConfigError, config_from_dict
 from bus_agent.sim.canopen.node import SimNode
 from bus_agent.sim.drive_model import PROFILES
+from schemas.error_codes import describe as describe_error
 
 S, C = NmtState, NmtCommand
 
@@ -81,52 +83,86 @@ def test_heartbeat_consumer_silence_and_boot_up() -> None:
     assert hb.state(2, 2.0) is S.UNKNOWN
 
 
-# ---- PDO layout and codec -------------------------------------------------------------------------
+# ---- PDO mapping and frames (the shared SlaveMapping and DriveCodec) -----------------------------
 
-def test_default_layout_fits_frames_and_round_trips() -> None:
-    layout = m.default_layout(5)
-    assert [p.cob_id for p in layout.rpdos] == [0x205, 0x305] and [p.cob_id for p in layout.tpdos] == [0x185, 0x285]
-    assert all(p.bits <= 64 for p in layout.rpdos + layout.tpdos)
-    codec = m.Codec(layout, 5)
+def _map(rpdos, tpdos, node_id: int = 1) -> SlaveMapping:
+    """A mapping of PDO 1..n from (index, subindex, bits) triples."""
+    return pdo.pdos_mapping(node_id, [[mapping_entry(*e) for e in p] for p in rpdos],
+                            [[mapping_entry(*e) for e in p] for p in tpdos])
+
+
+def test_default_mapping_fits_frames_and_round_trips() -> None:
+    mp = pdo.default_mapping(5)
+    assert dict(mp.cob_ids) == {0x1600: 0x205, 0x1601: 0x305, 0x1A00: 0x185, 0x1A01: 0x285}
+    assert pdo_spans(mp.rx) == ((0x1600, 0, 7), (0x1601, 7, 6)) and pdo_spans(mp.tx) == ((0x1A00, 0, 7), (0x1A01, 7, 8))
+    frames = pdo.PdoFrames(mp)
+    assert frames.tpdo_cob_ids == (0x185, 0x285) and frames.rpdo_cob_ids == (0x205, 0x305)
     out = DriveOutputs(controlword=0x000F, target_position=-123456, target_velocity=789, target_torque=-5,
                        modes_of_operation=8)
-    frames = codec.rpdo_frames(out)
-    values: dict = {}
-    for (cob, data), p in zip(frames, layout.rpdos):
-        assert cob == p.cob_id and len(data) * 8 == p.bits
-        values.update(m.decode_pdo(p.entries, data, m.RX_OBJECTS))
-    assert m.Codec.outputs_from(values) == out
+    sent = frames.rpdo_frames(out)
+    assert sent == [(0x205, struct.pack("<Hib", 0x000F, -123456, 8)), (0x305, struct.pack("<ih", 789, -5))]
+    node = _node(5)                                                  # the device side reads them back
+    node.on_frame(0x000, nmt_frame(C.START, 5), 0.0)
+    for cob, data in sent:
+        node.on_frame(cob, data, 0.0)
+    assert node._pending == {(0x6040, 0): 0x000F, (0x607A, 0): -123456, (0x6060, 0): 8, (0x60FF, 0): 789,
+                             (0x6071, 0): -5}
     inputs = DriveInputs()
-    assert codec.apply_tpdo(0x185, struct.pack("<HiB", 0x1637, -42, 8), inputs)
-    assert codec.apply_tpdo(0x285, struct.pack("<ihH", 1000, -7, 0x8611), inputs)
+    assert frames.store_tpdo(0x185, struct.pack("<HiB", 0x1637, -42, 8))
+    assert frames.store_tpdo(0x285, struct.pack("<ihH", 1000, -7, 0x8611))
+    frames.decode_into(inputs)
     assert inputs == DriveInputs(0x1637, -42, 1000, -7, 8, 0x8611)
-    assert not codec.apply_tpdo(0x186, b"\0" * 8, inputs)      # another node's
-    assert not codec.apply_tpdo(0x185, b"\0\0", inputs)        # too short: nothing changes
+    assert not frames.store_tpdo(0x186, b"\0" * 8)                  # another node's
+    assert not frames.store_tpdo(0x185, b"\0\0")                    # too short: nothing changes
+    frames.decode_into(inputs)
     assert inputs.statusword == 0x1637
+    assert frames.codec.absent_inputs == () and frames.codec.extra_names == ()
+
+
+def test_a_pdo_ends_on_a_byte_and_objects_outside_the_cycle_are_carried_as_on_ethercat() -> None:
+    # TPDO1: statusword + a 4-bit manufacturer object (padded to 3 bytes); TPDO2: position, digital inputs
+    mp = _map([[(0x6040, 0, 16), (0x60B8, 0, 16)]], [[(0x6041, 0, 16), (0x2001, 0, 4)], [(0x6064, 0, 32), (0x60FD, 0, 32)]])
+    assert pdo_spans(mp.tx) == ((0x1A00, 0, 3), (0x1A01, 3, 8))
+    frames = pdo.PdoFrames(mp)
+    frames.store_tpdo(0x181, b"\x37\x02\x0f")
+    frames.store_tpdo(0x281, struct.pack("<iI", -5, 0x00010000))
+    inputs = DriveInputs()
+    frames.decode_into(inputs)
+    assert (inputs.statusword, inputs.position_actual, inputs.extra) == (0x0237, -5, (0x00010000,))
+    assert frames.codec.extra_names == ("digital_inputs",)           # decoded by name, as on EtherCAT
+    assert set(frames.codec.absent_inputs) == {"velocity", "torque", "mode_display", "error_code"}
+    assert frames.rpdo_frames(DriveOutputs(controlword=6)) == [(0x201, struct.pack("<HH", 6, 0))]  # 0x60B8: 0
+    assert "TxPDO 0x1A00@0x181 [6041 2001] 0x1A01@0x281 [6064 60FD]" in describe(mp)
 
 
 @pytest.mark.parametrize("rpdos,tpdos,why", [
-    ((((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32)),), (((0x6041, 0, 16),),), "carries 64"),
-    ((((0x6040, 0, 16), (0x6041, 0, 16)),), (((0x6041, 0, 16),),), "does not exchange"),
-    ((((0x6040, 0, 32),),), (((0x6041, 0, 16),),), "the object has 16"),
-    ((((0x607A, 0, 32),),), (((0x6041, 0, 16),),), "controlword"),
-    ((((0x6040, 0, 16),),), (((0x6064, 0, 32),),), "statusword"),
-    ((((0x6040, 0, 16),), ((0x6040, 0, 16),)), (((0x6041, 0, 16),),), "mapped twice"),
+    ([[(0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32)]], [[(0x6041, 0, 16)]], "maps 80 bits, a CAN frame carries 64"),
+    ([[(0x607A, 0, 32)]], [[(0x6041, 0, 16)]], "0x6040 .controlword. is not in the outputs"),
+    ([[(0x6040, 0, 16)]], [[(0x6064, 0, 32)]], "0x6041 .statusword. is not in the inputs"),
+    ([[(0x6040, 0, 16)], [(0x6040, 0, 16)]], [[(0x6041, 0, 16)]], "0x6040:00 is mapped twice in the RPDOs"),
 ])
-def test_layouts_the_cycle_cannot_use_are_refused_with_the_reason(rpdos, tpdos, why) -> None:
-    layout = m.Layout(tuple(m.PdoMap(0x201 + 0x100 * i, e) for i, e in enumerate(rpdos)),
-                      tuple(m.PdoMap(0x181 + 0x100 * i, e) for i, e in enumerate(tpdos)))
-    with pytest.raises(m.LayoutError, match=why):
-        m.Codec(layout, 1)
+def test_mappings_the_cycle_cannot_use_are_refused_with_the_reason(rpdos, tpdos, why) -> None:
+    with pytest.raises(MappingError, match=why):
+        pdo.PdoFrames(_map(rpdos, tpdos))
+    node = _node(1)
+    read, write = _sdo(node)
+    with pytest.raises(MappingError, match=f"node 1: PDO policy 'explicit': .*{why}"):
+        pdo.mapping_for("explicit", 1, read, write, _map(rpdos, tpdos))
+    assert pdo.read_mapping(read) == pdo.default_mapping(1)         # refused before anything was written
+    with pytest.raises(MappingError, match="5 RPDOs, the pre-defined connection set has RPDO 1..4"):
+        _map([[(0x6040, 0, 16)]] * 5, [[(0x6041, 0, 16)]])
 
 
-def test_emcy_decoding_and_texts() -> None:
+def test_emcy_decoding_and_texts_from_the_one_table() -> None:
     e = emcy.decode(3, emcy.encode(0x8130, 0x11))
     assert (e.node_id, e.error_code, e.error_register, e.reset) == (3, 0x8130, 0x11, False)
-    assert e.text == "life guard error or heartbeat error"
-    assert emcy.decode(3, b"\x00\x00\x00").reset
-    assert emcy.error_text(0x2311) == "current" and emcy.error_text(0x8611) == "following error"
-    assert emcy.error_text(0xAB00).startswith("unknown error code")
+    assert e.text == "life guard error or heartbeat error" == describe_error(0x8130)
+    assert emcy.decode(3, b"\x00\x00\x00").reset and emcy.decode(3, b"").text == "error reset or no error"
+    assert emcy.error_text(0x2310) == "continuous over-current" and emcy.error_text(0x8611) == "following error"
+    assert emcy.error_text(0x8240) == "unexpected SYNC data length"
+    assert emcy.error_text(0x2399) == "current, device output side (0x2399)"      # unknown: its sub-class
+    assert emcy.error_text(0x6A12) == "device software (0x6A12)"                  # unknown: its class
+    assert emcy.error_text(0xFF42) == "manufacturer-specific error (0xFF42)"
 
 
 # ---- the simulated node, and the PDO policies against it ------------------------------------------
@@ -139,19 +175,20 @@ def _sdo(node: SimNode):
     return (lambda i, s: node.get_data(i, s)), (lambda i, s, d: node.set_data(i, s, d))
 
 
-def test_policy_node_reads_the_default_mapping_the_node_powers_up_with() -> None:
+def test_policy_drive_reads_the_default_mapping_the_node_powers_up_with() -> None:
     node = _node(4)
     read, write = _sdo(node)
-    assert pdo.layout_for("node", 4, read, write) == m.default_layout(4)
+    assert pdo.mapping_for("drive", 4, read, write) == pdo.default_mapping(4)
+    with pytest.raises(MappingError, match="'node' is not one of drive, default, explicit"):
+        pdo.mapping_for("node", 4, read, write)                      # the old word: only in TOML, translated
 
 
 def test_policy_explicit_is_written_and_used_by_the_node() -> None:
     node = _node(2)
     read, write = _sdo(node)
-    explicit = m.Layout(rpdos=(m.PdoMap(0x202, ((0x6040, 0, 16), (0x6060, 0, 8))),),
-                        tpdos=(m.PdoMap(0x182, ((0x6041, 0, 16), (0x603F, 0, 16), (0x6061, 0, 8))),))
-    assert pdo.layout_for("explicit", 2, read, write, explicit) == explicit
-    assert pdo.read_layout(read) == explicit                       # read back from the node
+    explicit = _map([[(0x6040, 0, 16), (0x6060, 0, 8)]], [[(0x6041, 0, 16), (0x603F, 0, 16), (0x6061, 0, 8)]], 2)
+    assert pdo.mapping_for("explicit", 2, read, write, explicit) == explicit
+    assert pdo.read_mapping(read) == explicit                      # read back from the node
     node.on_frame(0x000, nmt_frame(C.START, 2), 0.0)
     node.on_frame(0x202, struct.pack("<Hb", 0x0006, 8), 0.01)
     frames = node.on_frame(0x080, b"", 0.02)
@@ -160,20 +197,45 @@ def test_policy_explicit_is_written_and_used_by_the_node() -> None:
     sw, code, _mode = struct.unpack("<HHb", tpdos[0][1])            # 5 bytes, in the explicit order
     assert code == 0 and sw == node.model.statusword
     with pytest.raises(SdoAbortedError) as e:                      # operational: mapping locked
-        pdo.layout_for("default", 2, read, write)
+        pdo.mapping_for("default", 2, read, write)
     assert e.value.code == 0x08000022
-    assert pdo.read_layout(read) == explicit                       # nothing changed
+    assert pdo.read_mapping(read) == explicit                      # nothing changed
+
+
+def test_sync_counter_checked_by_the_node() -> None:
+    node = _node(6)
+    read, write = _sdo(node)
+    for bad in (1, 241):
+        with pytest.raises(SdoAbortedError) as e:
+            write(0x1019, 0, bytes((bad,)))
+        assert e.value.code == 0x06090030                          # reserved values
+    write(0x1019, 0, b"\x03")
+    node.on_frame(0x000, nmt_frame(C.START, 6), 0.0)
+    t = 0.0
+    for counter in (2, 3, 1, 2, 3, 1):                             # any start, then 1..3 in turn
+        t += 0.01
+        node.on_frame(0x080, bytes((counter,)), t)
+    assert (node.counters["sync_counter_errors"], node.counters["sync_length_errors"]) == (0, 0)
+    node.on_frame(0x080, b"\x03", t + 0.01)                         # 2 expected
+    assert node.counters["sync_counter_errors"] == 1 and node.last_sync_counter == 3
+    emcys = [f for k in range(3) for f in node.on_frame(0x080, b"", t + 0.02 + k / 100) if f[0] == 0x086]
+    assert emcys == [(0x086, emcy.encode(0x8240, 0))]              # one EMCY for a run of wrong lengths
+    assert node.counters["sync_length_errors"] == 3
+    node.on_frame(0x000, nmt_frame(C.RESET_COMMUNICATION, 6), t + 0.1)
+    assert read(0x1019, 0) == b"\x00"                              # reset: SYNC without data again
+    node.on_frame(0x080, b"", t + 0.2)
+    assert node.counters["sync_length_errors"] == 3
 
 
 def test_pdo_configuration_is_refused_in_operational_and_needs_count_zero() -> None:
     node = _node(1)
     read, write = _sdo(node)
     with pytest.raises(SdoAbortedError) as e:
-        write(0x1A00, 1, struct.pack("<I", m.mapping_value((0x6041, 0, 16))))
+        write(0x1A00, 1, struct.pack("<I", mapping_entry(0x6041, 0, 16)))
     assert e.value.code == 0x06010000                              # sub 0 must be 0 first
     write(0x1A00, 0, b"\x00")
     with pytest.raises(SdoAbortedError) as e:
-        write(0x1A00, 2, struct.pack("<I", m.mapping_value((0x6065, 0, 32))))  # not PDO-mappable
+        write(0x1A00, 2, struct.pack("<I", mapping_entry(0x6065, 0, 32)))  # not PDO-mappable
     assert e.value.code == 0x06040041
     node.on_frame(0x000, nmt_frame(C.START, 1), 0.0)
     with pytest.raises(SdoAbortedError) as e:
@@ -223,8 +285,9 @@ def test_node_sdo_identity_and_refusals() -> None:
 
 # ---- configuration --------------------------------------------------------------------------------
 
-def test_can_table_and_flags() -> None:
+def test_can_table_and_flags(caplog: pytest.LogCaptureFixture) -> None:
     cfg = config_from_dict({"host": "c1", "can": {"channel": "can0", "interface": "socketcan", "heartbeat_ms": 50,
+                                                  "sync_counter": 240,
                                                   "nodes": [1, {"id": 2, "pdo": "node", "eds": "d.eds"},
                                                             {"id": 3, "pdo": "explicit",
                                                              "rpdo": [[0x60400010]], "tpdo": [[0x60410010]],
@@ -232,6 +295,8 @@ def test_can_table_and_flags() -> None:
     assert cfg.backend == "canopen" and cfg.can is not None
     assert [n.node_id for n in cfg.can.nodes] == [1, 2, 3] and cfg.can.nodes[1].eds == "d.eds"
     assert cfg.can.nodes[2].startup_sdos == ((0x605A, 0, 5, 2),)
+    assert [n.pdo for n in cfg.can.nodes] == ["default", "drive", "explicit"] and cfg.can.sync_counter == 240
+    assert "can.nodes[1].pdo: 'node' is deprecated, say 'drive'" in caplog.text   # the old word, translated
     args = _parser().parse_args(["--can", "239.1.1.1", "--can-interface", "udp_multicast", "--nodes", "1,2,0x7f",
                                  "--host", "c2"])
     flags = build_config(args)
@@ -246,6 +311,9 @@ def test_can_table_and_flags() -> None:
     ({"channel": "c", "nodes": [1], "interface": "vcan"}, "is not one of"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "mine"}]}, "pdo"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "explicit"}]}, "explicit"),
+    ({"channel": "c", "nodes": [{"id": 1, "pdo": "predefined"}]}, "a CANopen node has no PDO assignment; use 'drive'"),
+    ({"channel": "c", "nodes": [1], "sync_counter": 1}, "can.sync_counter: 1 must be 0 .* or 2..240"),
+    ({"channel": "c", "nodes": [1], "sync_counter": 241}, "can.sync_counter: 241"),
     ({"channel": "c", "nodes": [1], "speed": 5}, "can.speed: unknown key"),
 ])
 def test_can_configuration_errors_name_the_key(can: dict, why: str) -> None:
@@ -268,4 +336,4 @@ def test_the_can_example_configuration_loads() -> None:
     from bus_agent.config import load_config
 
     cfg = load_config(Path(__file__).resolve().parents[2] / "deploy" / "agent.can.example.toml")
-    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "node", "explicit"]
+    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "drive", "explicit"]

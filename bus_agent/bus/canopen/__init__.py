@@ -2,8 +2,9 @@
 
 One module per CANopen service (CiA 301), as python-canopen arranges them: ``nmt`` (commands,
 states, the NMT slave transition table), ``heartbeat`` (the consumer), ``emcy`` (decoding),
-``mapping`` (the PDO layout and its codec), ``sdo`` and ``pdo`` (adapters over python-canopen's
-SDO client), and ``bus`` (:class:`~bus_agent.bus.canopen.bus.CanopenBus`, the Bus protocol).
-``nmt``, ``heartbeat``, ``emcy`` and ``mapping`` are pure (no I/O); the simulator
+``cob`` (the pre-defined connection set), ``sdo`` (an adapter over python-canopen's SDO client),
+``pdo`` (the process image on the shared ``bus_agent.bus.mapping`` / ``codec``, its policies and
+frames), and ``bus`` (:class:`~bus_agent.bus.canopen.bus.CanopenBus`, the Bus protocol).
+``nmt``, ``heartbeat``, ``emcy`` and ``cob`` are pure (no I/O); the simulator
 (``bus_agent.sim.canopen``) uses them for the device side too.
 """

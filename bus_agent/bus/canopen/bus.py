@@ -7,8 +7,8 @@ is reported as an AL state (:data:`bus_agent.bus.canopen.nmt.AL_OF_NMT`).
 
 Start-up (not cycle-safe): ``open`` identifies every node by SDO (0x1018, 0x1008, retried until
 ``boot_timeout_s``) and sends it to pre-operational; ``start`` writes the heartbeat time (0x1017),
-applies the PDO policy per node (:mod:`bus_agent.bus.canopen.pdo`), builds one codec per node and
-starts the nodes (NMT start), waiting for their heartbeats to say operational.
+applies the PDO policy per node (:mod:`bus_agent.bus.canopen.pdo`), builds one codec per node (the
+EtherCAT backend's :class:`~bus_agent.bus.codec.DriveCodec`, sliced into frames) and starts the nodes (NMT start), waiting for their heartbeats to say operational.
 
 Cycle-safe: ``exchange`` takes the TPDOs received since the previous call (the answers to the
 previous SYNC; the working counter counts the nodes whose every TPDO came), then sends every
@@ -29,10 +29,13 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from bus_agent.bus.base import ALState, BusError, SlaveALStatus, SlaveIdentity, SlaveInfo
-from bus_agent.bus.canopen import emcy as emcy_mod, mapping as m, pdo as pdo_mod, sdo as sdo_mod
+from bus_agent.bus.canopen import emcy as emcy_mod, pdo as pdo_mod, sdo as sdo_mod
+from bus_agent.bus.canopen.cob import EMCY_COB_BASE, SYNC_COB_ID, SYNC_COUNTER_RANGE
 from bus_agent.bus.canopen.heartbeat import HeartbeatConsumer
 from bus_agent.bus.canopen.nmt import (AL_OF_NMT, BROADCAST, HEARTBEAT_COB_BASE, NMT_COB_ID, NMT_FOR_AL,
                                        NmtCommand, NmtState, nmt_frame)
+from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.mapping import MappingError, SlaveMapping, describe
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.config import CanConfig
 
@@ -49,12 +52,12 @@ SDO_TIMEOUT_S = 0.5
 
 @dataclass(frozen=True)
 class NodeConfig:
-    """One drive on the bus: node id, PDO policy (``node``/``default``/``explicit``) and the
-    explicit layout, start-up SDOs ((index, subindex, bytes) written before NMT start), EDS."""
+    """One drive on the bus: node id, PDO policy (``default``/``drive``/``explicit``) and the
+    explicit mapping, start-up SDOs ((index, subindex, bytes) written before NMT start), EDS."""
 
     node_id: int
     pdo: str = "default"
-    layout: m.Layout | None = None
+    mapping: SlaveMapping | None = None
     startup_sdos: tuple[tuple[int, int, bytes], ...] = ()
     eds: str | None = None
 
@@ -63,7 +66,7 @@ class NodeConfig:
 class _Node:
     cfg: NodeConfig
     remote: Any = None                 # canopen.RemoteNode
-    codec: m.Codec | None = None
+    frames: pdo_mod.PdoFrames | None = None
     inputs: DriveInputs = field(default_factory=DriveInputs)
     outputs: DriveOutputs = field(default_factory=DriveOutputs)
     tpdo_seq: dict[int, int] = field(default_factory=dict)   # COB-ID -> frames received
@@ -93,18 +96,24 @@ class CanopenBus:
 
     def __init__(self, channel: str, nodes: Sequence[NodeConfig | int], interface: str = "socketcan",
                  heartbeat_ms: int = DEFAULT_HEARTBEAT_MS, boot_timeout_s: float = BOOT_TIMEOUT_S,
-                 sdo_timeout_s: float = SDO_TIMEOUT_S) -> None:
+                 sdo_timeout_s: float = SDO_TIMEOUT_S, sync_counter: int = 0) -> None:
         cfgs = [n if isinstance(n, NodeConfig) else NodeConfig(int(n)) for n in nodes]
         ids = [c.node_id for c in cfgs]
         if not cfgs or len(set(ids)) != len(ids) or not all(1 <= i <= 127 for i in ids):
             raise BusError(f"CAN node ids must be distinct, 1..127, at least one: {ids}")
         if not 1 <= heartbeat_ms <= 0xFFFF:
             raise BusError(f"heartbeat time {heartbeat_ms} ms outside 1..65535")
+        if sync_counter and sync_counter not in SYNC_COUNTER_RANGE:
+            raise BusError(f"SYNC counter overflow value {sync_counter} is neither 0 nor 2..240 (0x1019)")
         self.channel = channel
         self.interface = interface
         self.heartbeat_ms = heartbeat_ms
         self.boot_timeout_s = boot_timeout_s
         self.sdo_timeout_s = sdo_timeout_s
+        self.sync_counter = sync_counter
+        # the SYNC frames' data, one per counter value (none: SYNC without data), made once
+        self._sync_data = tuple(bytes((k,)) for k in range(1, sync_counter + 1)) or (b"",)
+        self._sync_index = -1
         self._nodes = [_Node(c) for c in cfgs]
         self._by_id = {c.node_id: i for i, c in enumerate(cfgs)}
         self.heartbeats = HeartbeatConsumer(tuple(ids), heartbeat_ms / 1000.0 * HEARTBEAT_TIMEOUT_FACTOR)
@@ -134,7 +143,7 @@ class CanopenBus:
         self.heartbeats.on_frame(can_id - HEARTBEAT_COB_BASE, data, time.monotonic())
 
     def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        e = emcy_mod.decode(can_id - m.EMCY_COB_BASE, data)
+        e = emcy_mod.decode(can_id - EMCY_COB_BASE, data)
         pos = self._by_id.get(e.node_id)
         if pos is not None:
             self._nodes[pos].last_emcy = e
@@ -173,7 +182,7 @@ class CanopenBus:
                 node.remote.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
                 net.add_node(node.remote)
                 net.subscribe(HEARTBEAT_COB_BASE + nid, self._on_heartbeat)
-                net.subscribe(m.EMCY_COB_BASE + nid, self._on_emcy)
+                net.subscribe(EMCY_COB_BASE + nid, self._on_emcy)
             for pos, node in enumerate(self._nodes):
                 infos.append(self._identify(pos, node))
                 self.send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, node.cfg.node_id)
@@ -213,30 +222,35 @@ class CanopenBus:
         nid = node.cfg.node_id
         write = self._writer(node)
         sdo_mod.write_uint(write, 0x1017, 0, self.heartbeat_ms, 16)
+        if self.sync_counter:
+            sdo_mod.write_uint(write, 0x1019, 0, self.sync_counter, 8)
         try:
-            layout = pdo_mod.layout_for(node.cfg.pdo, nid, self._reader(node), write, node.cfg.layout)
-            codec = m.Codec(layout, nid)
-        except m.LayoutError as e:
+            mapping = pdo_mod.mapping_for(node.cfg.pdo, nid, self._reader(node), write, node.cfg.mapping)
+            frames = pdo_mod.PdoFrames(mapping)
+        except MappingError as e:
             raise BusError(f"CAN {self.channel}: {e}") from None
+        if node.frames is not None and node.frames.mapping != mapping:
+            raise BusError(f"CAN {self.channel}: node {nid}: its PDO mapping is not the one of start-up "
+                           f"({describe(mapping)}, was {describe(node.frames.mapping)}): not brought back")
         for index, sub, data in node.cfg.startup_sdos:
             write(index, sub, data)
-        if node.codec is not None:
-            for cob in node.codec.tpdo_cob_ids:
+        if node.frames is not None:
+            for cob in node.frames.tpdo_cob_ids:
                 self._network.unsubscribe(cob, self._on_tpdo)
                 self._tpdo_owner.pop(cob, None)
-        node.codec = codec
-        for cob in codec.tpdo_cob_ids:
+        node.frames = frames
+        for cob in frames.tpdo_cob_ids:
             self._tpdo_owner[cob] = node
             self._network.subscribe(cob, self._on_tpdo)
         self.heartbeats.configured(nid)
-        log.info("CAN %s node %d: configured, PDO policy %s: %s", self.channel, nid, node.cfg.pdo, layout.describe())
+        log.info("CAN %s node %d: configured, PDO policy %s: %s", self.channel, nid, node.cfg.pdo, describe(mapping))
 
     def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
         """Configure every node and start it (NMT start); wait until every heartbeat says
         operational. Returns the expected working counter (one per node). Raises BusError."""
         if mapping_override:
-            raise BusError(f"CAN {self.channel}: PDO mappings are configured per node (pdo = node|default|"
-                           "explicit), not through drives[].pdo")
+            raise BusError(f"CAN {self.channel}: PDO mappings are configured per node ([[can.nodes]] pdo = "
+                           "default|drive|explicit), not through [[drives]] mapping or sdo")
         if not self._opened:
             raise BusError(f"CAN {self.channel}: start() before open()")
         with self._lock:
@@ -265,36 +279,48 @@ class CanopenBus:
     # ---- cycle -----------------------------------------------------------------------------------
 
     def exchange(self) -> int:
-        """TPDOs of the previous SYNC in; RPDOs and one SYNC out. Returns the number of nodes
-        whose every TPDO arrived. Cycle-safe."""
+        """TPDOs of the previous SYNC in; RPDOs and one SYNC (carrying the next counter value
+        1..``sync_counter`` when set) out. Returns the number of nodes whose every TPDO arrived.
+        Cycle-safe."""
         wkc = 0
         for node in self._nodes:
-            codec = node.codec
-            if codec is None:
+            frames = node.frames
+            if frames is None:
                 continue
-            complete = True
-            for cob in codec.tpdo_cob_ids:
+            complete, fresh = True, False
+            for cob in frames.tpdo_cob_ids:
                 seq = node.tpdo_seq.get(cob, 0)
                 if seq != node.tpdo_seen.get(cob, 0):
                     node.tpdo_seen[cob] = seq
-                    codec.apply_tpdo(cob, node.tpdo_data[cob], node.inputs)
+                    fresh = frames.store_tpdo(cob, node.tpdo_data[cob]) or fresh
                 else:
                     complete = False
                     node.missed_tpdos += 1
+            if fresh:
+                frames.decode_into(node.inputs)
             wkc += complete
         send = self._network.send_message
         for node in self._nodes:
-            if node.codec is not None:
-                for cob, data in node.codec.rpdo_frames(node.outputs):
+            if node.frames is not None:
+                for cob, data in node.frames.rpdo_frames(node.outputs):
                     send(cob, data)
                     self.frames_sent += 1
-        send(m.SYNC_COB_ID, b"")
+        self._sync_index = (self._sync_index + 1) % len(self._sync_data)
+        send(SYNC_COB_ID, self._sync_data[self._sync_index])
         self.frames_sent += 1
         self.exchanges += 1
         return wkc
 
     def inputs(self, position: int) -> DriveInputs:
         return self._nodes[position].inputs
+
+    def codec(self, position: int) -> DriveCodec:
+        """The process-data codec of the node at ``position`` (after start()): which objects
+        its PDOs carry, as for an EtherCAT slave (the cycle serves the others by SDO)."""
+        frames = self._node(position).frames
+        if frames is None:
+            raise BusError(f"CAN {self.channel}: node at position {position} has no PDO mapping before start()")
+        return frames.codec
 
     def set_outputs(self, position: int, outputs: DriveOutputs) -> None:
         self._nodes[position].outputs = outputs
@@ -414,17 +440,12 @@ class CanopenBus:
 
 
 def canopen_bus(cfg: CanConfig) -> CanopenBus:
-    """The backend of a ``[can]`` configuration (an explicit layout gets the pre-defined COB-IDs)."""
+    """The backend of a ``[can]`` configuration (an explicit mapping gets the pre-defined COB-IDs)."""
     nodes = []
     for n in cfg.nodes:
-        layout = None
-        if n.pdo == "explicit":
-            layout = m.Layout(
-                rpdos=tuple(m.PdoMap(m.default_cob_id(False, i + 1, n.node_id), tuple(m.entry_of(v) for v in p))
-                            for i, p in enumerate(n.rpdo)),
-                tpdos=tuple(m.PdoMap(m.default_cob_id(True, i + 1, n.node_id), tuple(m.entry_of(v) for v in p))
-                            for i, p in enumerate(n.tpdo)))
+        mapping = pdo_mod.pdos_mapping(n.node_id, n.rpdo, n.tpdo) if n.pdo == "explicit" else None
         sdos = tuple((index, sub, value.to_bytes(size, "little", signed=value < 0))
                      for index, sub, value, size in n.startup_sdos)
-        nodes.append(NodeConfig(n.node_id, pdo=n.pdo, layout=layout, startup_sdos=sdos, eds=n.eds))
-    return CanopenBus(cfg.channel, nodes, interface=cfg.interface, heartbeat_ms=cfg.heartbeat_ms)
+        nodes.append(NodeConfig(n.node_id, pdo=n.pdo, mapping=mapping, startup_sdos=sdos, eds=n.eds))
+    return CanopenBus(cfg.channel, nodes, interface=cfg.interface, heartbeat_ms=cfg.heartbeat_ms,
+                      sync_counter=cfg.sync_counter)

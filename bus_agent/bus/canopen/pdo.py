@@ -1,71 +1,192 @@
-"""PDO configuration by SDO (CiA 301 §7.2.2): read a node's layout, or write one.
+"""A CANopen node's PDOs (CiA 301 §7.2.2): its process image, the policies that configure it by
+SDO, and the frames the cycle exchanges.
 
-The same three policies as the EtherCAT backend: ``node`` (use the mapping the node has, read
-from 0x1400/0x1600/0x1800/0x1A00 + n), ``default`` (write
-:func:`bus_agent.bus.canopen.mapping.default_layout`) and ``explicit`` (write the configured
-layout). Writing follows CiA 301's order: COB-ID invalid (bit 31), mapping count 0, entries,
-count, transmission type, COB-ID valid. Runs before the loop (start-up, recovery of a rebooted
-node). Takes SDO functions bound to one node, so tests drive it against a simulated node.
+The process image is the project's :class:`~bus_agent.bus.mapping.SlaveMapping` (the EtherCAT
+backend's too), built from the node's valid PDOs: RPDO n is mapping object 0x1600 + n-1, TPDO n
+0x1A00 + n-1, each carried by one CAN frame under its COB-ID (``SlaveMapping.cob_ids``) and
+starting on a byte of the image. One :class:`~bus_agent.bus.codec.DriveCodec` packs and unpacks
+that image; :class:`PdoFrames` slices it into frames (:func:`bus_agent.bus.mapping.pdo_spans`).
+
+Policies, with the EtherCAT backend's names (``[[can.nodes]] pdo = ...``):
+
+- ``default`` (the default on CAN): write :data:`DEFAULT_RPDOS` / :data:`DEFAULT_TPDOS`;
+- ``drive``: read and use the node's own mapping (0x1400.., 0x1600.., 0x1800.., 0x1A00..);
+- ``explicit``: write the configured entries (PDO n of the list = RPDO/TPDO n).
+
+(``predefined`` assigns fixed EtherCAT PDOs to sync managers; CAN has no assignment object.)
+Writing follows CiA 301's order: COB-ID not valid (bit 31), mapping count 0, entries, count,
+transmission type (synchronous), COB-ID valid. Whatever the policy, the mapping is checked
+before use (:func:`check_frames` and the EtherCAT backend's :func:`~bus_agent.bus.mapping.check_mapping`).
+Runs before the loop (start-up, a rebooted node); takes SDO functions bound to one node, so tests
+drive it against a simulated node.
 """
 
 from __future__ import annotations
 
-from bus_agent.bus.canopen import mapping as m
+from collections import Counter
+from typing import Sequence
+
+from bus_agent.bus.canopen.cob import (COB_ID_INVALID, COB_ID_MASK, MAX_PDO_BITS, MAX_PDOS, RPDO_COMM, RPDO_MAP,
+                                       TPDO_COMM, TPDO_MAP, TRANSMISSION_SYNC, default_cob_id)
 from bus_agent.bus.canopen.sdo import SdoRead, SdoWrite, read_uint, write_uint
+from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.mapping import MappingError, SlaveMapping, check_mapping, describe, mapping_of, pdo_spans
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs, mapping_entry
 
-POLICIES = ("node", "default", "explicit")
+#: The policies a CAN node takes (bus_agent.bus.mapping.POLICIES without ``predefined``).
+POLICIES = ("drive", "default", "explicit")
+
+#: The project's layout on CAN, per PDO (u32 mapping entries): 7+6 bytes out, 7+8 bytes in.
+DEFAULT_RPDOS: tuple[tuple[int, ...], ...] = (
+    (mapping_entry(0x6040, 0, 16), mapping_entry(0x607A, 0, 32), mapping_entry(0x6060, 0, 8)),
+    (mapping_entry(0x60FF, 0, 32), mapping_entry(0x6071, 0, 16)),
+)
+DEFAULT_TPDOS: tuple[tuple[int, ...], ...] = (
+    (mapping_entry(0x6041, 0, 16), mapping_entry(0x6064, 0, 32), mapping_entry(0x6061, 0, 8)),
+    (mapping_entry(0x606C, 0, 32), mapping_entry(0x6077, 0, 16), mapping_entry(0x603F, 0, 16)),
+)
 
 
-def read_layout(sdo_read: SdoRead) -> m.Layout:
-    """The valid PDOs of a node as it has them now."""
-    def side(comm: int, mp: int) -> tuple[m.PdoMap, ...]:
+def pdos_mapping(node_id: int, rpdos: Sequence[Sequence[int]], tpdos: Sequence[Sequence[int]]) -> SlaveMapping:
+    """The mapping of RPDO/TPDO 1..n (``rpdos[n-1]``: its u32 entries) with the COB-IDs of the
+    pre-defined connection set. Raises MappingError for more PDOs than the set has."""
+    for name, pdos in (("RPDO", rpdos), ("TPDO", tpdos)):
+        if len(pdos) > MAX_PDOS:
+            raise MappingError(f"{len(pdos)} {name}s, the pre-defined connection set has {name} 1..{MAX_PDOS}")
+    rx = [(RPDO_MAP + n, list(e)) for n, e in enumerate(rpdos)]
+    tx = [(TPDO_MAP + n, list(e)) for n, e in enumerate(tpdos)]
+    cobs = ([(RPDO_MAP + n, default_cob_id(False, n + 1, node_id)) for n in range(len(rpdos))]
+            + [(TPDO_MAP + n, default_cob_id(True, n + 1, node_id)) for n in range(len(tpdos))])
+    return mapping_of(rx, tx, cobs)
+
+
+def default_mapping(node_id: int) -> SlaveMapping:
+    """:data:`DEFAULT_RPDOS` / :data:`DEFAULT_TPDOS` on PDO 1 and 2 of ``node_id``."""
+    return pdos_mapping(node_id, DEFAULT_RPDOS, DEFAULT_TPDOS)
+
+
+def pdo_entries(m: SlaveMapping, pdo: int) -> list[int]:
+    """The u32 mapping entries of one PDO (without the padding that fills it to a byte)."""
+    return [mapping_entry(e.index, e.subindex, e.bits) for e in m.rx + m.tx if e.pdo == pdo and not e.padding]
+
+
+def check_frames(m: SlaveMapping) -> list[str]:
+    """What makes a mapping unusable on CAN (empty: usable): a PDO longer than a frame, more
+    PDOs than the connection set has, a PDO without COB-ID, an object mapped twice; then what
+    the cycle needs (:func:`~bus_agent.bus.mapping.check_mapping`)."""
+    problems = []
+    cobs = dict(m.cob_ids)
+    for name, base, pdos, entries in (("RPDO", RPDO_MAP, m.rx_pdos, m.rx), ("TPDO", TPDO_MAP, m.tx_pdos, m.tx)):
+        if any(not base <= p < base + MAX_PDOS for p in pdos):
+            problems.append(f"{name}s: mapping objects {', '.join(f'0x{p:04X}' for p in pdos)}, "
+                            f"CAN has 0x{base:04X}..0x{base + MAX_PDOS - 1:04X}")
+        for pdo, _start, size in pdo_spans(entries):
+            if pdo not in cobs:
+                problems.append(f"{name} 0x{pdo:04X} has no COB-ID")
+            if size * 8 > MAX_PDO_BITS:
+                problems.append(f"{name} 0x{pdo:04X} maps {size * 8} bits, a CAN frame carries {MAX_PDO_BITS}")
+        twice = [k for k, n in Counter(e.key for e in entries if not e.padding).items() if n > 1]
+        problems += [f"0x{i:04X}:{s:02X} is mapped twice in the {name}s" for i, s in twice]
+    return problems + check_mapping(m)
+
+
+def read_mapping(sdo_read: SdoRead) -> SlaveMapping:
+    """The valid PDOs of a node as it has them now (a PDO with no entries is left out)."""
+    sides: list[list[tuple[int, list[int]]]] = []
+    cobs: list[tuple[int, int]] = []
+    for comm, mp in ((RPDO_COMM, RPDO_MAP), (TPDO_COMM, TPDO_MAP)):
         pdos = []
-        for n in range(m.MAX_PDOS):
+        for n in range(MAX_PDOS):
             cob = read_uint(sdo_read, comm + n, 1)
-            if cob & m.COB_ID_INVALID:
+            if cob & COB_ID_INVALID:
                 continue
-            count = read_uint(sdo_read, mp + n, 0)
-            entries = tuple(m.entry_of(read_uint(sdo_read, mp + n, i)) for i in range(1, count + 1))
+            entries = [read_uint(sdo_read, mp + n, i) for i in range(1, read_uint(sdo_read, mp + n, 0) + 1)]
             if entries:
-                pdos.append(m.PdoMap(cob & 0x7FF, entries))
-        return tuple(pdos)
+                pdos.append((mp + n, entries))
+                cobs.append((mp + n, cob & COB_ID_MASK))
+        sides.append(pdos)
+    return mapping_of(sides[0], sides[1], cobs)
 
-    return m.Layout(rpdos=side(m.RPDO_COMM, m.RPDO_MAP), tpdos=side(m.TPDO_COMM, m.TPDO_MAP))
 
-
-def write_layout(sdo_write: SdoWrite, layout: m.Layout) -> None:
-    """Write ``layout`` (PDO n = the n-th of the layout; the others invalid), synchronous."""
-    for comm, mp, pdos in ((m.RPDO_COMM, m.RPDO_MAP, layout.rpdos), (m.TPDO_COMM, m.TPDO_MAP, layout.tpdos)):
-        for n in range(m.MAX_PDOS):
-            pdo = pdos[n] if n < len(pdos) else None
-            cob = pdo.cob_id if pdo is not None else 0
-            write_uint(sdo_write, comm + n, 1, cob | m.COB_ID_INVALID, 32)
-            if pdo is None:
+def write_mapping(sdo_write: SdoWrite, m: SlaveMapping) -> None:
+    """Write ``m`` (its PDOs valid and synchronous, the other PDOs of the node not valid)."""
+    cobs = dict(m.cob_ids)
+    for comm, mp, pdos in ((RPDO_COMM, RPDO_MAP, m.rx_pdos), (TPDO_COMM, TPDO_MAP, m.tx_pdos)):
+        for n in range(MAX_PDOS):
+            used = mp + n in pdos
+            cob = cobs[mp + n] if used else 0
+            write_uint(sdo_write, comm + n, 1, cob | COB_ID_INVALID, 32)
+            if not used:
                 continue
+            entries = pdo_entries(m, mp + n)
             write_uint(sdo_write, mp + n, 0, 0, 8)
-            for i, entry in enumerate(pdo.entries, start=1):
-                write_uint(sdo_write, mp + n, i, m.mapping_value(entry), 32)
-            write_uint(sdo_write, mp + n, 0, len(pdo.entries), 8)
-            write_uint(sdo_write, comm + n, 2, m.TRANSMISSION_SYNC, 8)
+            for i, entry in enumerate(entries, start=1):
+                write_uint(sdo_write, mp + n, i, entry, 32)
+            write_uint(sdo_write, mp + n, 0, len(entries), 8)
+            write_uint(sdo_write, comm + n, 2, TRANSMISSION_SYNC, 8)
             write_uint(sdo_write, comm + n, 1, cob, 32)
 
 
-def layout_for(policy: str, node_id: int, sdo_read: SdoRead, sdo_write: SdoWrite,
-               explicit: m.Layout | None = None) -> m.Layout:
-    """Apply ``policy`` to one node; returns the layout the codec is built from (checked).
-    Raises LayoutError / SdoError."""
-    if policy == "node":
-        layout = read_layout(sdo_read)
+def mapping_for(policy: str, node_id: int, sdo_read: SdoRead, sdo_write: SdoWrite,
+                explicit: SlaveMapping | None = None) -> SlaveMapping:
+    """Apply ``policy`` to one node; the mapping the cycle runs with (checked). Raises
+    MappingError (naming the node, the policy and what is wrong) or SdoError."""
+    if policy == "drive":
+        m = read_mapping(sdo_read)
     elif policy == "default":
-        layout = m.default_layout(node_id)
-        write_layout(sdo_write, layout)
+        m = default_mapping(node_id)
     elif policy == "explicit":
         if explicit is None:
-            raise m.LayoutError(f"node {node_id}: PDO policy explicit without a layout")
-        m.check_layout(explicit, node_id)
-        layout = explicit
-        write_layout(sdo_write, layout)
+            raise MappingError(f"node {node_id}: PDO policy 'explicit' without rpdo/tpdo")
+        m = explicit
     else:
-        raise m.LayoutError(f"node {node_id}: PDO policy {policy!r} is not one of {', '.join(POLICIES)}")
-    m.check_layout(layout, node_id)
-    return layout
+        raise MappingError(f"node {node_id}: PDO policy {policy!r} is not one of {', '.join(POLICIES)}")
+    problems = check_frames(m)
+    if problems:
+        raise MappingError(f"node {node_id}: PDO policy {policy!r}: {'; '.join(problems)} ({describe(m)})")
+    if policy != "drive":
+        write_mapping(sdo_write, m)
+    return m
+
+
+class PdoFrames:
+    """One node's PDOs as CAN frames: the shared codec over its image, one slice per PDO.
+
+    Built once per node at start-up (raises MappingError for a mapping :func:`check_frames`
+    refuses). Cycle-safe: :meth:`rpdo_frames` is one encode and one slice per RPDO;
+    :meth:`store_tpdo` copies a frame into the image, :meth:`decode_into` decodes it once."""
+
+    def __init__(self, mapping: SlaveMapping) -> None:
+        problems = check_frames(mapping)
+        if problems:
+            raise MappingError("; ".join(problems))
+        self.mapping = mapping
+        self.codec = DriveCodec(mapping)
+        cobs = dict(mapping.cob_ids)
+        self._rx = tuple((cobs[pdo], slice(start, start + size)) for pdo, start, size in pdo_spans(mapping.rx))
+        self._tx = {cobs[pdo]: (slice(start, start + size), size) for pdo, start, size in pdo_spans(mapping.tx)}
+        self.tpdo_cob_ids: tuple[int, ...] = tuple(self._tx)
+        self.rpdo_cob_ids: tuple[int, ...] = tuple(cob for cob, _s in self._rx)
+        self._image = bytearray(self.codec.in_size)
+
+    def rpdo_frames(self, outputs: DriveOutputs) -> list[tuple[int, bytes]]:
+        """(COB-ID, data) of every RPDO for ``outputs``."""
+        image = self.codec.encode(outputs)
+        return [(cob, image[span]) for cob, span in self._rx]
+
+    def store_tpdo(self, cob_id: int, data: bytes | bytearray) -> bool:
+        """Put one TPDO into the image; False (nothing changes) when it is not one of this
+        node's TPDOs or shorter than its mapping."""
+        spec = self._tx.get(cob_id)
+        if spec is None:
+            return False
+        span, size = spec
+        n = len(data)
+        if n < size:
+            return False
+        self._image[span] = data if n == size else data[:size]
+        return True
+
+    def decode_into(self, inputs: DriveInputs) -> None:
+        """The image (the TPDOs stored so far) into ``inputs``."""
+        self.codec.decode_into(inputs, self._image)

@@ -14,8 +14,10 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from bus_agent.bus.base import BusError
-from bus_agent.bus.canopen import mapping as m, pdo as pdo_mod, sdo as sdo_mod
+from bus_agent.bus.canopen import pdo as pdo_mod, sdo as sdo_mod
 from bus_agent.bus.canopen.bus import open_can
+from bus_agent.bus.canopen.cob import SDO_RX_BASE
+from bus_agent.bus.mapping import SlaveMapping, split_entry
 
 #: How long answers are collected after the search requests.
 LISTEN_S = 0.5
@@ -33,17 +35,25 @@ class NodeReport:
     device_type: int | None = None
     name: str = ""
     heartbeat_ms: int | None = None
-    layout: m.Layout | None = None
+    mapping: SlaveMapping | None = None
     error: str = ""
 
+    def pdos(self, tx: bool) -> list[tuple[int, list[tuple[int, int, int]]]]:
+        """(COB-ID, [(index, subindex, bits)]) of every valid RPDO (``tx`` False) or TPDO."""
+        m = self.mapping
+        if m is None:
+            return []
+        cobs = dict(m.cob_ids)
+        return [(cobs[p], [split_entry(e) for e in pdo_mod.pdo_entries(m, p)]) for p in (m.tx_pdos if tx else m.rx_pdos)]
+
     def as_dict(self) -> dict[str, Any]:
-        def pdos(p: tuple[m.PdoMap, ...]) -> list[dict]:
-            return [{"cob_id": x.cob_id, "entries": [f"0x{i:04X}:{s}/{b}" for i, s, b in x.entries]} for x in p]
+        def pdos(tx: bool) -> list[dict]:
+            return [{"cob_id": cob, "entries": [f"0x{i:04X}:{s}/{b}" for i, s, b in entries]}
+                    for cob, entries in self.pdos(tx)]
         return {"node_id": self.node_id, "vendor_id": self.vendor_id, "product_code": self.product_code,
                 "revision": self.revision, "serial": self.serial, "device_type": self.device_type,
                 "name": self.name, "heartbeat_ms": self.heartbeat_ms,
-                "rpdo": pdos(self.layout.rpdos) if self.layout else [],
-                "tpdo": pdos(self.layout.tpdos) if self.layout else [], "error": self.error}
+                "rpdo": pdos(False), "tpdo": pdos(True), "error": self.error}
 
 
 def scan(channel: str, interface: str, node_ids: Sequence[int] = (), listen_s: float = LISTEN_S,
@@ -58,7 +68,7 @@ def scan(channel: str, interface: str, node_ids: Sequence[int] = (), listen_s: f
     try:
         ids = sorted(set(node_ids)) or list(range(1, 128))
         for nid in ids:
-            net.send_message(m.SDO_RX_BASE + nid, b"\x40\x00\x10\x00\x00\x00\x00\x00")  # upload 0x1000:0
+            net.send_message(SDO_RX_BASE + nid, b"\x40\x00\x10\x00\x00\x00\x00\x00")  # upload 0x1000:0
         time.sleep(listen_s)
         found = sorted(n for n in net.scanner.nodes if not node_ids or n in ids)
         return [_describe(net, nid, sdo_timeout_s) for nid in found]
@@ -81,18 +91,18 @@ def _describe(net: Any, nid: int, sdo_timeout_s: float) -> NodeReport:
         device_type = sdo_mod.read_uint(read, 0x1000, 0)
     except BusError as e:
         return NodeReport(nid, error=str(e))
-    name, heartbeat, layout, error = "", None, None, ""
+    name, heartbeat, mapping, error = "", None, None, ""
     try:
         name = read(0x1008, 0).decode(errors="replace")
     except BusError:
         pass
     try:
         heartbeat = sdo_mod.read_uint(read, 0x1017, 0)
-        layout = pdo_mod.read_layout(read)
+        mapping = pdo_mod.read_mapping(read)
     except BusError as e:
         error = str(e)
     vendor, product, revision, serial = ident
-    return NodeReport(nid, vendor, product, revision, serial, device_type=device_type, name=name, heartbeat_ms=heartbeat, layout=layout,
+    return NodeReport(nid, vendor, product, revision, serial, device_type=device_type, name=name, heartbeat_ms=heartbeat, mapping=mapping,
                       error=error)
 
 
@@ -106,11 +116,9 @@ def format_table(reports: Sequence[NodeReport]) -> str:
         lines.append(f"node {r.node_id}: {r.name or '-'} vendor 0x{r.vendor_id:08X} product 0x{r.product_code:08X} "
                      f"revision 0x{r.revision:08X} serial 0x{r.serial:08X} device type 0x{r.device_type:08X} "
                      f"heartbeat {r.heartbeat_ms} ms")
-        if r.layout is not None:
-            for what, pdos in (("rpdo", r.layout.rpdos), ("tpdo", r.layout.tpdos)):
-                for p in pdos:
-                    lines.append(f"  {what} 0x{p.cob_id:03X}: " + ", ".join(f"0x{i:04X}:{s} ({b} bits)"
-                                                                         for i, s, b in p.entries))
+        for what, tx in (("rpdo", False), ("tpdo", True)):
+            for cob, entries in r.pdos(tx):
+                lines.append(f"  {what} 0x{cob:03X}: " + ", ".join(f"0x{i:04X}:{s} ({b} bits)" for i, s, b in entries))
         if r.error:
             lines.append(f"  error: {r.error}")
     return "\n".join(lines)

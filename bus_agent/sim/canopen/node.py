@@ -13,7 +13,9 @@ Behaviour (CiA 301):
   makes a drive in Operation enabled lose communication (fault 0x8130, as the EtherCAT SM
   watchdog does).
 - SYNC (0x080): in operational, the RPDOs received since the previous SYNC are applied, the drive
-  steps, and every valid synchronous TPDO is sent. In operational without SYNC for
+  steps, and every valid synchronous TPDO is sent. With 0x1019 (synchronous counter overflow
+  value) 2..240 a SYNC carries a counter 1..value, checked in sequence; a SYNC of the wrong
+  length is EMCY 0x8240. In operational without SYNC for
   ``watchdog_s`` (after a first one), the drive loses communication.
 - Heartbeat every 0x1017 ms (0 = none) with the NMT state; EMCY on every fault and reset.
 - PDO mapping writable only outside operational, with sub 0 = 0 first (abort 0x08000022 /
@@ -29,9 +31,10 @@ from typing import Any
 
 from canopen.sdo import SdoAbortedError, SdoServer
 
-from bus_agent.bus.canopen import emcy, mapping as m
+from bus_agent.bus.canopen import cob as c, emcy
 from bus_agent.bus.canopen.nmt import (HEARTBEAT_COB_BASE, NMT_COB_ID, NmtCommand, NmtState, after_command,
                                        decode_command)
+from bus_agent.bus.mapping import RX_FIELDS, split_entry
 from bus_agent.bus.pdo import DriveOutputs
 from bus_agent.sim.canopen import od
 from bus_agent.sim.drive_model import DriveModel, DriveProfile, SdoAbort, _INT_FORMATS
@@ -39,6 +42,7 @@ from bus_agent.sim.drive_model import DriveModel, DriveProfile, SdoAbort, _INT_F
 log = logging.getLogger(__name__)
 
 Frame = tuple[int, bytes]
+Entry = tuple[int, int, int]  # (index, subindex, bits) of a mapping entry
 ABORT_UNSUPPORTED_ACCESS = 0x06010000
 ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
@@ -68,7 +72,7 @@ class SimNode:
         self.watchdog_s = watchdog_s
         self.object_dictionary = od.build(node_id, profile.device_name)  # python-canopen SdoServer reads it
         self._outbox = _Outbox()
-        self.sdo = SdoServer(m.SDO_RX_BASE + node_id, m.SDO_TX_BASE + node_id, self)
+        self.sdo = SdoServer(c.SDO_RX_BASE + node_id, c.SDO_TX_BASE + node_id, self)
         self.sdo.network = self._outbox  # type: ignore[assignment]
         self.state = NmtState.INITIALISING
         self.plugged = True
@@ -77,8 +81,11 @@ class SimNode:
         self._last_step_s: float | None = None
         self._last_sync_s: float | None = None
         self._next_heartbeat_s = 0.0
-        self.counters = {"sync": 0, "tpdo": 0, "rpdo": 0, "emcy": 0, "heartbeat": 0, "nmt": 0}
-        self._rx: dict[int, tuple[tuple[m.Entry, ...], int]] = {}
+        self.counters = {"sync": 0, "tpdo": 0, "rpdo": 0, "emcy": 0, "heartbeat": 0, "nmt": 0,
+                         "sync_length_errors": 0, "sync_counter_errors": 0}
+        self.last_sync_counter: int | None = None
+        self._sync_length_bad = False
+        self._rx: dict[int, tuple[tuple[Entry, ...], int]] = {}
         self._boot(0.0, power=False)
 
     # ---------------------------------------------------------------- lifecycle
@@ -91,6 +98,8 @@ class SimNode:
         self.comm = od.comm_defaults(self.node_id)
         self._pending.clear()
         self._last_sync_s = None
+        self.last_sync_counter = None
+        self._sync_length_bad = False
         self._rebuild_rx()
         self.state = NmtState.PRE_OPERATIONAL
         self._next_heartbeat_s = now_s + self.heartbeat_s
@@ -104,13 +113,13 @@ class SimNode:
     def _rebuild_rx(self) -> None:
         """COB-ID -> (entries, comm index) of every valid RPDO."""
         self._rx = {}
-        for n in range(m.MAX_PDOS):
-            cob = self.comm[(m.RPDO_COMM + n, 1)]
-            if not cob & m.COB_ID_INVALID:
-                self._rx[cob & 0x7FF] = (self._entries(m.RPDO_MAP + n), n)
+        for n in range(c.MAX_PDOS):
+            cob = self.comm[(c.RPDO_COMM + n, 1)]
+            if not cob & c.COB_ID_INVALID:
+                self._rx[cob & c.COB_ID_MASK] = (self._entries(c.RPDO_MAP + n), n)
 
-    def _entries(self, map_index: int) -> tuple[m.Entry, ...]:
-        return tuple(m.entry_of(self.comm[(map_index, i)]) for i in range(1, self.comm[(map_index, 0)] + 1))
+    def _entries(self, map_index: int) -> tuple[Entry, ...]:
+        return tuple(split_entry(self.comm[(map_index, i)]) for i in range(1, self.comm[(map_index, 0)] + 1))
 
     def _set_state(self, state: NmtState) -> None:
         if self.state is NmtState.OPERATIONAL and state is not NmtState.OPERATIONAL:
@@ -137,16 +146,16 @@ class SimNode:
         out: list[Frame] = []
         if cob_id == NMT_COB_ID:
             out += self._on_nmt(data, now_s)
-        elif cob_id == self.comm[(0x1005, 0)] & 0x7FF:
-            out += self._on_sync(now_s)
-        elif cob_id == m.SDO_RX_BASE + self.node_id and self.state is not NmtState.STOPPED:
+        elif cob_id == self.comm[(0x1005, 0)] & c.COB_ID_MASK:
+            out += self._on_sync(data, now_s)
+        elif cob_id == c.SDO_RX_BASE + self.node_id and self.state is not NmtState.STOPPED:
             self.sdo.on_request(cob_id, bytearray(data), now_s)
             out += self._outbox.frames
             self._outbox.frames = []
         elif cob_id in self._rx and self.state is NmtState.OPERATIONAL:
             entries, _n = self._rx[cob_id]
             try:
-                self._pending.update(m.decode_pdo(entries, data, m.RX_OBJECTS))
+                self._pending.update(_unpack(entries, data))
                 self.counters["rpdo"] += 1
             except struct.error:
                 out += self._emcy(0x8210)  # PDO not processed due to length error
@@ -167,32 +176,62 @@ class SimNode:
             return self._boot(now_s, power=command is NmtCommand.RESET_NODE)
         return self._heartbeat(now_s)
 
-    def _on_sync(self, now_s: float) -> list[Frame]:
+    def _on_sync(self, data: bytes, now_s: float) -> list[Frame]:
         self.counters["sync"] += 1
         self._step(now_s)
+        out = self._check_sync_counter(data)
         if self.state is not NmtState.OPERATIONAL:
-            return self._take_emcy()
+            return out + self._take_emcy()
         self._last_sync_s = now_s
         if self._pending:
-            self.model.apply_outputs(self._outputs_now())
-        out = self._take_emcy()
-        for n in range(m.MAX_PDOS):
-            cob = self.comm[(m.TPDO_COMM + n, 1)]
-            if cob & m.COB_ID_INVALID or self.comm[(m.TPDO_COMM + n, 2)] != m.TRANSMISSION_SYNC:
+            self._apply_pending()
+        out += self._take_emcy()
+        for n in range(c.MAX_PDOS):
+            cob = self.comm[(c.TPDO_COMM + n, 1)]
+            if cob & c.COB_ID_INVALID or self.comm[(c.TPDO_COMM + n, 2)] != c.TRANSMISSION_SYNC:
                 continue
-            entries = self._entries(m.TPDO_MAP + n)
+            entries = self._entries(c.TPDO_MAP + n)
             data = b"".join(struct.pack(_INT_FORMATS[od.DRIVE_OBJECTS[e[:2]].datatype],
                                         int(self.model.read(e[0], e[1]))) for e in entries)
-            out.append((cob & 0x7FF, data))
+            out.append((cob & c.COB_ID_MASK, data))
             self.counters["tpdo"] += 1
         return out
 
-    def _outputs_now(self) -> DriveOutputs:
-        """The RPDO objects as the drive holds them, updated by what arrived since the last SYNC."""
-        values = {k: int(self.model.read(*k)) for k in m.RX_OBJECTS}
-        values.update(self._pending)
+    def _check_sync_counter(self, data: bytes) -> list[Frame]:
+        """0x1019 (CiA 301 §7.5.2.22): 0 = SYNC without data; 2..240 = one byte counting 1..value
+        and back to 1. Another length is counted, with EMCY 0x8240 (unexpected SYNC data length)
+        on the first of a run; a counter out of sequence or range is counted and logged."""
+        overflow = self.comm[(0x1019, 0)]
+        if len(data) != (1 if overflow in c.SYNC_COUNTER_RANGE else 0):
+            self.counters["sync_length_errors"] += 1
+            first, self._sync_length_bad = not self._sync_length_bad, True
+            return self._emcy(0x8240) if first else []
+        self._sync_length_bad = False
+        if not data:
+            return []
+        counter, last = data[0], self.last_sync_counter
+        expected = 1 if last is None or last >= overflow else last + 1
+        if not 1 <= counter <= overflow or (last is not None and counter != expected):
+            self.counters["sync_counter_errors"] += 1
+            log.warning("node %d: SYNC counter %d, expected %s (0x1019 = %d)", self.node_id, counter,
+                        expected if last is not None else f"1..{overflow}", overflow)
+        self.last_sync_counter = counter
+        return []
+
+    def _apply_pending(self) -> None:
+        """The RPDO objects received since the last SYNC: the cycle's through the drive's
+        outputs (as the EtherCAT simulator applies them), any other mapped object written."""
+        values = {k: int(self.model.read(*k)) for k in RX_FIELDS}
+        for key, value in self._pending.items():
+            if key in RX_FIELDS:
+                values[key] = value
+            else:
+                try:
+                    self.model.write(key[0], key[1], value)
+                except SdoAbort as e:
+                    log.info("node %d: RPDO object 0x%04X:%02X = %d refused: %s", self.node_id, *key, value, e)
         self._pending.clear()
-        return m.Codec.outputs_from(values)
+        self.model.apply_outputs(DriveOutputs(**{RX_FIELDS[k]: v for k, v in values.items()}))
 
     # ---------------------------------------------------------------- time
 
@@ -236,7 +275,7 @@ class SimNode:
         if self.state is NmtState.STOPPED:
             return []
         self.counters["emcy"] += 1
-        return [(self.comm[(0x1014, 0)] & 0x7FF, emcy.encode(code, register))]
+        return [(self.comm[(0x1014, 0)] & c.COB_ID_MASK, emcy.encode(code, register))]
 
     def inject_fault(self, error_code: int, now_s: float) -> list[Frame]:
         self.model.inject_fault(error_code)
@@ -279,26 +318,40 @@ class SimNode:
         if not lo <= value <= hi:
             raise SdoAbortedError(0x06090030)
         index, sub = entry.index, entry.subindex
-        is_map = m.RPDO_MAP <= index < m.RPDO_MAP + m.MAX_PDOS or m.TPDO_MAP <= index < m.TPDO_MAP + m.MAX_PDOS
-        if (is_map or m.RPDO_COMM <= index < m.RPDO_COMM + m.MAX_PDOS
-                or m.TPDO_COMM <= index < m.TPDO_COMM + m.MAX_PDOS) and self.state is NmtState.OPERATIONAL:
+        is_map = c.RPDO_MAP <= index < c.RPDO_MAP + c.MAX_PDOS or c.TPDO_MAP <= index < c.TPDO_MAP + c.MAX_PDOS
+        if (is_map or c.RPDO_COMM <= index < c.RPDO_COMM + c.MAX_PDOS
+                or c.TPDO_COMM <= index < c.TPDO_COMM + c.MAX_PDOS) and self.state is NmtState.OPERATIONAL:
             raise SdoAbortedError(ABORT_DEVICE_STATE)
+        if index == 0x1019 and value != 0 and value not in c.SYNC_COUNTER_RANGE:
+            raise SdoAbortedError(0x06090030)  # 1 and 241..255 are reserved
         if is_map:
-            tx = index >= m.TPDO_MAP
+            tx = index >= c.TPDO_MAP
             if sub > 0:
                 if self.comm[(index, 0)] != 0:
                     raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)  # disable the mapping (sub 0 = 0) first
                 if value != 0:
-                    obj = od.DRIVE_OBJECTS.get(m.entry_of(value)[:2])
+                    obj = od.DRIVE_OBJECTS.get(split_entry(value)[:2])
                     wrong_way = obj is not None and (obj.access == "ro" if not tx else obj.access == "wo")
                     if obj is None or not obj.pdo_mappable or obj.bits != value & 0xFF or wrong_way:
                         raise SdoAbortedError(ABORT_NOT_MAPPABLE)
             elif value > 0:
                 bits = sum(self.comm[(index, i)] & 0xFF for i in range(1, value + 1))
-                if bits > m.MAX_PDO_BITS or any(self.comm[(index, i)] == 0 for i in range(1, value + 1)):
+                if bits > c.MAX_PDO_BITS or any(self.comm[(index, i)] == 0 for i in range(1, value + 1)):
                     raise SdoAbortedError(ABORT_PDO_LENGTH)
         self.comm[(index, sub)] = value
         self._rebuild_rx()
         if index == 0x1017:
             self._next_heartbeat_s = 0.0
 
+
+def _unpack(entries: tuple[Entry, ...], data: bytes) -> dict[tuple[int, int], int]:
+    """Object values of one RPDO frame, by the drive's own object types (device side; the
+    entries were checked mappable with their size when written). Raises struct.error when
+    the frame is shorter than its mapping."""
+    values = {}
+    offset = 0
+    for index, sub, bits in entries:
+        fmt = _INT_FORMATS[od.DRIVE_OBJECTS[(index, sub)].datatype]
+        values[(index, sub)] = struct.unpack_from(fmt, data, offset)[0]
+        offset += bits // 8
+    return values

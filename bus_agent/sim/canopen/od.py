@@ -12,7 +12,8 @@ from __future__ import annotations
 import canopen
 from canopen import objectdictionary as odm
 
-from bus_agent.bus.canopen import mapping as m
+from bus_agent.bus.canopen import cob as c
+from bus_agent.bus.canopen.pdo import DEFAULT_RPDOS, DEFAULT_TPDOS
 from bus_agent.sim.drive_model import OBJECT_TABLE, ObjectEntry, _e
 
 _DATATYPES = {"u8": odm.UNSIGNED8, "i8": odm.INTEGER8, "u16": odm.UNSIGNED16, "i16": odm.INTEGER16,
@@ -23,20 +24,21 @@ DEFAULT_HEARTBEAT_MS = 100
 
 #: Defaults that depend on the node id are filled in by :func:`comm_defaults`.
 COMM_TABLE: tuple[ObjectEntry, ...] = (
-    _e(0x1005, 0, "COB-ID SYNC", "u32", "rw", default=m.SYNC_COB_ID),
+    _e(0x1005, 0, "COB-ID SYNC", "u32", "rw", default=c.SYNC_COB_ID),
     _e(0x1014, 0, "COB-ID EMCY", "u32", "ro"),
     _e(0x1017, 0, "producer heartbeat time", "u16", "rw", default=DEFAULT_HEARTBEAT_MS),
-    *(x for n in range(m.MAX_PDOS) for x in (
-        _e(m.RPDO_COMM + n, 0, f"RPDO{n + 1} communication: highest sub", "u8", "ro", default=2),
-        _e(m.RPDO_COMM + n, 1, f"RPDO{n + 1} COB-ID", "u32", "rw"),
-        _e(m.RPDO_COMM + n, 2, f"RPDO{n + 1} transmission type", "u8", "rw", default=m.TRANSMISSION_SYNC),
-        _e(m.RPDO_MAP + n, 0, f"RPDO{n + 1} mapping: number", "u8", "rw", low=0, high=MAX_MAP_ENTRIES),
-        *(_e(m.RPDO_MAP + n, i, f"RPDO{n + 1} mapping {i}", "u32", "rw") for i in range(1, MAX_MAP_ENTRIES + 1)),
-        _e(m.TPDO_COMM + n, 0, f"TPDO{n + 1} communication: highest sub", "u8", "ro", default=2),
-        _e(m.TPDO_COMM + n, 1, f"TPDO{n + 1} COB-ID", "u32", "rw"),
-        _e(m.TPDO_COMM + n, 2, f"TPDO{n + 1} transmission type", "u8", "rw", default=m.TRANSMISSION_SYNC),
-        _e(m.TPDO_MAP + n, 0, f"TPDO{n + 1} mapping: number", "u8", "rw", low=0, high=MAX_MAP_ENTRIES),
-        *(_e(m.TPDO_MAP + n, i, f"TPDO{n + 1} mapping {i}", "u32", "rw") for i in range(1, MAX_MAP_ENTRIES + 1)),
+    _e(0x1019, 0, "synchronous counter overflow value", "u8", "rw", default=0),
+    *(x for n in range(c.MAX_PDOS) for x in (
+        _e(c.RPDO_COMM + n, 0, f"RPDO{n + 1} communication: highest sub", "u8", "ro", default=2),
+        _e(c.RPDO_COMM + n, 1, f"RPDO{n + 1} COB-ID", "u32", "rw"),
+        _e(c.RPDO_COMM + n, 2, f"RPDO{n + 1} transmission type", "u8", "rw", default=c.TRANSMISSION_SYNC),
+        _e(c.RPDO_MAP + n, 0, f"RPDO{n + 1} mapping: number", "u8", "rw", low=0, high=MAX_MAP_ENTRIES),
+        *(_e(c.RPDO_MAP + n, i, f"RPDO{n + 1} mapping {i}", "u32", "rw") for i in range(1, MAX_MAP_ENTRIES + 1)),
+        _e(c.TPDO_COMM + n, 0, f"TPDO{n + 1} communication: highest sub", "u8", "ro", default=2),
+        _e(c.TPDO_COMM + n, 1, f"TPDO{n + 1} COB-ID", "u32", "rw"),
+        _e(c.TPDO_COMM + n, 2, f"TPDO{n + 1} transmission type", "u8", "rw", default=c.TRANSMISSION_SYNC),
+        _e(c.TPDO_MAP + n, 0, f"TPDO{n + 1} mapping: number", "u8", "rw", low=0, high=MAX_MAP_ENTRIES),
+        *(_e(c.TPDO_MAP + n, i, f"TPDO{n + 1} mapping {i}", "u32", "rw") for i in range(1, MAX_MAP_ENTRIES + 1)),
     )),
 )
 COMM_OBJECTS: dict[tuple[int, int], ObjectEntry] = {(e.index, e.subindex): e for e in COMM_TABLE}
@@ -46,18 +48,18 @@ DRIVE_OBJECTS: dict[tuple[int, int], ObjectEntry] = {(e.index, e.subindex): e fo
 
 def comm_defaults(node_id: int) -> dict[tuple[int, int], int]:
     """Power-on / reset-communication values of the communication objects of ``node_id``:
-    the default layout (bus_agent.bus.canopen.mapping) on PDO 1 and 2, PDO 3 and 4 invalid."""
+    the project's layout (bus_agent.bus.canopen.pdo) on PDO 1 and 2, PDO 3 and 4 invalid."""
     values = {k: int(e.default) for k, e in COMM_OBJECTS.items()}
-    values[(0x1014, 0)] = m.EMCY_COB_BASE + node_id
-    for tx, comm, mp, defaults in ((False, m.RPDO_COMM, m.RPDO_MAP, m.DEFAULT_RPDO_ENTRIES),
-                                   (True, m.TPDO_COMM, m.TPDO_MAP, m.DEFAULT_TPDO_ENTRIES)):
-        for n in range(m.MAX_PDOS):
-            cob = m.default_cob_id(tx, n + 1, node_id)
+    values[(0x1014, 0)] = c.EMCY_COB_BASE + node_id
+    for tx, comm, mp, defaults in ((False, c.RPDO_COMM, c.RPDO_MAP, DEFAULT_RPDOS),
+                                   (True, c.TPDO_COMM, c.TPDO_MAP, DEFAULT_TPDOS)):
+        for n in range(c.MAX_PDOS):
+            cob = c.default_cob_id(tx, n + 1, node_id)
             entries = defaults[n] if n < len(defaults) else ()
-            values[(comm + n, 1)] = cob if entries else cob | m.COB_ID_INVALID
+            values[(comm + n, 1)] = cob if entries else cob | c.COB_ID_INVALID
             values[(mp + n, 0)] = len(entries)
             for i, e in enumerate(entries, start=1):
-                values[(mp + n, i)] = m.mapping_value(e)
+                values[(mp + n, i)] = e
     return values
 
 
