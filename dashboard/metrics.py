@@ -6,10 +6,16 @@ vocabularies; no per-request labels). A custom collector reads :class:`~dashboar
 at scrape time, so a drive or agent that disappears leaves no stale series.
 
 Per drive: ``drives_drive_state{host,axis,state}`` (1 for the current CiA 402 state, 0 for the
-others), ``drives_drive_error_code``, ``drives_drive_lost``, ``drives_drive_al_state{...,al_state}``.
+others), ``drives_drive_error_code``, ``drives_drive_lost``, ``drives_drive_al_state{...,al_state}``,
+``drives_drive_following_error_increments{host,axis,source}`` when known (source ``0x60F4``: the
+drive's own, mapped; ``agent``: 0x607A written last minus 0x6064, cyclic synchronous position in
+Operation enabled; see :func:`dashboard.view.following_error`). Position units are the drive's
+increments, not an SI unit: the suffix names them.
 Per agent: ``drives_agent_up``, ``drives_cycle_period_seconds{host,quantile}`` (0.5, 0.99, 1 = max
 of the agent's statistics window), ``drives_cycles_total``, ``drives_cycle_overruns_total``,
-``drives_cycle_wkc_errors_total``, ``drives_commands_total{host,op,outcome}``. Per fleet:
+``drives_cycle_wkc_errors_total``, ``drives_commands_total{host,op,outcome}``,
+``drives_dc_offset_seconds{host,quantile}`` (0.5, 0.99: frame-to-SYNC0 offset, only while a
+slave of the agent runs DC SYNC0). Per fleet:
 ``drives_agents_up``, ``drives_agents_expected_offline``, ``drives_drives{state}``.
 """
 
@@ -23,7 +29,7 @@ from prometheus_client.registry import Collector
 
 from schemas.messages import AL_STATES, DRIVE_STATES
 
-from .view import FleetView, summary
+from .view import FleetView, dc_offset_us, following_error, summary
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
@@ -43,6 +49,9 @@ class FleetCollector(Collector):
         lost = GaugeMetricFamily("drives_drive_lost", "1 when the slave does not answer", labels=["host", "axis"])
         al = GaugeMetricFamily("drives_drive_al_state", "EtherCAT AL state of the slave (1 = current)",
                                labels=["host", "axis", "al_state"])
+        ferr = GaugeMetricFamily("drives_drive_following_error_increments", "following error (0x60F4 from the "
+                                 "drive, else target written last minus 0x6064 from the agent in CSP), when known",
+                                 labels=["host", "axis", "source"])
         for (host, axis), st in sorted(statuses.items()):
             for s in DRIVE_STATES:
                 state.add_metric([host, axis, s], 1.0 if st.state == s else 0.0)
@@ -50,7 +59,10 @@ class FleetCollector(Collector):
             lost.add_metric([host, axis], 1.0 if st.lost else 0.0)
             for a in AL_STATES:
                 al.add_metric([host, axis, a], 1.0 if st.al_state == a else 0.0)
-        yield from (state, error, lost, al)
+            fe = following_error(st)
+            if fe is not None:
+                ferr.add_metric([host, axis, fe[1]], fe[0])
+        yield from (state, error, lost, al, ferr)
 
         up = GaugeMetricFamily("drives_agent_up", "1 while the agent's liveliness token is present", labels=["host"])
         period = GaugeMetricFamily("drives_cycle_period_seconds", "measured cycle period over the agent's "
@@ -62,6 +74,9 @@ class FleetCollector(Collector):
                                   labels=["host"])
         commands = CounterMetricFamily("drives_commands", "command replies by op and outcome",
                                        labels=["host", "op", "outcome"])
+        dc_offset = GaugeMetricFamily("drives_dc_offset_seconds", "frame-to-SYNC0 offset (time since SYNC0 as the "
+                                      "frame passed) over the agent's statistics window, while DC runs",
+                                      labels=["host", "quantile"])
         for host, (alive, ag) in sorted(agents.items()):
             up.add_metric([host], 1.0 if alive else 0.0)
             if ag is None:
@@ -74,7 +89,11 @@ class FleetCollector(Collector):
             for key, n in sorted((getattr(ag, "commands", {}) or {}).items()):
                 op, _, outcome = key.partition(".")
                 commands.add_metric([host, op, outcome], n)
-        yield from (up, period, cycles, overruns, wkc, commands)
+            dc = dc_offset_us(ag)
+            if dc is not None:
+                for q, v in zip(("0.5", "0.99"), dc):
+                    dc_offset.add_metric([host, q], v / 1e6)
+        yield from (up, period, cycles, overruns, wkc, commands, dc_offset)
 
         snap = self.view.snapshot()
         counts = summary(snap["drives"], snap["hosts"])

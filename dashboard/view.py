@@ -23,12 +23,42 @@ MOTION_SAMPLES = 600
 EVENTS_KEPT = 200
 #: States that make a row stand out.
 BAD_STATES = ("fault", "fault_reaction_active")
+#: 0x60F4 following error actual value, by its CiA 402 name in ``DriveStatus.objects`` (present
+#: when the drive maps it).
+FOLLOWING_ERROR_OBJECT = "following_error_actual_value"
+#: Cyclic synchronous position (0x6060/0x6061 = 8): the only mode where the agent's own following
+#: error (target written last minus 0x6064) means something.
+MODE_CSP = 8
+
+
+def following_error(st: DriveStatus) -> tuple[int, str] | None:
+    """The drive's following error and where it comes from, or None when unknown. Pure.
+
+    ``0x60F4`` when the drive maps it (its own measurement); else ``agent`` (0x607A written last
+    minus 0x6064) while the drive runs cyclic synchronous position in Operation enabled with its
+    position mapped; else unknown (the agent's field then reads 0 and means nothing)."""
+    v = st.objects.get(FOLLOWING_ERROR_OBJECT)
+    if v is not None:
+        return int(v), "0x60F4"
+    if st.state == "operation_enabled" and st.mode_display == MODE_CSP and "position" not in st.absent:
+        return st.following_error, "agent"
+    return None
+
+
+def dc_offset_us(st: AgentStatus) -> tuple[float, float] | None:
+    """(p50, p99) of the frame-to-SYNC0 offset while any of the agent's slaves runs SYNC0, else
+    None (the fields then read 0 and mean nothing). Pure."""
+    if "sync0" not in st.dc.values():
+        return None
+    return st.dc_offset_p50_us, st.dc_offset_p99_us
 
 
 def drive_row(st: DriveStatus, agent_alive: bool) -> dict[str, Any]:
     """One table row (JSON-ready). Pure."""
+    fe = following_error(st)
     return {"host": st.host, "axis": st.axis, "state": st.state, "mode": st.mode_display,
             "position": st.position, "velocity": st.velocity, "torque": st.torque,
+            "following_error": None if fe is None else fe[0],
             "error_code": st.error_code, "error_text": st.error_text, "al_state": st.al_state,
             "lost": st.lost, "lease_holder": st.lease_holder, "statusword": st.statusword,
             "goal": st.goal, "online": agent_alive, "time_ns": st.time_ns,
@@ -39,7 +69,8 @@ def offline_row(host: str, axis: str) -> dict[str, Any]:
     """Row of an expected drive that no live agent reports. Pure."""
     return {"host": host, "axis": axis, "state": "offline", "mode": None, "position": None, "velocity": None,
             "torque": None, "error_code": 0, "error_text": "", "al_state": "none", "lost": False,
-            "lease_holder": "", "statusword": None, "goal": None, "online": False, "alarm": True, "time_ns": 0}
+            "lease_holder": "", "statusword": None, "goal": None, "online": False, "alarm": True, "time_ns": 0,
+            "following_error": None}
 
 
 def agent_row(host: str, alive: bool, st: AgentStatus | None, expected: bool) -> dict[str, Any]:
@@ -50,6 +81,8 @@ def agent_row(host: str, alive: bool, st: AgentStatus | None, expected: bool) ->
                    cycles=st.cycles, period_p50_us=st.period_p50_us, period_p99_us=st.period_p99_us,
                    period_max_us=st.period_max_us, overruns=st.overruns, wkc_errors=st.wkc_errors,
                    axes=list(st.axes), commands=dict(getattr(st, "commands", {}) or {}))
+        dc = dc_offset_us(st)
+        row.update(dc_offset_p50_us=None if dc is None else dc[0], dc_offset_p99_us=None if dc is None else dc[1])
     return row
 
 

@@ -37,7 +37,7 @@ const Dashboard = (() => {
       (() => { const td = document.createElement("td"); const a = document.createElement("a");
                a.href = "/drive/" + encodeURIComponent(d.host) + "/" + encodeURIComponent(d.axis);
                a.textContent = d.axis; td.appendChild(a); return td; })(),
-      cell(d.state, "state"), cell(d.mode, "num"), cell(d.position, "num"),
+      cell(d.state, "state"), cell(d.mode, "num"), cell(d.position, "num"), cell(d.following_error, "num"),
       cell(d.error_code ? hex(d.error_code) + " " + d.error_text : ""), cell(d.al_state),
       cell(d.lost ? "LOST" : ""), cell(d.lease_holder));
     tr.dataset.state = d.state;
@@ -55,7 +55,9 @@ const Dashboard = (() => {
     const us = (v) => v === undefined ? "" : v.toFixed(0);
     tr.replaceChildren(cell(h.host), cell(h.alive ? h.state : "offline", "state"), cell(h.backend),
       cell(h.period_p50_us === undefined ? "" : us(h.period_p50_us) + " / " + us(h.period_p99_us) + " / " + us(h.period_max_us), "num"),
-      cell(h.overruns, "num"), cell(h.wkc_errors, "num"));
+      cell(h.overruns, "num"), cell(h.wkc_errors, "num"),
+      cell(h.dc_offset_p50_us === undefined || h.dc_offset_p50_us === null ? "" :
+           us(h.dc_offset_p50_us) + " / " + us(h.dc_offset_p99_us), "num dc"));
     tr.dataset.state = h.alive ? h.state : "offline";
     tr.className = h.alive ? (h.state === "running" ? "" : "alarm") : "offline alarm";
   }

@@ -97,10 +97,36 @@ def test_grafana_dashboard_and_scrape_config_use_exposed_metrics():
     root = Path(__file__).resolve().parents[2]
     v = FleetView({"h9": ["x"]})
     v.on_alive("h1", True)
-    v.on_agent(agent())
-    v.on_status(status("a"))
+    v.on_agent(agent(dc={"a": "sync0"}, dc_offset_p50_us=500.0, dc_offset_p99_us=510.0))
+    v.on_status(status("a", "operation_enabled"))
     exposed = {s.name for f in text_string_to_metric_families(render(registry_for(v)).decode()) for s in f.samples}
     dash = json.loads((root / "deploy" / "grafana-dashboard.json").read_text())
     used = {name for p in dash["panels"] for t in p["targets"] for name in re.findall(r"drives_[a-z_]+", t["expr"])}
     assert used and used <= exposed, used - exposed
     assert "/metrics" in (root / "deploy" / "prometheus.yml").read_text()
+
+
+def test_following_error_and_dc_offset_only_when_known():
+    v = FleetView()
+    v.on_alive("h1", True)
+    v.on_agent(agent(axes=["a", "b", "c", "d"], dc={"a": "sync0", "b": "off"}, dc_offset_p50_us=480.5,
+                     dc_offset_p99_us=512.0))
+    v.on_agent(agent(host="h2", dc={"x": "off"}, dc_offset_p50_us=0.0, dc_offset_p99_us=0.0))
+    v.on_alive("h2", True)
+    # a: maps 0x60F4 (the drive's own, in any state); b: CSP in Operation enabled (the agent's);
+    # c: CSP but disabled; d: enabled in CSV (the agent's figure means nothing there)
+    v.on_status(status("a", objects={"following_error_actual_value": -12}, following_error=3))
+    v.on_status(status("b", "operation_enabled", following_error=40))
+    v.on_status(status("c", following_error=0))
+    v.on_status(status("d", "operation_enabled", mode=9, mode_display=9, following_error=5))
+    v.on_status(status("e", "operation_enabled", following_error=5, absent=["position"]))
+    fams = {f.name: f for f in text_string_to_metric_families(render(registry_for(v)).decode())}
+    fe = {(s.labels["axis"], s.labels["source"]): s.value
+          for s in fams["drives_drive_following_error_increments"].samples}
+    assert fe == {("a", "0x60F4"): -12.0, ("b", "agent"): 40.0}
+    dc = {(s.labels["host"], s.labels["quantile"]): s.value for s in fams["drives_dc_offset_seconds"].samples}
+    assert dc == {("h1", "0.5"): 0.0004805, ("h1", "0.99"): 0.000512}  # h2: DC capable, no SYNC0: no series
+    rows = {d["axis"]: d["following_error"] for d in v.snapshot()["drives"]}
+    assert rows == {"a": -12, "b": 40, "c": None, "d": None, "e": None}
+    hosts = {h["host"]: (h["dc_offset_p50_us"], h["dc_offset_p99_us"]) for h in v.snapshot()["hosts"]}
+    assert hosts == {"h1": (480.5, 512.0), "h2": (None, None)}
