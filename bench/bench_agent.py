@@ -262,7 +262,7 @@ def encoding_figures(drives: int, n: int = 2000) -> dict:
     import msgpack
 
     from bus_agent import runtime as rt
-    from bus_agent.gateway import bridge
+    from bus_agent.gateway import wire as bridge
 
     snap = rt.CycleSnapshot(
         cycle=123456, time_ns=time.time_ns(), events=(), stats=rt.CycleStats(cycles=123456, period_p99_us=1001.2),

@@ -18,7 +18,7 @@ from .results import CommandResult, DriveResult
 from .selectors import DriveRef
 
 if TYPE_CHECKING:
-    from .fleet import Fleet
+    from .orchestration import Fleet
 
 #: Wall-clock margin between the commit and the common start of a cross-host group move: covers
 #: the commit's delivery to every agent (a query on a LAN: ~1 ms) and the hosts' clock offsets.

@@ -9,38 +9,25 @@ its :class:`~bus_agent.motion.axis.Finished` records into command outcomes.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Sequence
 
 from bus_agent.cia402.states import State
+from bus_agent.cycle.base import CycleBase
+from bus_agent.cycle.drive import Drive
 from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected
 from bus_agent.motion.planner import PlanError, plan_group
 from bus_agent.runtime import DriveCommand, Outcome
 
-if TYPE_CHECKING:  # the attributes of Cycle this mixin uses
-    from bus_agent.cycle.cycle import _Drive
 
 _FAULTS = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 
 
-class MotionMixin:
+class MotionMixin(CycleBase):
     """Motion commands and per-cycle motion steps of the :class:`Cycle`."""
-
-    if TYPE_CHECKING:
-        _by_axis: dict[str, _Drive]
-        _wall_ns: Callable[[], int]
-        cycles: int
-
-        def _reply(self, d: _Drive, cmd: DriveCommand, outcome: str, reason: str, now_ns: int, start_ns: int,
-                   start_cycle: int | None = None, duration_s: float = 0.0) -> None: ...
-
-        def _refusal(self, d: _Drive) -> str: ...
-
-        @staticmethod
-        def _outcome(cmd: DriveCommand, outcome: Outcome) -> None: ...
 
     # ---- commands ------------------------------------------------------------------------------
 
-    def _motion_command(self, d: "_Drive", cmd: DriveCommand, now_ns: int) -> None:
+    def _motion_command(self, d: Drive, cmd: DriveCommand, now_ns: int) -> None:
         """move / jog / stop for one axis (a ``sync`` move goes through :meth:`_group_move`)."""
         m = d.motion
         now_s = now_ns / 1e9
@@ -64,7 +51,7 @@ class MotionMixin:
         deadline_s = (start_ns + int(cmd.timeout_s * 1e9)) / 1e9
         now_s = now_ns / 1e9
         axes = list(dict.fromkeys(cmd.axes))
-        drives: list[_Drive] = []
+        drives: list[Drive] = []
         prepared = []
         refused: dict[str, str] = {}
         for axis in axes:
@@ -124,14 +111,14 @@ class MotionMixin:
                                         note="; ".join(prep[3]), synchronized=True)
             self._motion_finished(d, ended, now_ns)
 
-    def _motion_abort(self, d: "_Drive", reason: str, now_ns: int, *, drop: bool = False) -> None:
+    def _motion_abort(self, d: Drive, reason: str, now_ns: int, *, drop: bool = False) -> None:
         """End the running motion command of ``d`` (aborted); ``drop``: forget the plan too (the
         drive is leaving Operation enabled or is lost), else decelerate on the profile."""
         m = d.motion
         ended = m.lose(reason, now_ns / 1e9) if drop else m.abort(reason, now_ns / 1e9)
         self._motion_finished(d, ended, now_ns)
 
-    def _motion_finished(self, d: "_Drive", ended: Sequence[Finished], now_ns: int) -> None:
+    def _motion_finished(self, d: Drive, ended: Sequence[Finished], now_ns: int) -> None:
         for f in ended:
             cmd, start_cycle = f.token
             self._reply(d, cmd, f.outcome, f.reason, now_ns, cmd.received_ns or now_ns, start_cycle,
@@ -139,7 +126,7 @@ class MotionMixin:
 
     # ---- per cycle -----------------------------------------------------------------------------
 
-    def _motion_step(self, d: "_Drive", hold_target: bool, now_ns: int) -> None:
+    def _motion_step(self, d: Drive, hold_target: bool, now_ns: int) -> None:
         """Observe, step, and copy the axis's targets into the drive's output record. Cycle-safe."""
         i = d.inputs
         m = d.motion
@@ -158,7 +145,7 @@ class MotionMixin:
             self._motion_finished(d, ended, now_ns)
 
 
-def following_error(d: "_Drive") -> int:
+def following_error(d: Drive) -> int:
     """Target position written last minus the actual position (CSP in Operation enabled), else 0."""
     if d.state is State.OPERATION_ENABLED and d.inputs.modes_of_operation_display == MODE_CSP:
         return d.target_position - d.inputs.position_actual

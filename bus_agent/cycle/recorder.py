@@ -48,7 +48,7 @@ class RecordingUnavailable(LookupError):
 
 
 class RecordedDrive(Protocol):
-    """What the recorder reads of a drive (``bus_agent.cycle.cycle._Drive``)."""
+    """What the recorder reads of a drive (``bus_agent.cycle.drive.Drive``)."""
 
     inputs: Any           # DriveInputs: statusword, position_actual, velocity_actual, torque_actual, ...
     controlword: int

@@ -14,9 +14,11 @@ import pytest
 
 from bus_agent.sim import child
 from bus_agent import runtime as rt
-from bus_agent.gateway.bridge import (FORWARD_NOW_FIELDS, CycleProxy, ForwardFilter, GatewayProcess, Msg,
-                              decode_command, decode_event, decode_outcome, decode_snapshot, dumps,
-                              encode_command, encode_event, encode_snapshot, encode_update, loads)
+from bus_agent.gateway.bridge import GatewayProcess
+from bus_agent.gateway.child import CycleProxy
+from bus_agent.gateway.wire import (FORWARD_NOW_FIELDS, ForwardFilter, Msg, decode_command, decode_event, decode_outcome,
+                                    decode_snapshot, dumps, encode_command, encode_event, encode_snapshot, encode_update,
+                                    loads)
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -1,0 +1,150 @@
+"""The gateway's publisher: drive status on change and as a heartbeat, events, agent status.
+
+The :class:`PublisherMixin` part of :class:`bus_agent.gateway.gateway.Gateway`; runs on the
+``gw-publish`` thread (and once more from ``close``). Discrete fields (:data:`CHANGE_FIELDS`) go out
+within one cycle of a change; motion fields (:data:`MOTION_FIELDS`) at most every
+``motion_period_s``; everything with every heartbeat.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+from bus_agent import runtime as rt
+from bus_agent.gateway.base import CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
+from schemas import messages as m
+from schemas.error_codes import describe
+
+log = logging.getLogger("bus_agent.gateway.gateway")
+
+
+class PublisherMixin(GatewayBase):
+    """Snapshots and events of the cycle turned into puts."""
+
+    def _publish_loop(self) -> None:
+        while not self._stop.is_set():
+            now = time.monotonic()
+            wait = max(0.0, min(self._next_heartbeat_s, self._next_agent_s) - now)
+            self._wake.wait(wait)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            try:
+                self._publish_once()
+            except Exception:  # keep publishing; the log says what broke
+                log.exception("gateway %s: publish failed", self.host)
+
+    def _commands_first(self, until_s: float) -> None:
+        """Let the command thread finish what it is doing (replies, a query's validation) before
+        the next put, until ``until_s`` at most. Both threads need the GIL, and a put or a reply
+        gives it up while zenoh works: a publish pass (a put per changed drive and per event, all
+        16 drives in every cycle of an enable) took it back each time and held a 16-drive reply
+        batch up by milliseconds. Waiting on an event sleeps without the GIL."""
+        if not self._commands_idle.is_set() and not self._stop.is_set():
+            self._commands_idle.wait(max(0.0, until_s - time.monotonic()))
+
+    def _publish_once(self, final: bool = False) -> None:
+        with self._pub_lock:
+            snap = self._latest
+            now = time.monotonic()
+            until_s = now + (0.0 if final else COMMANDS_FIRST_MAX_S)
+            heartbeat = final or now >= self._next_heartbeat_s
+            if heartbeat:
+                self._next_heartbeat_s = now + self.s.heartbeat_s
+            holders = self._lease_holders
+            if snap is not None:
+                for d in snap.drives:
+                    self._commands_first(until_s)
+                    self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, heartbeat)
+            while self._events:
+                self._commands_first(until_s)
+                ev, cycle, time_ns = self._events.popleft()
+                self._publish_event(ev, cycle, time_ns)
+            if final or now >= self._next_agent_s:
+                self._next_agent_s = now + self.s.agent_period_s
+                if self._agent_pub is not None:
+                    self._agent_seq += 1
+                    self._agent_pub.put(m.encode(self._agent_status(self._agent_seq)))
+
+    def _maybe_publish_status(self, snap: rt.CycleSnapshot, d: rt.DriveSnapshot, holder: str, now: float,
+                              heartbeat: bool) -> None:
+        axis = d.axis
+        pub = self._status_pubs.get(axis)
+        if pub is None:
+            return
+        fields = tuple(getattr(d, f) for f in CHANGE_FIELDS) + (holder,)
+        motion = tuple(getattr(d, f) for f in MOTION_FIELDS)
+        changed = fields != self._last_fields.get(axis)
+        moved = (motion != self._last_motion.get(axis)
+                 and now - self._last_motion_pub_s.get(axis, 0.0) >= self.s.motion_period_s)
+        if not (changed or moved or heartbeat):
+            return
+        self._status_seq[axis] = self._status_seq.get(axis, 0) + 1
+        msg = self._status_msg(snap, d, holder, self._status_seq[axis])
+        try:
+            payload = m.encode(msg)
+        except m.SchemaError as exc:
+            log.error("drive %s/%s: status not publishable: %s", self.host, axis, exc)
+            return
+        pub.put(payload)
+        self._published[axis] = msg
+        self._last_fields[axis] = fields
+        self._last_motion[axis] = motion
+        self._last_motion_pub_s[axis] = now
+
+    def _status_msg(self, snap: rt.CycleSnapshot, d: rt.DriveSnapshot, holder: str, seq: int) -> m.DriveStatus:
+        return m.DriveStatus(
+            host=self.host, axis=d.axis, seq=seq, time_ns=snap.time_ns, cycle=snap.cycle,
+            state=d.state if d.state in m.DRIVE_STATES else "unknown", statusword=d.statusword,
+            controlword=d.controlword, goal=d.goal, halt=d.halt, mode=d.mode, mode_display=d.mode_display,
+            position=d.position, velocity=d.velocity, torque=d.torque, error_code=d.error_code,
+            error_text=(d.error_text or describe(d.error_code))[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
+            axis_state=d.axis_state, homed=d.homed, target_position=d.target_position,
+            following_error=max(-2**31, min(2**31 - 1, d.following_error)), motion_request_id=d.motion_request_id[:128],
+            absent=list(d.absent), objects=dict(zip(d.object_names, d.objects)),
+        )
+
+    def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
+        if not ev.axis:
+            # An agent-wide event (e.g. an NMT outcome) concerns every drive: one copy each.
+            for axis in self.axes:
+                self._publish_event(dataclasses.replace(ev, axis=axis), cycle, time_ns)
+            return
+        pub = self._event_pubs.get(ev.axis)
+        if pub is None:
+            log.debug("event for unknown axis %r dropped: %s", ev.axis, ev)
+            return
+        self._event_seq[ev.axis] = self._event_seq.get(ev.axis, 0) + 1
+        detail = ev.detail
+        if ev.kind == "fault" and ev.error_code and describe(ev.error_code) not in detail:
+            detail = f"{detail}: {describe(ev.error_code)}" if detail else describe(ev.error_code)
+        try:
+            msg = m.Event(
+                host=self.host, axis=ev.axis, seq=self._event_seq[ev.axis], time_ns=time_ns, cycle=cycle,
+                kind=ev.kind, detail=detail[:400],
+                from_state=ev.from_state if ev.from_state in m.DRIVE_STATES else "unknown",
+                to_state=ev.to_state if ev.to_state in m.DRIVE_STATES else "unknown",
+                error_code=ev.error_code, request_id=ev.request_id[:128], requester=ev.requester[:128],
+            )
+            pub.put(m.encode(msg))
+        except m.SchemaError as exc:
+            log.error("drive %s/%s: event not publishable: %s", self.host, ev.axis, exc)
+
+    def _agent_status(self, seq: int) -> m.AgentStatus:
+        snap = self._latest
+        st = snap.stats if snap else rt.CycleStats(cycle_us=self.s.cycle_us)
+        state = self.agent_state_override or (snap.agent_state if snap else "starting")
+        return m.AgentStatus(
+            host=self.host, seq=seq, time_ns=snap.time_ns if snap else time.time_ns(),
+            state=state if state in m.AGENT_STATES else "error", backend=self.s.backend,
+            cycle_us=st.cycle_us or self.s.cycle_us, cycles=st.cycles,
+            period_p50_us=st.period_p50_us, period_p99_us=st.period_p99_us, period_max_us=st.period_max_us,
+            overruns=st.overruns, wkc_errors=st.wkc_errors, expected_wkc=st.expected_wkc,
+            axes=list(self.axes), al_states={d.axis: d.al_state for d in snap.drives} if snap else {},
+            leases=dict(self._lease_holders), groups={g: list(ms) for g, ms in self.s.groups.items()},
+            instance=self.instance, conflict=self._conflict_text[:400], commands=dict(self._command_counts),
+            dc={d.axis: d.dc for d in snap.drives} if snap else {},
+            dc_offset_p50_us=st.dc_offset_p50_us, dc_offset_p99_us=st.dc_offset_p99_us,
+        )
