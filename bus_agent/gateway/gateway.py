@@ -99,11 +99,12 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
             keys.ALL_SUPERVISORS, lambda smp: enqueue((self._on_supervisor_token, (smp,))), history=True))
         self._other_decls.append(s.declare_subscriber(
             keys.agent_status(self.host), lambda smp: enqueue((self._on_own_host_status, (smp,)))))
-        remote_hosts = sorted({r.host for r in self._remotes})
-        for host in remote_hosts:
-            # The group reflex's path: handled on zenoh's callback thread, not queued behind
-            # the command thread's work (see PeersMixin._on_remote_status).
-            self._other_decls.append(s.declare_subscriber(keys.drive_status(host, "*"), self._on_remote_status))
+        # The group reflex's path: only the members' own status (not every drive of their hosts),
+        # handled on zenoh's callback thread, not queued behind the command thread's work (see
+        # PeersMixin._on_remote_status).
+        for host, axis in sorted({(r.host, r.axis) for r in self._remotes}):
+            self._other_decls.append(s.declare_subscriber(keys.drive_status(host, axis), self._on_remote_status))
+        for host in sorted({r.host for r in self._remotes}):
             self._other_decls.append(s.liveliness().declare_subscriber(
                 keys.alive(host), lambda smp: enqueue((self._on_remote_token, (smp,))), history=True))
         self._other_decls.append(s.declare_queryable(keys.agent_recording(self.host), self._on_recording_query))
