@@ -206,3 +206,15 @@ def test_reflex_targets_p50_2ms_p99_3ms(p50: float, p99: float, met: tuple) -> N
     assert (t50.met, t99.met) == met and failures.met is True
     assert "bare put" in s.reflex_headline(data)
     assert s.reflex_targets({"fault_to_leave": {"n": 0}, "n_failures": 3})[0].met is None
+
+
+def test_twin_targets_read_the_ten_host_size_and_every_stop() -> None:
+    run = {"sizes": {"3": {"twin": {"ready_s": 2.0, "cpu_pct_twin_process": 0.5, "left_after_stop": 0}, "bare": {}},
+                     "10": {"twin": {"ready_s": 12.5, "cpu_pct_twin_process": 2.0, "left_after_stop": 1},
+                            "bare": {"ready_s": 5.0}}}}
+    ready, own, left = s.twin_targets(run)
+    assert (ready.measured, ready.met) == (12.5, False)
+    assert (own.measured, own.met) == (2.0, True)
+    assert (left.measured, left.met) == (1, False)
+    assert [t.met for t in s.twin_targets({"sizes": {"3": {"twin": {}, "bare": {}}}})] == [None, None, None]
+    assert "10 hosts: ready 12.5 s (bare processes 5.0 s)" in s.twin_headline(run)
