@@ -19,7 +19,7 @@ Then the Fleet resets the fault on h1/axis0. The bare figure: a publisher in h1 
 router puts its ``time.time_ns()`` every 10 ms (express), a subscriber in h2 connected to h2's
 router takes the difference on arrival.
 
-    python -m bench.bench_reflex [--rounds N] [--drives N] [--bare N] [--out PATH]
+    python -m bench.bench_reflex [--rounds N] [--drives N] [--bare N] [--rt-priority N] [--out PATH]
 
 Writes ``bench/results/bench_reflex.json`` (ms percentiles, ratios to the bare put, load).
 """
@@ -193,7 +193,8 @@ def run(args: Any) -> dict:
     from tests.system.multihost import MultiHostRun, Proc
 
     start = loadavg()
-    bed = MultiHostRun(hosts=2, drives=args.drives, groups={"xg": list(GROUP)}, prefix=f"zr{os.getpid() % 100000}")
+    bed = MultiHostRun(hosts=2, drives=args.drives, groups={"xg": list(GROUP)}, prefix=f"zr{os.getpid() % 100000}",
+                       agent_args=["--rt-priority", str(args.rt_priority)] if args.rt_priority else [])
     py = sys.executable
     me = [py, "-m", "bench.bench_reflex"]
     try:
@@ -215,6 +216,7 @@ def run(args: Any) -> dict:
     finally:
         bed.close()
     out: dict[str, Any] = {"rounds": args.rounds, "drives_per_host": args.drives, "group": list(GROUP),
+                           "rt_priority": args.rt_priority,
                            "fault_to_reflex": _ms(res["fault_to_reflex_ns"]),
                            "fault_to_leave": _ms(res["fault_to_leave_ns"]),
                            "fault_to_status_in_sup": _ms(res["fault_to_status_here_ns"]),
@@ -233,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=50, help="fault/reset rounds (default 50)")
     p.add_argument("--drives", type=int, default=2, help="drives per host (default 2)")
     p.add_argument("--bare", type=int, default=500, help="bare puts timed (default 500)")
+    p.add_argument("--rt-priority", type=int, default=10,
+                   help="SCHED_FIFO priority of the agents' cycle threads (0: off; default 10)")
     p.add_argument("--child", choices=("bare_sub", "bare_pub", "reflex"), help=_suppress())
     p.add_argument("--connect")
     p.add_argument("--control")
