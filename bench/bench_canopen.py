@@ -41,7 +41,7 @@ def _bare(args, period_us: int) -> dict:
     from bus_agent.bus.canopen.pdo import PdoFrames, default_mapping
     from bus_agent.bus.canopen.nmt import NmtCommand, nmt_frame
     from bus_agent.bus.pdo import DriveOutputs
-    from bus_agent.sim.canopen.segment import open_can
+    from bus_agent.bus.canopen.bus import open_can
 
     bus = open_can(CHANNEL, "udp_multicast")
     ids = list(range(1, args.nodes + 1))

@@ -50,7 +50,7 @@ from supervisor.testbed import Proc, spawn, start_agents, start_router
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_supervisor.json"
 
 WATCHER = r"""
-import json, os, sys, threading, time
+import json, sys, threading, time
 from supervisor.fleet import Fleet
 ep, n_drives = sys.argv[1], int(sys.argv[2])
 pki = sys.argv[3] if len(sys.argv) > 3 else None  # with a PKI the watcher is principal bench-watcher
@@ -62,34 +62,68 @@ def on_status(st):
         last = changes.get(key)
         if last is None or last[0] != st.state:
             changes[key] = (st.state, (last[1] + 1) if last else 0)
+def counts(f):
+    with lock:
+        return f.status_count, sum(v[1] for v in changes.values()), sum(f.missed().values())
 with Fleet(connect=[ep], name="bench-watcher", pki=pki, identity="bench-watcher" if pki else None) as f:
     f.on("status", on_status)
     assert f.wait_until(lambda f: len(f.roster()) >= n_drives, 60), len(f.roster())
-    for line in sys.stdin:
+    print("watching", flush=True)
+    for line in sys.stdin:  # mark, report, mark, report, ... until stdin closes
         cmd = line.strip()
         if cmd == "mark":
-            t0, c0, n0 = time.monotonic(), os.times(), f.status_count
-            with lock:
-                s0 = sum(v[1] for v in changes.values())
+            t0, c0, (n0, s0, m0) = time.monotonic(), time.process_time(), counts(f)
             print("marked", flush=True)
         elif cmd == "report":
             time.sleep(0.5)  # let the last publications arrive
-            t1, c1, n1 = time.monotonic(), os.times(), f.status_count
-            with lock:
-                s1 = sum(v[1] for v in changes.values())
-            missed = f.missed()
+            t1, c1, (n1, s1, m1) = time.monotonic(), time.process_time(), counts(f)
             print(json.dumps({
                 "drives_seen": len(f.drives()),
                 "status_received": n1 - n0,
                 "state_changes_seen": s1 - s0,
-                "missed_by_seq": sum(missed.values()),
-                "drives_with_gaps": sum(1 for v in missed.values() if v),
+                "missed_by_seq": m1 - m0,
+                "drives_with_gaps": sum(1 for v in f.missed().values() if v),
                 "window_s": round(t1 - t0, 3),
-                "cpu_s": round((c1.user - c0.user) + (c1.system - c0.system), 3),
-                "cpu_pct_of_one_core": round(100 * ((c1.user - c0.user) + (c1.system - c0.system)) / (t1 - t0), 1),
+                "cpu_s": round(c1 - c0, 6),
+                "cpu_pct_of_one_core": round(100 * (c1 - c0) / (t1 - t0), 1),
             }), flush=True)
-            break
 """
+
+
+class Watcher:
+    """A watcher ``Fleet`` in its own process receiving every drive status (``WATCHER``):
+    ``mark()`` opens a window, ``report()`` closes it and returns what arrived in it (messages,
+    sequence gaps, the watcher's CPU by ``time.process_time``); windows may repeat."""
+
+    def __init__(self, ep: str, total: int, pki: str | None = None) -> None:
+        import subprocess
+
+        from supervisor.testbed import _env
+
+        self.proc = subprocess.Popen([sys.executable, "-c", WATCHER, ep, str(total), *([pki] if pki else [])],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_env())
+        self.pid = self.proc.pid
+        if self._line() != "watching":
+            self.close()
+            raise RuntimeError(f"the watcher did not see {total} drives")
+
+    def _line(self, cmd: str | None = None) -> str:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        if cmd is not None:
+            self.proc.stdin.write(cmd + "\n")
+            self.proc.stdin.flush()
+        return self.proc.stdout.readline().strip()
+
+    def mark(self) -> None:
+        if self._line("mark") != "marked":
+            raise RuntimeError("the watcher did not answer mark")
+
+    def report(self) -> dict[str, Any]:
+        return json.loads(self._line("report"))
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait(10)
 
 
 ECHO = r"""
@@ -236,26 +270,15 @@ def run_departure(fleet: Fleet, proc: Proc, hosts: list[str], timeout_s: float =
 
 
 def run_fanin(fleet: Fleet, ep: str, total: int, pki: str | None = None) -> dict[str, Any]:
-    import subprocess
-
-    from supervisor.testbed import _env
-
-    w = subprocess.Popen([sys.executable, "-c", WATCHER, ep, str(total), *([pki] if pki else [])],
-                         stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, text=True, env=_env())
+    w = Watcher(ep, total, pki)
     try:
-        assert w.stdin is not None and w.stdout is not None
-        w.stdin.write("mark\n")
-        w.stdin.flush()
-        assert w.stdout.readline().strip() == "marked"
+        w.mark()
         m0 = sum(fleet.missed().values())
         t0 = time.monotonic()
         en = fleet.enable("**", timeout_s=10)
         dis = fleet.command("disable", "**", timeout_s=10)
         active_s = time.monotonic() - t0
-        w.stdin.write("report\n")
-        w.stdin.flush()
-        body = json.loads(w.stdout.readline())
+        body = w.report()
         body["commands_ok"] = en.ok and dis.ok
         # the same count in the commanding supervisor's own Fleet: equal gaps in two independent
         # subscribers mean the samples were lost upstream (publisher or router), not by a watcher
@@ -263,8 +286,7 @@ def run_fanin(fleet: Fleet, ep: str, total: int, pki: str | None = None) -> dict
         body["active_s"] = round(active_s, 3)
         return body
     finally:
-        w.kill()
-        w.wait(10)
+        w.close()
 
 
 def main(argv: list[str] | None = None) -> int:

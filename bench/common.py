@@ -190,6 +190,21 @@ def proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def thread_cpu_ns(pid: int) -> dict[str, int]:
+    """CPU time (ns) of the live threads of process ``pid``, summed per thread name with digits
+    dropped (a pool's threads add up): /proc/<pid>/task/*/schedstat, nanoseconds rather than the
+    10 ms ticks of /proc/<pid>/stat. Threads that ended are not counted."""
+    out: dict[str, int] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip().rstrip("0123456789-_") or "?"
+            ns = int((task / "schedstat").read_text().split()[0])
+        except (OSError, ValueError, IndexError):
+            continue  # the thread ended meanwhile
+        out[name] = out.get(name, 0) + ns
+    return out
+
+
 def self_cpu_s() -> float:
     """User + system CPU time of this process in seconds (getrusage)."""
     r = resource.getrusage(resource.RUSAGE_SELF)

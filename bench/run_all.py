@@ -74,7 +74,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               ("--seconds", "3", "--rt-priority", "10"), True,
               s.canopen_figures, s.canopen_headline, s.canopen_targets),
     Benchmark("security", "mutual TLS + ACL against plain TCP in the same run: 16-drive enable, status fan-in",
-              "bench.bench_security", ("--rounds", "50", "--fanin", "8x32"), ("--quick",), False,
+              "bench.bench_security", ("--rounds", "50", "--fanin", "8x32", "--fanin-rounds", "12"), ("--quick",), False,
               s.security_figures, s.security_headline, s.security_targets),
     Benchmark("trust", "the audit trail per 16-drive command and error texts per status, next to the gateway's "
               "own work", "bench.bench_trust", ("--rounds", "2000"), ("--rounds", "200"), False,
@@ -86,6 +86,10 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("dashboard", "drives-dashboard with 1024 drives in headless chromium: CPU, change-to-page time",
               "bench.bench_dashboard", ("--rounds", "20", "--idle-s", "10"), ("--rounds", "4", "--idle-s", "3"),
               False, s.dashboard_figures, s.dashboard_headline, s.dashboard_targets),
+    Benchmark("twin", "drives-twin start to ready (3, 10, 32 simulated hosts of 2 drives) and CPU at rest, next to "
+              "the bare router and agents", "bench.bench_twin", ("--hosts", "3,10,32", "--rest-s", "10"),
+              ("--hosts", "3,10", "--rest-s", "3", "--settle-s", "2"), False,
+              s.twin_figures, s.twin_headline, s.twin_targets),
 )
 
 

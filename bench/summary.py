@@ -368,11 +368,11 @@ security_figures = picked("enable", "fanin", "summary")
 def security_headline(r: Mapping[str, Any]) -> str:
     e, f, sm = r.get("enable", {}), r.get("fanin", {}), r.get("summary", {})
     tcp, tls = e.get("tcp", {}), e.get("tls", {})
-    drives = (f.get("tcp") or [{}])[0].get("drives")
     return (f"enable 16 drives p50 tcp {tcp.get('wall_ms_p50')} / tls {tls.get('wall_ms_p50')} ms "
-            f"({sm.get('enable_wall_p50_ratio')} x); fan-in {drives} drives: missed {sm.get('fanin_missed')}, "
-            f"watcher CPU per message {sm.get('fanin_watcher_cpu_per_msg_ratio')} x, "
-            f"router CPU {sm.get('fanin_router_cpu_ratio')} x")
+            f"({sm.get('enable_wall_p50_ratio')} x); fan-in {f.get('drives')} drives: missed {sm.get('fanin_missed')}, "
+            f"watcher CPU per message {sm.get('fanin_watcher_cpu_per_msg_ratio')} x (min-of-N "
+            f"{sm.get('fanin_watcher_cpu_per_msg_ratio_min_of_n')} x, paired rounds p10-p90 "
+            f"{sm.get('fanin_watcher_cpu_per_msg_ratio_paired_p10_p90')}), router CPU {sm.get('fanin_router_cpu_ratio')} x")
 
 
 def security_targets(r: Mapping[str, Any]) -> list[Target]:
@@ -385,7 +385,7 @@ def security_targets(r: Mapping[str, Any]) -> list[Target]:
         out.append(at_most(name, v, limit))
     missed = sm.get("fanin_missed", {})
     out.append(Target("fan-in missed, both transports", missed, 0,
-                      bool(missed) and all(m == 0 for ms in missed.values() for m in ms)))
+                      bool(missed) and all(m == 0 for m in missed.values())))
     return out
 
 
@@ -431,3 +431,38 @@ def dashboard_headline(r: Mapping[str, Any]) -> str:
 def dashboard_targets(r: Mapping[str, Any]) -> list[Target]:
     worst = (r.get("change_to_page_ms") or {}).get("max")
     return [at_most("state change to the page, max", worst, DASHBOARD_CHANGE_MS_MAX, " ms")]
+
+
+# ---- bench_twin -----------------------------------------------------------------------------------
+
+#: drives-twin of 10 simulated hosts (2 drives each): ready, every drive answering, within this.
+TWIN_READY_10_S_MAX = 10.0
+#: The twin's own process at rest (link relays, its supervisor, the child monitor), 10 hosts,
+#: percent of one core: what the twin adds to the processes it runs.
+TWIN_OWN_CPU_PCT_MAX = 5.0
+
+twin_figures = picked("axes_per_host", "sizes", "loadavg_start", "loadavg_end")
+
+
+def _twin_size(r: Mapping[str, Any], n: str) -> tuple[Mapping[str, Any], Mapping[str, Any]]:
+    size = (r.get("sizes") or {}).get(n) or {}
+    return size.get("twin") or {}, size.get("bare") or {}
+
+
+def twin_headline(r: Mapping[str, Any]) -> str:
+    parts = []
+    for n in r.get("sizes") or {}:
+        twin, bare = _twin_size(r, n)
+        parts.append(f"{n} hosts: ready {twin.get('ready_s')} s (bare processes {bare.get('ready_s')} s), CPU at rest "
+                     f"{twin.get('cpu_pct_total')} % (bare {bare.get('cpu_pct_total')} %; the twin's own process "
+                     f"{twin.get('cpu_pct_twin_process')} %)")
+    return "; ".join(parts)
+
+
+def twin_targets(r: Mapping[str, Any]) -> list[Target]:
+    twin10, _ = _twin_size(r, "10")
+    left = [(_twin_size(r, n)[0]).get("left_after_stop") for n in r.get("sizes") or {}]
+    return [at_most("drives-twin ready, 10 hosts", twin10.get("ready_s"), TWIN_READY_10_S_MAX, " s"),
+            at_most("the twin's own process at rest, 10 hosts, % of a core", twin10.get("cpu_pct_twin_process"),
+                    TWIN_OWN_CPU_PCT_MAX),
+            at_most("processes left after SIGTERM, every size", max(left) if left and None not in left else None, 0)]

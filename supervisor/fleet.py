@@ -25,7 +25,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence, TypeVar
 
 import zenoh
 
@@ -53,6 +53,8 @@ from .selectors import (
 )
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 DEFAULT_LEASE_TTL_S = 3.0
@@ -392,13 +394,19 @@ class Fleet(FleetCommands):
             else:
                 self._supervisors.discard(parsed.name or "")
 
-    def _on_status_sample(self, sample: zenoh.Sample) -> None:
+    def _decoded(self, sample: zenoh.Sample, cls: type[T], what: str) -> T | None:
+        """A put's message, or None (a delete, or a payload that is not a valid ``cls``: logged)."""
         if sample.kind != zenoh.SampleKind.PUT:
-            return
+            return None
         try:
-            st = decode(sample.payload.to_bytes(), DriveStatus)
+            return decode(sample.payload.to_bytes(), cls)
         except SchemaError as exc:
-            log.warning("supervisor %s: bad status on %s: %s", self.name, sample.key_expr, exc)
+            log.warning("supervisor %s: bad %s on %s: %s", self.name, what, sample.key_expr, exc)
+            return None
+
+    def _on_status_sample(self, sample: zenoh.Sample) -> None:
+        st = self._decoded(sample, DriveStatus, "status")
+        if st is None:
             return
         ref = DriveRef(st.host, st.axis)
         with self._lock:
@@ -416,12 +424,8 @@ class Fleet(FleetCommands):
         self._emit("status", st)
 
     def _on_agent_sample(self, sample: zenoh.Sample) -> None:
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
-        try:
-            st = decode(sample.payload.to_bytes(), AgentStatus)
-        except SchemaError as exc:
-            log.warning("supervisor %s: bad agent status on %s: %s", self.name, sample.key_expr, exc)
+        st = self._decoded(sample, AgentStatus, "agent status")
+        if st is None:
             return
         with self._lock:
             if st.instance:

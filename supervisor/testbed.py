@@ -55,12 +55,7 @@ def start_agents(hosts: Sequence[str], n_drives: int, router: str, *, cycle_us: 
     ``pki``: each agent authenticates as its host name (a certificate per host in it)."""
     argv = [sys.executable, "-m", "supervisor.testbed", "agents", router, ",".join(hosts), str(n_drives),
             str(cycle_us), str(sm_watchdog_s), *([pki] if pki else [])]
-    p = spawn(f"agents {','.join(hosts)}", argv, ready_marker="ready")
-    if not p.wait_ready(ready_timeout_s):
-        out = p.output()
-        p.stop()
-        raise RuntimeError(f"agents {', '.join(hosts)} did not become ready:\n{out}")
-    return p
+    return _spawn_ready(f"agents {', '.join(hosts)}", argv, "ready", ready_timeout_s)
 
 
 def start_agent(host: str, n_drives: int, router: str, *, cycle_us: int = 1000,
@@ -74,11 +69,16 @@ def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: f
     """The real command line: ``python -m bus_agent.cli --sim N --host H --listen .. --connect ROUTER``."""
     argv = [sys.executable, "-m", "bus_agent.cli", "--sim", str(n_drives), "--host", host,
             "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, "--log-level", log_level]
-    p = spawn(f"bus-agent {host}", argv, ready_marker="bus-agent ready")
-    if not p.wait_ready(ready_timeout_s):
+    return _spawn_ready(f"bus-agent {host}", argv, "bus-agent ready", ready_timeout_s)
+
+
+def _spawn_ready(name: str, argv: Sequence[str], marker: str, timeout_s: float) -> Proc:
+    """Start ``argv`` and wait for its ready line; stopped, with its output in the error, if it never comes."""
+    p = spawn(name, list(argv), ready_marker=marker)
+    if not p.wait_ready(timeout_s):
         out = p.output()
         p.stop()
-        raise RuntimeError(f"bus-agent {host} did not become ready:\n{out}")
+        raise RuntimeError(f"{name} did not become ready:\n{out}")
     return p
 
 

@@ -2,6 +2,7 @@
 
     drives-twin --fleet fleet.toml                        # router on a free loopback port
     drives-twin --fleet fleet.toml --listen tcp/127.0.0.1:7447 --backend ecat   # root
+    drives-twin --fleet fleet.toml --pki DIR [--identity alice]   # mTLS + ACL with DIR's CA
     drives-twin --cleanup                                 # what twins killed with SIGKILL left
 
 Starts a router and one bus agent per host of the fleet file with exactly its host, axis and
@@ -61,6 +62,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="sim: in-process drive models (no root); ecat: pysoem against ecat-sim per host namespace (root)")
     p.add_argument("--ready-timeout", type=float, default=READY_TIMEOUT_S, metavar="S",
                    help=f"how long to wait for every drive to answer (default {READY_TIMEOUT_S:.0f})")
+    p.add_argument("--pki", metavar="DIR", help="a drives-pki directory (with its CA key): mutual TLS on every "
+                   "link and the router's ACL; the twin issues its own certificates into a copy of DIR")
+    p.add_argument("--identity", metavar="NAME", help="with --pki: the principal of DIR the twin's own supervisor "
+                   "uses (default: twin-operator, issued with role operator)")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
 
@@ -164,7 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stop.set())
     try:
         twin = Twin(args.fleet, backend=args.backend, listen=args.listen, ready_timeout_s=args.ready_timeout,
-                    on_unexpected_exit=on_exit, log_level=args.log_level)
+                    on_unexpected_exit=on_exit, log_level=args.log_level, pki=args.pki, identity=args.identity)
     except (FleetFileError, PlanError) as exc:
         print(f"drives-twin: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -176,7 +181,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         refs = twin.expected.refs()
         print(f"drives-twin ready endpoint={twin.endpoint} backend={twin.backend} "
-              f"hosts={','.join(twin.expected.hosts)} drives={len(refs)} ready_s={twin.ready_s:.2f}", flush=True)
+              f"hosts={','.join(twin.expected.hosts)} drives={len(refs)} ready_s={twin.ready_s:.2f}"
+              f"{f' identity={twin.fleet.identity}' if twin.pki else ''}", flush=True)
         threading.Thread(target=_serve_stdin, args=(twin, stop), name="twin-stdin", daemon=True).start()
         stop.wait()
     finally:

@@ -53,9 +53,11 @@ def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def agent_toml(fleet: ExpectedFleet, spec: HostSpec, backend: str, connect: str, ifname: str = "") -> dict[str, Any]:
+def agent_toml(fleet: ExpectedFleet, spec: HostSpec, backend: str, connect: str, ifname: str = "",
+               pki: str = "") -> dict[str, Any]:
     """The agent TOML content (as a dict) for ``spec``: ``connect`` is its one Zenoh endpoint (the
-    host's link to the router); ``ifname`` the EtherCAT master end for the ``ecat`` backend."""
+    host's link to the router); ``ifname`` the EtherCAT master end for the ``ecat`` backend;
+    ``pki`` a drives-pki directory holding the host's certificate (its identity is its name)."""
     if backend not in BACKENDS:
         raise PlanError(f"backend {backend!r} is not one of {', '.join(BACKENDS)}")
     forbidden = sorted(set(spec.agent) & TWIN_OWNED_KEYS)
@@ -64,7 +66,7 @@ def agent_toml(fleet: ExpectedFleet, spec: HostSpec, backend: str, connect: str,
                         f"(host name, backend, drives from axes, zenoh endpoints); remove them")
     data: dict[str, Any] = {
         "host": spec.name,
-        "zenoh": {"mode": "client", "connect": [connect]},
+        "zenoh": {"mode": "client", "connect": [connect], **({"pki": pki} if pki else {})},
         "drives": [{"slave": i, "axis": a} for i, a in enumerate(spec.axes)],
     }
     if backend == "sim":
@@ -92,11 +94,13 @@ def check_agent_toml(data: Mapping[str, Any], where: str) -> AgentConfig:
 
 
 def plan(fleet: ExpectedFleet, backend: str, connect_of: Mapping[str, str],
-         ifname_of: Mapping[str, str] | None = None) -> list[HostPlan]:
+         ifname_of: Mapping[str, str] | None = None, pki: str = "") -> list[HostPlan]:
     """One :class:`HostPlan` per host, in file order. ``connect_of[host]``: that host's Zenoh
-    endpoint (its relay); ``ifname_of[host]``: its EtherCAT master end (``ecat`` backend)."""
+    endpoint (its relay); ``ifname_of[host]``: its EtherCAT master end (``ecat`` backend);
+    ``pki``: the directory with every host's certificate (a secure twin)."""
     return [HostPlan(spec.name, spec.axes,
-                     agent_toml(fleet, spec, backend, connect_of[spec.name], (ifname_of or {}).get(spec.name, "")))
+                     agent_toml(fleet, spec, backend, connect_of[spec.name], (ifname_of or {}).get(spec.name, ""),
+                                pki))
             for spec in fleet.hosts.values()]
 
 

@@ -18,7 +18,10 @@ Fixtures:
 Backend (``sim``: in-process drive models, no root; ``ecat``: pysoem against ``ecat-sim`` per host
 namespace, root): ``drives_twin(fleet, backend="ecat")``, else the test's marker
 ``@pytest.mark.drives_twin(backend="ecat")``, else the option ``--drives-twin-backend``, else the
-ini value ``drives_twin_backend``, else ``sim``. Without root the ecat backend skips the test, or
+ini value ``drives_twin_backend``, else ``sim``. A secure twin (mutual TLS, the router's ACL, the
+twin's ``fleet`` an operator; ``twin.secure``) the same way: ``pki=DIR`` (and ``identity=NAME``)
+as argument or marker keyword, ``--drives-twin-pki DIR`` / ``--drives-twin-identity NAME``, ini
+``drives_twin_pki`` / ``drives_twin_identity``; DIR is a directory made by ``drives-pki init``. Without root the ecat backend skips the test, or
 fails it when the environment variable ``CI`` is true (a CI run must not skip silently).
 
 A child of the twin that exits without being asked (a crashed agent) fails the test at teardown
@@ -44,17 +47,29 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("drives-twin", "simulated drive fleets (zenoh-drives)")
     group.addoption("--drives-twin-backend", choices=BACKENDS, default=None,
                     help="backend of drives_twin fixtures: sim (default, no root) or ecat (root)")
+    group.addoption("--drives-twin-pki", default=None, metavar="DIR",
+                    help="drives-pki directory: drives_twin fixtures run secure twins (mutual TLS, ACL)")
+    group.addoption("--drives-twin-identity", default=None, metavar="NAME",
+                    help="with a PKI: the principal of the twins' fleet (default twin-operator, role operator)")
     parser.addini("drives_twin_backend", "backend of drives_twin fixtures: sim or ecat", default="sim")
+    parser.addini("drives_twin_pki", "drives-pki directory of drives_twin fixtures (empty: insecure)", default="")
+    parser.addini("drives_twin_identity", "with a PKI: the principal of the twins' fleet", default="")
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "drives_twin(backend='sim'|'ecat'): backend of this test's drives_twin twins")
+    config.addinivalue_line("markers", "drives_twin(backend='sim'|'ecat', pki=DIR, identity=NAME): backend "
+                            "and PKI of this test's drives_twin twins")
+
+
+def _chosen(request: pytest.FixtureRequest, name: str, asked: Any) -> Any:
+    """``asked``, else the test's marker's ``name``, else ``--drives-twin-NAME``, else the ini value."""
+    marker = request.node.get_closest_marker("drives_twin") if request.scope == "function" else None
+    return (asked or (marker.kwargs.get(name) if marker else None)
+            or request.config.getoption(f"--drives-twin-{name}") or request.config.getini(f"drives_twin_{name}"))
 
 
 def _backend(request: pytest.FixtureRequest, asked: str | None) -> str:
-    marker = request.node.get_closest_marker("drives_twin") if request.scope == "function" else None
-    backend = (asked or (marker.kwargs.get("backend") if marker else None)
-               or request.config.getoption("--drives-twin-backend") or request.config.getini("drives_twin_backend"))
+    backend = _chosen(request, "backend", asked)
     if backend not in BACKENDS:
         raise pytest.UsageError(f"drives_twin backend {backend!r} is not one of {', '.join(BACKENDS)}")
     return str(backend)
@@ -82,15 +97,19 @@ class _Twins:
         self.twins: dict[str, "Twin"] = {}
 
     def __call__(self, fleet: str | os.PathLike[str] | Mapping[str, Any], *, backend: str | None = None,
-                 listen: str | None = None, ready_timeout_s: float = 60.0) -> "Twin":
+                 listen: str | None = None, ready_timeout_s: float = 60.0,
+                 pki: str | os.PathLike[str] | None = None, identity: str | None = None) -> "Twin":
         from twin.twin import Twin
 
         chosen = _backend(self.request, backend)
         _require(chosen)
-        key = f"{chosen}:{json.dumps(fleet, sort_keys=True) if isinstance(fleet, Mapping) else os.fspath(fleet)}"
+        pki = _chosen(self.request, "pki", pki) or None
+        identity = (identity or _chosen(self.request, "identity", None) or None) if pki else identity
+        what = json.dumps(fleet, sort_keys=True) if isinstance(fleet, Mapping) else os.fspath(fleet)
+        key = f"{chosen}:{pki}:{identity}:{what}"
         if self.request.scope == "session" and key in self.twins:
             return self.twins[key]
-        twin = Twin(fleet, backend=chosen, listen=listen, ready_timeout_s=ready_timeout_s)
+        twin = Twin(fleet, backend=chosen, listen=listen, ready_timeout_s=ready_timeout_s, pki=pki, identity=identity)
         self.twins[key if self.request.scope == "session" else str(len(self.twins))] = twin
         return twin.start()
 

@@ -1,7 +1,10 @@
 """A host's network link in the twin: a byte relay between its agent and the router that can be cut.
 
 Each host's agent connects to its own relay (a UNIX stream socket, reachable from any network
-namespace) instead of the router; the relay forwards bytes to the router's own UNIX socket. Cutting
+namespace) instead of the router; the relay forwards bytes to the router's own UNIX socket. With a
+PKI every link is TLS, which zenoh runs over TCP only: the relay then listens on a loopback TCP
+port and forwards to the router's TLS endpoint, the TLS bytes passing through untouched (the
+agent still checks the router's certificate, the router the agent's). Cutting
 the link makes the relay swallow every byte in both directions while keeping the sockets open,
 like a pulled cable: nothing is closed, so both sides notice only when Zenoh's link lease runs
 out (3 s, ``bus_agent.gateway.zenoh_config``). Restoring closes the connections that lived
@@ -18,19 +21,27 @@ import asyncio
 import logging
 import os
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, Union
 
 log = logging.getLogger(__name__)
 
 CHUNK = 65536
+#: A UNIX socket path, or a TCP (host, port) (port 0 when listening: the OS picks one).
+Address = Union[str, tuple[str, int]]
+
+
+async def _open(address: Address) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    if isinstance(address, str):
+        return await asyncio.open_unix_connection(address)
+    return await asyncio.open_connection(*address)
 
 
 class LinkRelay:
-    """One host's link: listens on ``path``, forwards to the router's socket ``upstream`` unless cut."""
+    """One host's link: listens on ``listen``, forwards to the router at ``upstream`` unless cut."""
 
-    def __init__(self, host: str, path: str, upstream: str) -> None:
+    def __init__(self, host: str, listen: Address, upstream: Address) -> None:
         self.host = host
-        self.path = path
+        self.listen = listen
         self.upstream = upstream
         self.cut = False
         self.connections = 0            # accepted so far (a reconnect after a restore counts)
@@ -39,23 +50,30 @@ class LinkRelay:
 
     @property
     def endpoint(self) -> str:
-        """The Zenoh endpoint the host's agent connects to."""
-        return f"unixsock-stream/{self.path}"
+        """The Zenoh endpoint the host's agent connects to (a ``tcp/`` one becomes ``tls/`` with a PKI)."""
+        if isinstance(self.listen, str):
+            return f"unixsock-stream/{self.listen}"
+        return f"tcp/{self.listen[0]}:{self.listen[1]}"
 
     async def start(self) -> None:
-        if os.path.exists(self.path):
-            os.unlink(self.path)
-        self._server = await asyncio.start_unix_server(self._accept, path=self.path)
+        if isinstance(self.listen, str):
+            if os.path.exists(self.listen):
+                os.unlink(self.listen)
+            self._server = await asyncio.start_unix_server(self._accept, path=self.listen)
+        else:
+            self._server = await asyncio.start_server(self._accept, *self.listen)
+            self.listen = (self.listen[0], int(self._server.sockets[0].getsockname()[1]))
 
     async def close(self) -> None:
         if self._server is not None:
             self._server.close()
             await self._server.wait_closed()
         self._drop_all()
-        try:
-            os.unlink(self.path)
-        except FileNotFoundError:
-            pass
+        if isinstance(self.listen, str):
+            try:
+                os.unlink(self.listen)
+            except FileNotFoundError:
+                pass
 
     def _drop_all(self) -> None:
         for w in list(self._writers):
@@ -72,7 +90,7 @@ class LinkRelay:
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.connections += 1
         try:
-            up_reader, up_writer = await asyncio.open_unix_connection(self.upstream)
+            up_reader, up_writer = await _open(self.upstream)
         except OSError as exc:  # the router is down (killed or restarting): the agent retries
             log.info("twin link %s: router %s unreachable: %s", self.host, self.upstream, exc)
             writer.close()
@@ -113,8 +131,8 @@ class RelayHub:
             return result
         return asyncio.run_coroutine_threadsafe(run(), self._loop).result(timeout_s)
 
-    def add(self, host: str, path: str, upstream: str) -> LinkRelay:
-        relay = LinkRelay(host, path, upstream)
+    def add(self, host: str, listen: Address, upstream: Address) -> LinkRelay:
+        relay = LinkRelay(host, listen, upstream)
         self._call(relay.start)
         self.relays[host] = relay
         return relay

@@ -33,7 +33,9 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import tomli_w
+import zenoh
 
+from bus_agent.gateway.zenoh_config import make_zenoh_config
 from bus_agent.sim.child import ChildProcess, free_port
 from bus_agent.sim.control import sim_inject
 from supervisor.fleet import Fleet, FleetError
@@ -45,6 +47,7 @@ from schemas.messages import DriveStatus
 from .ecat import EcatHost, ecat_down, ecat_plan, ecat_up, prerequisites
 from .plan import BACKENDS, HostPlan, PlanError, check_host, parse_ref, plan
 from .relay import RelayHub
+from .secure import CONTROL, OPERATOR, ROUTER, prepare, tls_endpoint, twin_principals
 from .stale import WORKDIR_PREFIX, clean_stale, write_owner
 
 log = logging.getLogger(__name__)
@@ -68,12 +71,26 @@ class Twin:
 
     def __init__(self, fleet: str | os.PathLike[str] | Mapping[str, Any] | ExpectedFleet, *,
                  backend: str = "sim", listen: str | None = None, ready_timeout_s: float = READY_TIMEOUT_S,
-                 on_unexpected_exit: Callable[[str], None] | None = None, log_level: str = "WARNING") -> None:
+                 on_unexpected_exit: Callable[[str], None] | None = None, log_level: str = "WARNING",
+                 pki: str | os.PathLike[str] | None = None, identity: str | None = None) -> None:
         self.expected = fleet if isinstance(fleet, ExpectedFleet) else load(fleet)
         if backend not in BACKENDS:
             raise PlanError(f"backend {backend!r} is not one of {', '.join(BACKENDS)}")
+        if identity is not None and pki is None:
+            raise PlanError("--identity needs --pki (a drives-pki directory holding that principal)")
+        if pki is not None and backend != "sim":
+            raise PlanError("--pki works with the sim backend only (the ecat backend's namespaced agents reach "
+                            "the router through UNIX sockets, which carry no TLS)")
         self.backend = backend
+        #: The user's drives-pki directory (None: an insecure twin), and who ``fleet`` is (twin.secure).
+        self.pki = None if pki is None else os.fspath(pki)
+        self.identity = identity
+        self.pki_copy = ""  # the copy in the work directory the twin's own processes use
+        if self.pki is not None:
+            twin_principals(self.expected.hosts, identity)  # a name clash fails before anything starts
         self.endpoint = listen or f"tcp/127.0.0.1:{free_port()}"
+        if self.pki is not None:
+            self.endpoint = tls_endpoint(self.endpoint)
         self.ready_timeout_s = ready_timeout_s
         self.on_unexpected_exit = on_unexpected_exit
         self.log_level = log_level
@@ -86,6 +103,7 @@ class Twin:
         self.agents: dict[str, ChildProcess] = {}
         self.sims: dict[str, ChildProcess] = {}
         self._fleet: Fleet | None = None
+        self._control: zenoh.Session | None = None   # fault injection as twin-control (secure twin)
         self._hub: RelayHub | None = None
         self._expected_down: set[int] = set()   # pids we stopped or killed on purpose
         self._lock = threading.RLock()
@@ -127,10 +145,16 @@ class Twin:
 
     def _start(self) -> None:
         self._hub = RelayHub()
-        links = {h: self._hub.add(h, os.path.join(self.workdir, f"{h}.link"), self.router_socket)
-                 for h in self.expected.hosts}
+        if self.pki is not None:
+            self.pki_copy = prepare(self.pki, os.path.join(self.workdir, "pki"), self.expected.hosts, self.identity)
+            # TLS runs over TCP only: each link a loopback port relayed to the router's TLS endpoint
+            host, _, port = self.endpoint.partition("/")[2].rpartition(":")
+            links = {h: self._hub.add(h, ("127.0.0.1", 0), (host.strip("[]"), int(port))) for h in self.expected.hosts}
+        else:
+            links = {h: self._hub.add(h, os.path.join(self.workdir, f"{h}.link"), self.router_socket)
+                     for h in self.expected.hosts}
         self.plans = {p.name: p for p in plan(self.expected, self.backend, {h: r.endpoint for h, r in links.items()},
-                                              {h: e.master for h, e in self.ecat_hosts.items()})}
+                                              {h: e.master for h, e in self.ecat_hosts.items()}, self.pki_copy)}
         self.router = self._spawn_router()
         for h, e in self.ecat_hosts.items():
             ecat_up(e)
@@ -144,12 +168,21 @@ class Twin:
             self.agents[h] = self._spawn_agent(h)
         for h in self.plans:
             self._expect_ready(self.agents[h])
-        self._fleet = Fleet(connect=[self.endpoint], name=f"twin-{os.getpid()}", connect_timeout_s=10.0)
+        who = self.identity or OPERATOR
+        self._fleet = Fleet(connect=[self.endpoint], name=who if self.pki else f"twin-{os.getpid()}",
+                            connect_timeout_s=10.0, pki=self.pki_copy or None, identity=who if self.pki else None)
         try:
             self._fleet.open()
         except FleetError as exc:
             self._fleet = None
             raise TwinError(f"twin: its supervisor cannot reach the router at {self.endpoint}: {exc}") from None
+        if self.pki is not None:
+            try:
+                self._control = zenoh.open(make_zenoh_config("client", connect=[self.endpoint], pki=self.pki_copy,
+                                                             identity=CONTROL))
+            except zenoh.ZError as exc:
+                raise TwinError(f"twin: its control session cannot reach the router at {self.endpoint}: {exc}") \
+                    from None
         self._monitor = threading.Thread(target=self._watch, name="twin-monitor", daemon=True)
         self._monitor.start()
         self.wait_answering(self.expected.hosts, self._deadline_left())
@@ -170,6 +203,9 @@ class Twin:
             except Exception as exc:
                 log.warning("twin: closing its supervisor session: %s", exc)
             self._fleet = None
+        if self._control is not None:
+            self._control.close()
+            self._control = None
         groups = [list(self.agents.values()), list(self.sims.values()), [self.router] if self.router else []]
         for group in groups:
             for p in group:
@@ -198,9 +234,10 @@ class Twin:
         return e.exec_argv(*argv) if e else list(argv)
 
     def _spawn_router(self) -> ChildProcess:
+        links = ["--pki", self.pki_copy, "--identity", ROUTER] if self.pki else \
+            ["--listen", f"unixsock-stream/{self.router_socket}"]
         return ChildProcess("drives-router", [sys.executable, "-m", "bus_agent.router", "--listen", self.endpoint,
-                                              "--listen", f"unixsock-stream/{self.router_socket}",
-                                              "--log-level", self.log_level], ready_marker="drives-router ready")
+                                              *links, "--log-level", self.log_level], ready_marker="drives-router ready")
 
     def _spawn_sim(self, host: str) -> ChildProcess:
         e = self.ecat_hosts[host]
@@ -304,7 +341,8 @@ class Twin:
         try:
             # the slave position as the drive's agent published it; any action the simulator serves
             (target,) = sim_targets(self.fleet, [ref])
-            return "; ".join(sim_inject(self.fleet.session, target.segment, target.slave, action, **args))
+            session = self._control or self.fleet.session
+            return "; ".join(sim_inject(session, target.segment, target.slave, action, **args))
         except Exception as exc:
             raise TwinError(f"drive {ref}: {action} refused: {exc}") from None
 

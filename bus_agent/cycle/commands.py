@@ -15,7 +15,7 @@ from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import DISABLED_IN_FAULT, ControllerEvent, EventKind, Goal
 from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.cycle.base import CycleBase
-from bus_agent.cycle.drive import FAULT_STATES, VALID_MODES, Drive, Pending
+from bus_agent.cycle.drive import FAULT_STATES, UPWARD_GOALS, VALID_MODES, Drive, Pending
 from bus_agent.motion.axis import MOTION_OPS
 from bus_agent.runtime import AgentCommand, CycleEvent, DriveCommand, Outcome
 
@@ -198,6 +198,10 @@ class CommandsMixin(CycleBase):
                 self._event(d.axis, "fault", ev.reason or f"error code 0x{d.inputs.error_code:04X}",
                             from_state=ev.from_state.value, to_state=ev.to_state.value,
                             error_code=d.inputs.error_code)
+            if k in (EventKind.GOAL_TIMEOUT, EventKind.GOAL_FAILED) and d.ctrl.goal in UPWARD_GOALS:
+                # The controller gave up (it never retries upward): withdraw the goal, so that the
+                # published goal says what the drive is held to and a late answer enables nothing.
+                d.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
             if p is None or d.pending is not p:
                 continue
             terminal = OUTCOME_OF_EVENT.get((p.kind, k))

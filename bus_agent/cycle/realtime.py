@@ -27,6 +27,6 @@ def set_thread_fifo(priority: int, what: str) -> bool:
     try:  # pid 0 = the calling thread on Linux
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         return True
-    except (OSError, AttributeError) as e:
+    except (OSError, AttributeError, ValueError) as e:
         log.warning("SCHED_FIFO %d for %s refused: %s", priority, what, e)
         return False

@@ -78,9 +78,12 @@ def secure_settings(pki: str | Path, identity: str, *, acl: bool) -> dict[str, A
 
     try:
         files = pki_mod.check_identity(pki, identity)
-        known = principals.load(pki)
+        known, revoked = principals.load_all(pki)
     except (pki_mod.PkiError, principals.PrincipalsError) as exc:
         raise ZenohConfigError(f"--pki {pki} --identity {identity}: {exc}") from None
+    if identity in revoked:
+        raise ZenohConfigError(f"--identity {identity!r} was revoked ({revoked[identity].revoked_at}): every router "
+                               "that loaded this principals.toml denies it; issue a certificate under a new name")
     if identity not in known:
         raise ZenohConfigError(f"--identity {identity!r} is not in {Path(pki) / principals.FILE_NAME} "
                                f"(issue it with `drives-pki issue {pki} {identity} --role ROLE`)")
@@ -91,7 +94,7 @@ def secure_settings(pki: str | Path, identity: str, *, acl: bool) -> dict[str, A
         "enable_mtls": True, "verify_name_on_connect": True,
     }}
     if acl:
-        settings["access_control"] = roles.compile_acl(known.values())
+        settings["access_control"] = roles.compile_acl(known.values(), revoked)
     return settings
 
 

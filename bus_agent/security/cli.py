@@ -1,14 +1,15 @@
 """``drives-pki``: the drive network's certificate authority in three commands.
 
     drives-pki init DIR                                  # DIR/ca.pem, DIR/ca.key (0600), principals.toml
-    drives-pki issue DIR NAME --role ROLE [--role ROLE] [--days N] [--san NAME|IP]... [--replace]
+    drives-pki issue DIR NAME --role ROLE [--role ROLE] [--hosts H1,H2] [--days N] [--san NAME|IP]... [--replace]
     drives-pki list DIR [--json]
-    drives-pki remove DIR NAME
+    drives-pki revoke DIR NAME                           # (or remove): denied by every router after its restart
 
 Roles: router, agent (NAME = its host name), operator, maintenance, viewer, testbed (see
 ``bus_agent.security.roles.ROLES``). Certificates hold ``localhost`` and ``127.0.0.1`` as
 subjectAltNames; ``--san`` adds the names and addresses clients dial (a router's). Routers
-compile their ACL from DIR/principals.toml at start: restart them after issue or remove.
+compile their ACL from DIR/principals.toml at start: restart them after issue or revoke.
+``--hosts`` limits an operator's or maintainer's commands to those hosts (default: every host).
 
 Exit codes: 0 done; 2 bad arguments or a refused operation (nothing written).
 """
@@ -21,7 +22,7 @@ import sys
 from typing import Any, Sequence
 
 from bus_agent.security import pki
-from bus_agent.security.principals import PrincipalsError
+from bus_agent.security.principals import PrincipalsError, load_all
 from bus_agent.security.roles import ROLES, allowed_ops
 
 EXIT_OK, EXIT_USAGE = 0, 2
@@ -43,14 +44,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--days", type=int, default=pki.DEFAULT_DAYS, help="validity (default %(default)s)")
     s.add_argument("--san", action="append", default=[], metavar="NAME|IP",
                    help="a name or address clients dial, added to localhost and 127.0.0.1 (repeatable)")
-    s.add_argument("--replace", action="store_true", help="re-issue an existing principal (new key)")
+    s.add_argument("--hosts", type=_hosts, default=(), metavar="H1,H2",
+                   help="commands to these hosts only (operator, maintenance; default: every host)")
+    s.add_argument("--replace", action="store_true",
+                   help="re-issue an existing principal (new key; the old certificate stays valid: revoke a leaked one)")
     ls = sub.add_parser("list", help="the principals of DIR")
     ls.add_argument("dir", metavar="DIR")
     ls.add_argument("--json", action="store_true")
-    r = sub.add_parser("remove", help="drop NAME from principals.toml and delete its files")
-    r.add_argument("dir", metavar="DIR")
-    r.add_argument("name", metavar="NAME")
+    for verb in ("revoke", "remove"):
+        r = sub.add_parser(verb, help="revoke NAME: routers deny it after their restart, the name is never "
+                           "issued again, its files here are deleted" + (" (same as revoke)" if verb == "remove" else ""))
+        r.add_argument("dir", metavar="DIR")
+        r.add_argument("name", metavar="NAME")
     return p
+
+
+def _hosts(text: str) -> tuple[str, ...]:
+    hosts = tuple(h.strip() for h in text.split(","))
+    if not all(hosts):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected host names separated by commas, e.g. h1,h2")
+    return hosts
 
 
 def _list(d: str, as_json: bool) -> int:
@@ -59,16 +72,22 @@ def _list(d: str, as_json: bool) -> int:
              "ops": list(allowed_ops(c.principal.roles)),
              "not_after": c.not_after.strftime("%Y-%m-%dT%H:%M:%SZ") if c.not_after else None,
              "expired": c.expired, "cert": c.cert_present,
-             "key_mode": None if c.key_mode is None else f"{c.key_mode:o}", "sans": list(c.principal.sans)}
+             "key_mode": None if c.key_mode is None else f"{c.key_mode:o}", "sans": list(c.principal.sans),
+             "hosts": list(c.principal.hosts) or "all"}
             for c in infos]
+    revoked = [{"name": r.name, "serial": r.serial, "revoked_at": r.revoked_at}
+               for r in sorted(load_all(d)[1].values(), key=lambda r: r.name)]
     if as_json:
-        print(json.dumps(rows, indent=1))
+        print(json.dumps({"principals": rows, "revoked": revoked}, indent=1))
         return EXIT_OK
-    print(f"{'name':<20} {'roles':<22} {'not after':<21} {'key':<5} sans")
+    print(f"{'name':<20} {'roles':<22} {'hosts':<12} {'not after':<21} {'key':<5} sans")
     for row in rows:
         status = "EXPIRED" if row["expired"] else (row["not_after"] or "no certificate")
-        print(f"{row['name']:<20} {','.join(row['roles']):<22} {status:<21} {row['key_mode'] or '-':<5} "
+        hosts = row["hosts"] if isinstance(row["hosts"], str) else ",".join(row["hosts"])
+        print(f"{row['name']:<20} {','.join(row['roles']):<22} {hosts:<12} {status:<21} {row['key_mode'] or '-':<5} "
               f"{','.join(row['sans'])}")
+    for r in revoked:
+        print(f"{r['name']:<20} REVOKED {r['revoked_at']} (serial {r['serial']})")
     return EXIT_OK
 
 
@@ -80,15 +99,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"drives-pki: CA created: {path} (key {args.dir}/{pki.CA_KEY}, mode 600: keep it off the "
                   "plant network)")
         elif args.cmd == "issue":
-            p = pki.issue(args.dir, args.name, args.role, days=args.days, sans=args.san, replace=args.replace)
+            p = pki.issue(args.dir, args.name, args.role, days=args.days, sans=args.san, hosts=args.hosts,
+                          replace=args.replace)
             files = pki.paths(args.dir, p.name)
-            print(f"drives-pki: issued {p.name} ({', '.join(p.roles)}) until {p.not_after}: {files.cert}, {files.key}; "
+            print(f"drives-pki: issued {p.name} ({', '.join(p.roles)}; commands to "
+                  f"{', '.join(p.hosts) or 'every host'}) until {p.not_after}: {files.cert}, {files.key}; "
                   f"sans {', '.join(p.sans)}. Restart the routers to load the new principals.toml.")
         elif args.cmd == "list":
             return _list(args.dir, args.json)
-        elif args.cmd == "remove":
-            pki.remove(args.dir, args.name)
-            print(f"drives-pki: removed {args.name}. Copy principals.toml to the routers and restart them.")
+        elif args.cmd in ("revoke", "remove"):
+            r = pki.revoke(args.dir, args.name)
+            print(f"drives-pki: revoked {r.name} (serial {r.serial}). Copy principals.toml to every router and restart "
+                  "them: until then they still admit it.")
     except (pki.PkiError, PrincipalsError, OSError) as exc:
         print(f"drives-pki: {exc}", file=sys.stderr)
         return EXIT_USAGE

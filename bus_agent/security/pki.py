@@ -125,15 +125,17 @@ def _load_ca(d: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
 
 
 def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = DEFAULT_DAYS,
-          sans: Iterable[str] = (), valid_from: dt.datetime | None = None,
+          sans: Iterable[str] = (), hosts: Sequence[str] = (), valid_from: dt.datetime | None = None,
           replace: bool = False) -> pfile.Principal:
     """Issue ``name``'s certificate and key, signed by the CA of ``pki_dir``, and record it in
-    principals.toml. ``sans`` are added to :data:`DEFAULT_SANS`. ``valid_from`` (tests: an
-    expired certificate) defaults to now. ``replace`` re-issues an existing name (new key).
-    Raises :class:`PkiError` (nothing is written then)."""
+    principals.toml. ``sans`` are added to :data:`DEFAULT_SANS`. ``hosts`` limits its commands
+    to those hosts (the ACL's rules name them; empty: every host). ``valid_from`` (tests: an
+    expired certificate) defaults to now. ``replace`` re-issues an existing name (new key; the
+    old certificate stays valid until it expires: to shut a key out, :func:`revoke` it).
+    Raises :class:`PkiError` (nothing is written then), also for a revoked name."""
     d = Path(pki_dir)
     try:
-        p = pfile.Principal(name, tuple(roles))
+        p = pfile.Principal(name, tuple(roles), hosts=tuple(hosts))
         check_roles(p.roles)
     except (pfile.PrincipalsError, ValueError) as exc:
         raise PkiError(str(exc)) from None
@@ -142,11 +144,15 @@ def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = D
     if not 1 <= days <= 36500:
         raise PkiError(f"--days {days} must be 1..36500")
     ca_cert, ca_key = _load_ca(d)
-    known = pfile.load(d)
+    known, revoked = pfile.load_all(d)
+    if name in revoked:
+        raise PkiError(f"{name!r} was revoked ({revoked[name].revoked_at}) and cannot be issued again: zenoh's ACL "
+                       "knows a peer by its certificate's common name only, so the revoked certificate would be "
+                       "let in again; choose a new name")
     files = paths(d, name)
     if (name in known or files.key.exists() or files.cert.exists()) and not replace:
-        raise PkiError(f"{name!r} already exists in {d}: remove it first (`drives-pki remove`) or re-issue "
-                       "with --replace")
+        raise PkiError(f"{name!r} already exists in {d}: renew it with --replace (a new key), or revoke it "
+                       "(`drives-pki revoke`) and issue under a new name")
     san_list = list(dict.fromkeys([*DEFAULT_SANS, *sans]))
     general = [_san(s) for s in san_list]
     start = valid_from or _now()
@@ -171,26 +177,41 @@ def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = D
     _write_key(files.key, key)
     _write_cert(files.cert, cert)
     principal = pfile.Principal(name, p.roles, format(cert.serial_number, "x"),
-                                cert.not_valid_after_utc.strftime("%Y-%m-%dT%H:%M:%SZ"), tuple(san_list))
+                                _stamp(cert.not_valid_after_utc), tuple(san_list), p.hosts)
     known[name] = principal
-    pfile.save(d, known.values())
+    pfile.save(d, known.values(), revoked.values())
     return principal
 
 
-def remove(pki_dir: str | Path, name: str) -> None:
-    """Drop ``name`` from principals.toml and delete its key and certificate. Routers keep
-    admitting it until they restart with the new file (the ACL is static), and its certificate
-    stays valid for TLS: with no ACL entry it is denied everything."""
+def _stamp(t: dt.datetime) -> str:
+    return t.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def revoke(pki_dir: str | Path, name: str) -> pfile.Revoked:
+    """Revoke ``name``: move it from the principals to the revoked names of principals.toml
+    (routers compile an explicit deny of its common name; the name cannot be issued again) and
+    delete its key and certificate here. Routers admit it until they restart with the new file
+    (the ACL is static); its certificate keeps passing TLS (zenoh 1.10 has no revocation list),
+    and the ACL denies every message from and to it."""
     d = Path(pki_dir)
-    known = pfile.load(d)
+    known, revoked = pfile.load_all(d)
+    if name in revoked:
+        raise PkiError(f"{name!r} is already revoked ({revoked[name].revoked_at})")
     if name not in known:
         raise PkiError(f"{name!r} is not a principal of {d} (see `drives-pki list {d}`)")
-    del known[name]
-    pfile.save(d, known.values())
+    entry = pfile.Revoked(name, known.pop(name).serial, _stamp(_now()))
+    revoked[name] = entry
+    pfile.save(d, known.values(), revoked.values())
     files = paths(d, name)
     for f in (files.key, files.cert):
         if f.exists():
             f.unlink()
+    return entry
+
+
+#: ``drives-pki remove`` is ``revoke``: removing a name without revoking it would let its
+#: certificate back in as soon as the name is issued again.
+remove = revoke
 
 
 @dataclass(frozen=True)

@@ -103,6 +103,9 @@ class PrincipalLike(Protocol):
     @property
     def roles(self) -> tuple[str, ...]: ...
 
+    @property
+    def hosts(self) -> tuple[str, ...]: ...
+
 
 @dataclass(frozen=True)
 class Grant:
@@ -117,16 +120,22 @@ def _both(messages_in: tuple[str, ...], messages_out: tuple[str, ...], kes: tupl
     return [Grant("ingress", messages_in, kes), Grant("egress", messages_out, kes)]
 
 
-def grants(name: str, roles: Iterable[str]) -> list[Grant]:
-    """What principal ``name`` with ``roles`` may send (ingress) and receive (egress)."""
+def grants(name: str, roles: Iterable[str], hosts: Sequence[str] = ()) -> list[Grant]:
+    """What principal ``name`` with ``roles`` may send (ingress) and receive (egress); ``hosts``
+    limits its commands to those hosts (empty: every host). Reading stays fleet-wide: a
+    supervisor subscribes to every host's status with one wildcard, which a per-host rule would
+    not include."""
+    roles = tuple(roles)
     out: list[Grant] = [Grant("egress", DECLARATIONS, EVERY_KEY)]
     read = {ROLE_READ[r] for r in roles if r in ROLE_READ}
     if read:
         kes = READ_STATUS + (keys.ALL_ALIVE,) + (READ_ALL_EXTRA if "all" in read else ())
         out += _both(("declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"),
                      ("put", "delete", "reply", "liveliness_token"), kes)
-    cmd_kes = tuple(keys.drive_cmd("*", "*", op, name) for r in roles for op in ROLE_DRIVE_OPS.get(r, ())) + \
-        tuple(keys.agent_cmd("*", op, name) for r in roles for op in ROLE_AGENT_OPS.get(r, ()))
+    # The host is a chunk of the command key: a scoped principal's rules name its hosts instead of '*'.
+    targets = tuple(hosts) or ("*",)
+    cmd_kes = tuple(keys.drive_cmd(h, "*", op, name) for r in roles for op in ROLE_DRIVE_OPS.get(r, ()) for h in targets) + \
+        tuple(keys.agent_cmd(h, op, name) for r in roles for op in ROLE_AGENT_OPS.get(r, ()) for h in targets)
     if cmd_kes:
         out += _both(("query",), ("reply",), tuple(dict.fromkeys(cmd_kes)))
         # Its own supervisor token (leases are bound to it) and nobody else's.
@@ -149,15 +158,17 @@ def grants(name: str, roles: Iterable[str]) -> list[Grant]:
     return out
 
 
-def compile_acl(principals: Iterable[PrincipalLike]) -> dict[str, Any]:
-    """zenoh ``access_control`` settings: default deny, one subject and policy per principal."""
+def compile_acl(principals: Iterable[PrincipalLike], revoked: Iterable[str] = ()) -> dict[str, Any]:
+    """zenoh ``access_control`` settings: default deny, one subject and policy per principal;
+    ``revoked`` names get an explicit deny of everything (default deny would refuse them anyway:
+    the rule says so in the ACL a router loads, and holds if a policy ever names them)."""
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for p in sorted(principals, key=lambda p: p.name):
         check_roles(p.roles)
         ids = []
-        for i, g in enumerate(grants(p.name, p.roles)):
+        for i, g in enumerate(grants(p.name, p.roles, p.hosts)):
             rid = f"{p.name}:{i}"
             rules.append({"id": rid, "messages": list(g.messages), "flows": [g.flow], "permission": "allow",
                           "key_exprs": list(g.key_exprs)})
@@ -165,6 +176,12 @@ def compile_acl(principals: Iterable[PrincipalLike]) -> dict[str, Any]:
         sid = f"cn:{p.name}"
         subjects.append({"id": sid, "cert_common_names": [p.name]})
         policies.append({"id": f"policy:{p.name}", "rules": ids, "subjects": [sid]})
+    names = sorted(set(revoked))
+    if names:
+        rules.append({"id": "revoked", "messages": list(ALL_MESSAGES), "flows": ["ingress", "egress"],
+                      "permission": "deny", "key_exprs": list(EVERY_KEY)})
+        subjects.append({"id": "cn:revoked", "cert_common_names": names})
+        policies.append({"id": "policy:revoked", "rules": ["revoked"], "subjects": ["cn:revoked"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import queue
 import signal
 import sys
@@ -24,6 +23,7 @@ from bus_agent.sim.ecat.profiles import PROFILES
 from bus_agent.sim.ecat.control import ACTIONS, TcpControl, UnixControl, apply_action
 from bus_agent.sim.ecat.frameloop import FrameLoop
 from bus_agent.sim.ecat.segment import Segment
+from bus_agent.sim.process import add_options, enter_rt, start_logging
 
 log = logging.getLogger("bus_agent.sim.cli")
 
@@ -95,16 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step-us", type=int, default=1000, help="drive model step period while in SAFE-OP/OP")
     p.add_argument("--stale-us", type=int, default=1800,
                    help="frames older than this are dropped, never answered late (0: answer all)")
-    p.add_argument("--rt-priority", type=int, default=0,
-                   help="run the frame loop SCHED_FIFO at this priority (1..99; 0: normal scheduling)")
-    p.add_argument("--log-level", default="WARNING")
+    add_options(p, "frame loop")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    start_logging(args)
     try:
         segment = Segment(args.drives, args.profile)
         loop = FrameLoop(segment, args.ifname, step_s=args.step_us / 1e6, stale_s=args.stale_us / 1e6)
@@ -150,11 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ecat-sim ready ifname={args.ifname} drives={args.drives} profile={args.profile} "
               f"name={args.name} control={control_desc}", flush=True)
 
-    if args.rt_priority:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
-        except (OSError, ValueError) as exc:
-            log.warning("SCHED_FIFO %d refused (%s): normal scheduling", args.rt_priority, exc)
+    enter_rt(args, "ecat-sim frame loop")
     try:
         loop.run(on_ready=ready)
     finally:

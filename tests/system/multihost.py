@@ -14,6 +14,7 @@ This file is also the supervisor child: ``python tests/system/multihost.py super
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -27,7 +28,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:  # run as a script
@@ -220,6 +221,20 @@ class MultiHostRun:
 
     def link(self, host: str, up: bool) -> None:
         multihost_link(self.bed, host, up)
+
+    @contextlib.contextmanager
+    def running(self, prepare: Callable[[], None] = lambda: None) -> Iterator[MultiHostRun]:
+        """``prepare()`` (e.g. the certificates), start the bed and yield it; if anything fails,
+        print every process's output; close it however the block ends (a module fixture's body)."""
+        try:
+            prepare()
+            self.start()
+            yield self
+        except BaseException:
+            print(self.diagnostics())
+            raise
+        finally:
+            self.close()
 
     def diagnostics(self) -> str:
         return "\n".join(f"--- {p.name} (exit {p.popen.poll()})\n{p.output(15)}" for p in self.procs)

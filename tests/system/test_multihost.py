@@ -40,15 +40,8 @@ DEPARTURE_BOUND_S = 10.0
 def run() -> MultiHostRun:
     require_root()
     require(shutil.which("ip") is not None, "iproute2 (`ip`)", "install iproute2")
-    bed = MultiHostRun(hosts=2, drives=DRIVES, groups={"xg": GROUP})
-    try:
-        bed.start()
+    with MultiHostRun(hosts=2, drives=DRIVES, groups={"xg": GROUP}).running() as bed:
         yield bed
-    except BaseException:
-        print(bed.diagnostics())
-        raise
-    finally:
-        bed.close()
 
 
 @pytest.fixture(scope="module")

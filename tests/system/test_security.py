@@ -33,9 +33,11 @@ from supervisor.selectors import DriveRef
 
 pytestmark = pytest.mark.timeout(180)
 
-PRINCIPALS = {"r1": ["router"], "h1": ["agent", "testbed"], "h2": ["agent"], "h9": ["agent"],
+PRINCIPALS = {"r1": ["router"], "r2": ["router"], "h1": ["agent", "testbed"], "h2": ["agent"], "h9": ["agent"],
               "alice": ["operator"], "bob": ["operator"], "mia": ["maintenance"], "vic": ["viewer"],
-              "tb": ["testbed"]}
+              "tb": ["testbed"], "olga": ["operator"]}
+#: Operators limited to some hosts (``drives-pki issue --hosts``).
+SCOPED = {"carl": ("h1",), "dora": ("h2", "h9")}
 AX0, AX1 = DriveRef("h1", "axis0"), DriveRef("h1", "axis1")
 
 
@@ -47,8 +49,8 @@ class Bed:
         self.agent = agent
         self.sessions: list[zenoh.Session] = []
 
-    def session(self, identity: str, *, mode: str = "client") -> zenoh.Session:
-        s = zenoh.open(make_zenoh_config(mode, [], [self.ep], pki=self.pki, identity=identity))
+    def session(self, identity: str, *, mode: str = "client", endpoint: str = "") -> zenoh.Session:
+        s = zenoh.open(make_zenoh_config(mode, [], [endpoint or self.ep], pki=self.pki, identity=identity))
         self.sessions.append(s)
         return s
 
@@ -67,6 +69,8 @@ def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bed]:
     pki.init(d)
     for name, roles in PRINCIPALS.items():
         pki.issue(d, name, roles)
+    for name, hosts in SCOPED.items():
+        pki.issue(d, name, ["operator"], hosts=hosts)
     port = free_port()
     ep = f"tls/127.0.0.1:{port}"
     router = ChildProcess("drives-router", [sys.executable, "-m", "bus_agent.router", "--pki", str(d),
@@ -247,6 +251,79 @@ def test_operator_cannot_use_another_operators_lease_by_naming_them(bed: Bed, al
         assert alice.enable("h1/axis0").ok
     finally:
         alice.release()
+
+
+def test_operator_scoped_to_other_hosts_is_denied_and_scoped_to_h1_granted(bed: Bed, alice: Fleet) -> None:
+    with bed.fleet("dora") as dora:                       # operator of h2 and h9 only
+        assert dora.wait_for_agents(["h1"], timeout_s=10, drives=2)  # reads every host
+        report = dora.enable("h1/*", timeout_s=2.0)
+        assert {r.outcome for r in report.final} == {DENIED}, report.to_dict()
+        for op in ("disable", "quick_stop", "lease"):
+            res = dora.command(op, "h1/*", {"holder": "dora"} if op == "lease" else None, timeout_s=2.0)
+            assert {r.outcome for r in res.results} == {DENIED}, (op, res.to_dict())
+            assert res.elapsed_s < 1.0  # zero replies at once, not a timeout
+        ok, err, took = _query(bed.session("dora"), keys.drive_cmd("h1", "axis0", "enable", "dora"),
+                               _request("enable", "dora"))
+        assert ok == [] and err == [] and took < 1.0
+    assert set(_states(alice).values()) == {"switch_on_disabled"}
+    assert alice.status(AX0).lease_holder == ""
+    with bed.fleet("carl") as carl:                       # operator of h1
+        assert carl.wait_for_agents(["h1"], timeout_s=10, drives=2)
+        report = carl.enable("h1/*")
+        assert report.ok, report.to_dict()
+        assert set(_states(alice).values()) == {"operation_enabled"}
+        assert carl.disable("h1/*").ok
+        # Still an operator only: no fault reset, on its own host either.
+        res = carl.command("fault_reset", "h1/axis0", timeout_s=2.0)
+        assert [r.outcome for r in res.results] == [DENIED], res.to_dict()
+
+
+def test_revoked_operator_with_a_valid_certificate_is_denied_after_the_router_restarts(bed: Bed, alice: Fleet,
+                                                                                     tmp_path: Path) -> None:
+    """olga connects to a second router (r2, linked to r1 where agent h1 is): granted; her name
+    is revoked in r2's copy of principals.toml and r2 restarts; her certificate, still valid by
+    date and signed by the CA, opens a TLS link, and every command is denied."""
+    d2 = tmp_path / "pki-r2"
+    shutil.copytree(bed.pki, d2)
+    ep2 = f"tls/127.0.0.1:{free_port()}"
+
+    def router2() -> ChildProcess:
+        r = ChildProcess("drives-router r2", [sys.executable, "-m", "bus_agent.router", "--pki", str(d2),
+                                              "--identity", "r2", "--listen", ep2, "--connect", bed.ep],
+                         ready_marker="drives-router ready")
+        r.expect_ready(30)
+        return r
+
+    def olga() -> Fleet:  # her files from the original directory, where she is still a principal
+        return Fleet(connect=[ep2], pki=bed.pki, identity="olga", connect_timeout_s=10.0)
+
+    r2 = router2()
+    try:
+        with olga() as f:
+            assert f.wait_for_agents(["h1"], timeout_s=20, drives=2), f.hosts()
+            assert f.enable("h1/axis0").ok                     # positive control: granted before
+            assert f.disable("h1/axis0").ok
+    finally:
+        r2.stop()
+    assert pki.revoke(d2, "olga").name == "olga"
+    assert not (d2 / "olga.pem").exists() and (bed.pki / "olga.pem").exists()
+    r2 = router2()
+    try:
+        # Positive control through the restarted r2 first: alice reaches h1 (so routes are up).
+        with Fleet(connect=[ep2], pki=bed.pki, identity="alice", connect_timeout_s=10.0) as a2:
+            assert a2.wait_for_agents(["h1"], timeout_s=20, drives=2), a2.hosts()
+        ok, err, _ = _query(bed.session("alice", endpoint=ep2), keys.drive_cmd("h1", "axis0", "disable", "alice"),
+                            _request("disable", "alice"))
+        assert len(ok) == 1 and err == [], (ok, err)
+        # olga's certificate still opens a TLS link (a client session fails to open without one) ...
+        s = bed.session("olga", endpoint=ep2)
+        # ... and every command of hers ends at once without a reply.
+        for op in ("enable", "disable"):
+            ok, err, took = _query(s, keys.drive_cmd("h1", "axis0", op, "olga"), _request(op, "olga"))
+            assert ok == [] and err == [] and took < 1.0, (op, ok, err)
+    finally:
+        r2.stop()
+    assert set(_states(alice).values()) == {"switch_on_disabled"}
 
 
 # ---- fake status, fake queryables and tokens, other hosts' names ---------------------------------

@@ -39,7 +39,8 @@ def run() -> Iterator[MultiHostRun]:
     d = Path(tempfile.mkdtemp(prefix="secure-pki-"))
     # Its own namespace names (zs<pid>), apart from the plain bed's (zm<pid>).
     bed = MultiHostRun(hosts=2, drives=DRIVES, prefix=f"zs{os.getpid() % 100000}", pki=str(d))
-    try:
+
+    def certificates() -> None:
         pki.init(d)
         for h in bed.host_names:
             pki.issue(d, f"r-{h}", ["router"], sans=[bed.bed.host(h).address])
@@ -47,13 +48,11 @@ def run() -> Iterator[MultiHostRun]:
             pki.issue(d, f"sim-{h}", ["testbed"])
         for name, role in (("alice", "operator"), ("mia", "maintenance"), ("vic", "viewer"), ("tb", "testbed")):
             pki.issue(d, name, [role])
-        bed.start()
-        yield bed
-    except BaseException:
-        print(bed.diagnostics())
-        raise
+
+    try:
+        with bed.running(certificates):
+            yield bed
     finally:
-        bed.close()
         shutil.rmtree(d, ignore_errors=True)
 
 

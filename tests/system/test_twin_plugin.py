@@ -52,6 +52,26 @@ def test_marker_chooses_ecat(drives_twin):
     assert twin.backend == "ecat"
 
 
+def test_secure_twin_operator_enables_and_viewer_is_denied(drives_twin, tmp_path):
+    import subprocess, sys
+    from supervisor.fleet import Fleet
+    pki = tmp_path / "pki"   # made as a user makes it: drives-pki init, one viewer issued
+    for argv in (["init", str(pki)], ["issue", str(pki), "vic", "--role", "viewer"]):
+        subprocess.run([sys.executable, "-m", "bus_agent.security.cli", *argv], check=True, capture_output=True)
+    twin = drives_twin({"hosts": {"s1": {"axes": ["a", "b", "c"]}}}, pki=pki)
+    assert twin.endpoint.startswith("tls/127.0.0.1:") and twin.fleet.identity == "twin-operator"
+    assert twin.fleet.enable("s1/a").ok
+    assert twin.wait_state("s1/a", "operation_enabled", 10)
+    twin.fault("s1/b", 0x2310)   # fault injection as the twin's testbed principal
+    assert twin.wait_state("s1/b", "fault", 10).error_code == 0x2310
+    with Fleet(connect=[twin.endpoint], pki=str(pki), identity="vic") as viewer:
+        assert viewer.wait_until(lambda f: f.status("s1/c") is not None, 10)   # a viewer may watch
+        report = viewer.enable("s1/c")
+        assert not report.ok and "denied" in report.reason, report
+    assert twin.fleet.status("s1/c").state == "switch_on_disabled"   # the viewer changed nothing
+    assert not (pki / "twin-router.pem").exists()                   # the user's directory is not written
+
+
 def test_crash_fails_at_teardown(drives_twin):
     import os, signal
     twin = drives_twin({"hosts": {"k1": {"axes": ["a"]}}})
@@ -75,6 +95,7 @@ def test_plugin_from_a_separate_directory(tmp_path):
     assert "PASSED test_user.py::test_group_reflex_across_hosts" in out, out
     assert "PASSED test_user.py::test_shared_twin_is_shared" in out, out
     assert "PASSED test_user.py::test_shared_twin_cut" in out, out
+    assert "PASSED test_user.py::test_secure_twin_operator_enables_and_viewer_is_denied" in out, out
     if os.geteuid() == 0:
         assert "PASSED test_user.py::test_marker_chooses_ecat" in out, out
     else:

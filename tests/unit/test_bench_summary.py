@@ -172,3 +172,15 @@ def test_a_json_the_row_cannot_read_is_a_failure_without_figures() -> None:
     row = s.build_row("x", "fake", s.OK, {"time": "now"}, figures, targets, None, headline)
     assert row["status"] == "failed: JSON not readable (KeyError: 'value')"
     assert "figures" not in row and "targets" not in row
+
+
+def test_twin_targets_read_the_ten_host_size_and_every_stop() -> None:
+    run = {"sizes": {"3": {"twin": {"ready_s": 2.0, "cpu_pct_twin_process": 0.5, "left_after_stop": 0}, "bare": {}},
+                     "10": {"twin": {"ready_s": 12.5, "cpu_pct_twin_process": 2.0, "left_after_stop": 1},
+                            "bare": {"ready_s": 5.0}}}}
+    ready, own, left = s.twin_targets(run)
+    assert (ready.measured, ready.met) == (12.5, False)
+    assert (own.measured, own.met) == (2.0, True)
+    assert (left.measured, left.met) == (1, False)
+    assert [t.met for t in s.twin_targets({"sizes": {"3": {"twin": {}, "bare": {}}}})] == [None, None, None]
+    assert "10 hosts: ready 12.5 s (bare processes 5.0 s)" in s.twin_headline(run)

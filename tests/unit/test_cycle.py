@@ -363,6 +363,8 @@ def test_configured_drives_axis_names_and_policy():
         (out,) = hh.outcomes[rid]
         assert out.outcome == "timeout" and "within 0.05 s" in out.reason
         assert 45 <= out.cycles <= 60  # 1 ms per fake tick
+        hh.ticks(1)
+        assert hh.cycle.latest.drives[0].goal == "disabled"  # withdrawn: the status says so
         del model._transition  # the drive answers again: told "timeout", it must not become enabled
         hh.ticks(300)
         assert hh.state(1) == State.SWITCH_ON_DISABLED

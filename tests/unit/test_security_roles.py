@@ -217,3 +217,68 @@ def test_a_command_answered_by_no_one_at_once_is_denied_not_missing() -> None:
                     denied_reason="denied at once: identity 'vic' may not enable")
     assert [(r.outcome, "vic" in r.error) for r in res.results] == [(DENIED, True), (MISSING, False)]
     assert [r.outcome for r in aggregate("enable", "r", refs[:1], {}, timeout_s=5.0).results] == [MISSING]
+
+
+def test_host_scope_limits_commands_to_those_hosts_and_reading_stays_fleet_wide() -> None:
+    carl = principals.Principal("carl", ("operator",), hosts=("h1", "h3"))
+    acl = compile_acl([*P, carl])
+    for host in ("h1", "h3"):
+        assert _allowed(acl, "carl", "ingress", "query", keys.drive_cmd(host, "axis0", "enable", "carl"))
+    assert not _allowed(acl, "carl", "ingress", "query", keys.drive_cmd("h2", "axis0", "enable", "carl"))
+    # A wildcard host is not included in a rule naming h1: fan-outs must address hosts one by one.
+    assert not _allowed(acl, "carl", "ingress", "query", keys.drive_cmd("*", "*", "enable", "carl"))
+    assert not _allowed(acl, "carl", "ingress", "query", keys.drive_cmd("h1", "axis0", "fault_reset", "carl"))
+    assert _allowed(acl, "carl", "ingress", "declare_subscriber", keys.ALL_DRIVE_STATUS)
+    assert _allowed(acl, "carl", "egress", "put", keys.drive_status("h2", "axis0"))
+    # Unscoped principals are unchanged.
+    assert _allowed(acl, "alice", "ingress", "query", keys.drive_cmd("h2", "axis0", "enable", "alice"))
+
+
+@pytest.mark.parametrize("roles, hosts, match", [(("viewer",), ("h1",), "send none"),
+                                                 (("agent",), ("h1",), "send none"),
+                                                 (("operator",), ("h1", "h1"), "twice"),
+                                                 (("operator",), ("a/b",), "host")])
+def test_bad_host_scopes_are_refused(roles: tuple[str, ...], hosts: tuple[str, ...], match: str) -> None:
+    with pytest.raises(principals.PrincipalsError, match=match):
+        principals.Principal("x", roles, hosts=hosts)
+
+
+def test_issue_with_hosts_and_revoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    d = tmp_path / "pki"
+    assert pki_main(["init", str(d)]) == 0
+    assert pki_main(["issue", str(d), "carl", "--role", "operator", "--hosts", "h1,h2"]) == 0
+    assert pki_main(["issue", str(d), "vic", "--role", "viewer", "--hosts", "h1"]) == 2   # a viewer sends nothing
+    with pytest.raises(SystemExit) as exc:
+        pki_main(["issue", str(d), "x", "--role", "operator", "--hosts", "h1,,h2"])
+    assert exc.value.code == 2
+    assert principals.load(d)["carl"].hosts == ("h1", "h2")
+    assert pki_main(["issue", str(d), "bob", "--role", "operator"]) == 0
+    serial = principals.load(d)["bob"].serial
+    capsys.readouterr()
+    assert pki_main(["revoke", str(d), "bob"]) == 0
+    known, revoked = principals.load_all(d)
+    assert "bob" not in known and revoked["bob"].serial == serial and revoked["bob"].revoked_at
+    assert not (d / "bob.key").exists() and not (d / "bob.pem").exists()
+    assert pki_main(["revoke", str(d), "bob"]) == 2                                    # already revoked
+    assert pki_main(["issue", str(d), "bob", "--role", "operator"]) == 2               # never issued again
+    assert "cannot be issued again" in capsys.readouterr().err
+    assert pki_main(["remove", str(d), "carl"]) == 0                                   # remove is revoke
+    assert set(principals.load_all(d)[1]) == {"bob", "carl"}
+    assert pki_main(["list", str(d)]) == 0
+    assert "REVOKED" in capsys.readouterr().out
+    # Routers compile an explicit deny of every revoked name.
+    acl = compile_acl(principals.load(d).values(), principals.load_all(d)[1])
+    deny = next(r for r in acl["rules"] if r["id"] == "revoked")
+    assert deny["permission"] == "deny" and set(deny["flows"]) == {"ingress", "egress"}
+    assert next(s for s in acl["subjects"] if s["id"] == "cn:revoked")["cert_common_names"] == ["bob", "carl"]
+    with zenoh.open(make_zenoh_config("peer", extra={"access_control": acl})):
+        pass  # zenoh accepts it
+
+
+def test_principals_file_names_bad_revoked_entries(tmp_path: Path) -> None:
+    for text, match in [('[revoked.x]\nwhen = 1\n', "when"),
+                        ('[principals.x]\nroles = ["viewer"]\n[revoked.x]\nserial = "1"\n', "both"),
+                        ('[principals.x]\nroles = ["operator"]\nhosts = "h1"\n', "hosts")]:
+        (tmp_path / principals.FILE_NAME).write_text(text)
+        with pytest.raises(principals.PrincipalsError, match=match):
+            principals.load(tmp_path)

@@ -50,7 +50,7 @@ def test_forward_cut_restore(tmp_path, echo_server):
     try:
         relay = hub.add("h1", str(tmp_path / "h1.link"), echo_server)
         assert relay.endpoint == f"unixsock-stream/{tmp_path / 'h1.link'}"
-        a = _connect(relay.path)
+        a = _connect(relay.listen)
         a.sendall(b"ping")
         assert a.recv(16) == b"ping"
 
@@ -59,7 +59,7 @@ def test_forward_cut_restore(tmp_path, echo_server):
         a.settimeout(0.5)
         with pytest.raises(socket.timeout):  # swallowed, and the socket stays open
             a.recv(16)
-        b = _connect(relay.path)           # a new connection over a cut link: accepted, silent
+        b = _connect(relay.listen)           # a new connection over a cut link: accepted, silent
         b.settimeout(0.5)
         b.sendall(b"hello?")
         with pytest.raises(socket.timeout):
@@ -69,7 +69,7 @@ def test_forward_cut_restore(tmp_path, echo_server):
         a.settimeout(5.0)
         b.settimeout(5.0)
         assert a.recv(16) == b"" and b.recv(16) == b""  # streams that lost bytes are closed
-        c = _connect(relay.path)
+        c = _connect(relay.listen)
         c.sendall(b"again")
         assert c.recv(16) == b"again"
         assert relay.connections == 3
@@ -84,8 +84,42 @@ def test_router_down_closes_the_agent_side_so_it_retries(tmp_path):
     hub = RelayHub()
     try:
         relay = hub.add("h1", str(tmp_path / "h1.link"), str(tmp_path / "absent.sock"))
-        a = _connect(relay.path)
+        a = _connect(relay.listen)
         assert a.recv(16) == b""
         a.close()
     finally:
         hub.close()
+
+
+def test_tcp_link_for_tls_forwards_and_cuts():
+    """A secure twin's link: loopback TCP both ways (TLS runs over TCP only), the port picked by the OS."""
+    srv = socket.create_server(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+
+    def echo() -> None:
+        conn, _ = srv.accept()
+        with conn:
+            while data := conn.recv(4096):
+                conn.sendall(data)
+
+    threading.Thread(target=echo, daemon=True).start()
+    hub = RelayHub()
+    try:
+        relay = hub.add("h1", ("127.0.0.1", 0), ("127.0.0.1", port))
+        assert isinstance(relay.listen, tuple) and relay.listen[1] > 0
+        assert relay.endpoint == f"tcp/127.0.0.1:{relay.listen[1]}"
+        a = socket.create_connection(relay.listen, timeout=5.0)
+        a.sendall(b"hello")
+        assert a.recv(16) == b"hello"
+        hub.set_cut("h1", True)
+        a.sendall(b"lost")
+        a.settimeout(0.5)
+        with pytest.raises(socket.timeout):
+            a.recv(16)
+        hub.set_cut("h1", False)
+        a.settimeout(5.0)
+        assert a.recv(16) == b""  # the stream that lost bytes is closed
+        a.close()
+    finally:
+        hub.close()
+        srv.close()

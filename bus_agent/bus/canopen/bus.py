@@ -89,6 +89,18 @@ def open_can(channel: str, interface: str) -> Any:
         raise BusError(f"cannot open CAN {interface} channel {channel}: {e}") from None
 
 
+def open_network(channel: str, interface: str) -> Any:
+    """A python-canopen ``Network`` on :func:`open_can`, its receive thread running (python-can's
+    ``Notifier``): callbacks subscribed on it run in that thread."""
+    import can
+    import canopen
+
+    bus = open_can(channel, interface)
+    net = canopen.Network(bus)
+    net.notifier = can.Notifier(bus, net.listeners, 0.5)
+    return net
+
+
 class CanopenBus:
     """The Bus protocol over one CAN bus of CANopen CiA 402 nodes (backend "canopen")."""
 
@@ -166,11 +178,7 @@ class CanopenBus:
         """Open the CAN bus, identify every node by SDO, send it to pre-operational. Raises BusError."""
         import canopen
 
-        bus = open_can(self.channel, self.interface)
-        import can
-
-        net = canopen.Network(bus)
-        net.notifier = can.Notifier(bus, net.listeners, 0.5)
+        net = open_network(self.channel, self.interface)
         self._network = net
         self._tpdo_owner.clear()
         infos = []

@@ -15,7 +15,7 @@ from typing import Any, Sequence
 
 from bus_agent.bus.base import BusError
 from bus_agent.bus.canopen import pdo as pdo_mod, sdo as sdo_mod
-from bus_agent.bus.canopen.bus import open_can
+from bus_agent.bus.canopen.bus import open_network
 from bus_agent.bus.canopen.cob import SDO_RX_BASE
 from bus_agent.bus.mapping import SlaveMapping, split_entry
 
@@ -59,12 +59,7 @@ class NodeReport:
 def scan(channel: str, interface: str, node_ids: Sequence[int] = (), listen_s: float = LISTEN_S,
          sdo_timeout_s: float = 0.3) -> list[NodeReport]:
     """Search the bus and read every node found. Raises BusError when the bus cannot be opened."""
-    import can
-    import canopen
-
-    bus = open_can(channel, interface)
-    net = canopen.Network(bus)
-    net.notifier = can.Notifier(bus, net.listeners, 0.5)
+    net = open_network(channel, interface)
     try:
         ids = sorted(set(node_ids)) or list(range(1, 128))
         for nid in ids:

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
-import os
 import signal
 import sys
 
 from bus_agent.sim.drive_model import PROFILES
+from bus_agent.sim.process import add_options, enter_rt, start_logging
 
 DEFAULT_CHANNEL = "ff11::7a64:1"  # IPv6 interface-local scope: loopback only (RFC 4291 §2.7)
 
@@ -35,16 +34,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP")
     p.add_argument("--write-eds", metavar="PATH", help="write the simulated drive's EDS file and exit")
-    p.add_argument("--rt-priority", type=int, default=0,
-                   help="run the node loop SCHED_FIFO at this priority (1..99; 0: normal scheduling)")
-    p.add_argument("--log-level", default="WARNING")
+    add_options(p, "node loop")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    start_logging(args)
     if args.write_eds:
         from bus_agent.sim.canopen.od import write_eds
 
@@ -55,14 +51,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.nodes < 1 or ids[0] < 1 or ids[-1] > 127:
         print(f"canopen-sim: node ids {ids[0]}..{ids[-1]} outside 1..127", file=sys.stderr)
         return 2
-    import can
-
-    from bus_agent.sim.canopen.segment import Segment, open_can
+    from bus_agent.bus.base import BusError
+    from bus_agent.bus.canopen.bus import open_can
+    from bus_agent.sim.canopen.segment import Segment
 
     try:
         bus = open_can(args.channel, args.interface)
-    except (can.CanError, OSError, ValueError) as exc:
-        print(f"canopen-sim: cannot open {args.interface} channel {args.channel}: {exc}", file=sys.stderr)
+    except BusError as exc:
+        print(f"canopen-sim: {exc}", file=sys.stderr)
         return 2
     segment = Segment(bus, ids, args.profile)
     session = control = None
@@ -82,11 +78,7 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, lambda *_: segment.stop_event.set())
     signal.signal(signal.SIGINT, lambda *_: segment.stop_event.set())
-    if args.rt_priority:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
-        except (OSError, ValueError) as exc:
-            logging.getLogger(__name__).warning("SCHED_FIFO %d refused (%s): normal scheduling", args.rt_priority, exc)
+    enter_rt(args, "canopen-sim node loop")
     segment.boot()
     print(f"canopen-sim ready channel={args.channel} interface={args.interface} nodes={','.join(map(str, ids))} "
           f"profile={args.profile} name={args.name}", flush=True)

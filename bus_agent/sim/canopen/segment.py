@@ -23,12 +23,6 @@ log = logging.getLogger(__name__)
 TICK_S = 0.002
 
 
-def open_can(channel: str, interface: str) -> can.BusABC:
-    """A python-can bus; ``udp_multicast`` without CAN FD (classic 8-byte frames)."""
-    kwargs: dict = {"fd": False} if interface == "udp_multicast" else {}
-    return can.Bus(interface=interface, channel=channel, **kwargs)
-
-
 class Segment:
     """``node_ids`` nodes of one drive profile on ``bus`` (index i = node_ids[i])."""
 
