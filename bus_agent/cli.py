@@ -57,6 +57,8 @@ def _parser() -> argparse.ArgumentParser:
                          "(SocketCAN interface, or a udp_multicast group; docs/canopen.md)")
     p.add_argument("--can-interface", choices=CAN_INTERFACES, help="python-can interface of --can (default socketcan)")
     p.add_argument("--nodes", metavar="IDS", help="CANopen node ids of --can, e.g. 1,2,3 (slave positions in that order)")
+    p.add_argument("--sync-counter", type=int, metavar="N",
+                   help="--can: SYNC carries a counter 1..N (2..240, written to every node's 0x1019; default: none)")
     p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile (default generic)")
     p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds (default 1000)")
     p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period (default 1.0 s)")
@@ -110,10 +112,10 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
 
 
 def _can_flags(args: argparse.Namespace) -> CanConfig | None:
-    """--can/--can-interface/--nodes as a CanConfig (None without --can). Raises ConfigError."""
+    """--can/--can-interface/--nodes/--sync-counter as a CanConfig (None without --can). Raises ConfigError."""
     if args.can is None:
-        if args.nodes is not None or args.can_interface is not None:
-            raise ConfigError("--nodes and --can-interface go with --can CHANNEL")
+        if args.nodes is not None or args.can_interface is not None or args.sync_counter is not None:
+            raise ConfigError("--nodes, --can-interface and --sync-counter go with --can CHANNEL")
         return None
     if not args.nodes:
         raise ConfigError("--can needs --nodes, e.g. --nodes 1,2,3")
@@ -121,7 +123,7 @@ def _can_flags(args: argparse.Namespace) -> CanConfig | None:
         ids = tuple(int(x, 0) for x in args.nodes.split(","))
     except ValueError:
         raise ConfigError(f"--nodes: {args.nodes!r} is not a comma-separated list of node ids") from None
-    return can_config(args.can, args.can_interface, ids)
+    return can_config(args.can, args.can_interface, ids, args.sync_counter or 0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -362,10 +362,11 @@ def _validate_can(c: CanConfig) -> None:
                 raise ConfigError(f"{key}.sdo[{j}]: index 0..0xFFFF, subindex 0..255, size 1, 2 or 4")
 
 
-def can_config(channel: str, interface: str | None, node_ids: tuple[int, ...]) -> CanConfig:
-    """``--can CHANNEL --can-interface IF --nodes 1,2,3`` as a CanConfig (defaults for the rest)."""
+def can_config(channel: str, interface: str | None, node_ids: tuple[int, ...], sync_counter: int = 0) -> CanConfig:
+    """``--can CHANNEL --can-interface IF --nodes 1,2,3 [--sync-counter N]`` as a CanConfig
+    (defaults for the rest)."""
     return CanConfig(channel=channel, interface=interface or "socketcan",
-                     nodes=tuple(CanNode(node_id=n) for n in node_ids))
+                     nodes=tuple(CanNode(node_id=n) for n in node_ids), sync_counter=sync_counter)
 
 
 def _can(t: _Table) -> CanConfig:

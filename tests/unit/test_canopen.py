@@ -298,9 +298,10 @@ def test_can_table_and_flags(caplog: pytest.LogCaptureFixture) -> None:
     assert [n.pdo for n in cfg.can.nodes] == ["default", "drive", "explicit"] and cfg.can.sync_counter == 240
     assert "can.nodes[1].pdo: 'node' is deprecated, say 'drive'" in caplog.text   # the old word, translated
     args = _parser().parse_args(["--can", "239.1.1.1", "--can-interface", "udp_multicast", "--nodes", "1,2,0x7f",
-                                 "--host", "c2"])
+                                 "--host", "c2", "--sync-counter", "16"])
     flags = build_config(args)
     assert flags.can is not None and [n.node_id for n in flags.can.nodes] == [1, 2, 127]
+    assert flags.can.sync_counter == 16
     assert flags.can.interface == "udp_multicast" and flags.backend == "canopen"
 
 
@@ -325,7 +326,8 @@ def test_can_configuration_errors_name_the_key(can: dict, why: str) -> None:
 
 def test_can_flags_errors() -> None:
     for argv, why in ((["--can", "c"], "--nodes"), (["--nodes", "1"], "go with --can"),
-                      (["--can", "c", "--nodes", "1,x"], "node ids")):
+                      (["--sync-counter", "4"], "go with --can"), (["--can", "c", "--nodes", "1,x"], "node ids"),
+                      (["--can", "c", "--nodes", "1", "--sync-counter", "241"], "can.sync_counter: 241")):
         with pytest.raises(ConfigError, match=why):
             build_config(_parser().parse_args(argv))
 
