@@ -367,7 +367,7 @@ def enable_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     en = r.get("enable_latency") or {}
     return {"drives": r.get("drives"), **{k: en.get(k) for k in (
         "rounds", "timed", "n_failures", "latency", "beyond_cycles", "beyond_elapsed", "bare_get",
-        "transition_cycles", "ratios")}}
+        "transition_cycles", "ratios", "cpu_ms_per_round_beyond_idle")}}
 
 
 def enable_headline(r: Mapping[str, Any]) -> str:
