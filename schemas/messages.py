@@ -194,7 +194,7 @@ class DriveStatus:
     objects: dict = _f({}, keys=Meta(str, {"max_len": 64}), values=Meta(int, {"range": (-(2**63), 2**64 - 1)}),
                        doc="other mapped input objects by name (CiA 402 table, else '0xIIII:SS') -> value")
     axis_state: str = _f("disabled", choices=AXIS_STATES, open=True, doc="PLCopen axis state of the motion layer")
-    homed: bool = _f(False, doc="a home command succeeded since the agent started")
+    homed: bool = _f(False, doc="the last home command of this axis succeeded (false after a failed or aborted one)")
     target_position: int = _f(0, range=I32, doc="0x607A target position written last")
     following_error: int = _f(0, range=I32, doc="target position written last minus 0x6064 (counts)")
     motion_request_id: str = _f("", max_len=128, doc="request id of the running motion command ('' if none)")

@@ -137,7 +137,7 @@ class CommandsMixin(CycleBase):
                     self._reply(d, cmd, "rejected", f"mode {mode} ({Mode(mode).name.lower()}) is not supported by the "
                                 f"drive (0x6502: modes {sorted(sup)})", now_ns, start_ns)
                     continue
-                if d.motion.plan is not None:
+                if d.motion.plan is not None or d.motion.homing is not None:
                     self._reply(d, cmd, "rejected", f"axis in motion ({d.motion.axis_state.value}): halt or stop it "
                                 "before changing the mode", now_ns, start_ns)
                     continue

@@ -374,7 +374,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             d.state = d.ctrl.state if d.ctrl.state is not None else decode_statusword(d.inputs.statusword)
             self._motion_step(d, out.hold_target, now_ns)
             o = d.out
-            o.controlword = d.controlword = out.controlword
+            o.controlword = d.controlword = out.controlword | d.motion.controlword_bits
             o.modes_of_operation = out.mode_of_operation
             if out.mode_of_operation != d.mode_written and (d.sdo_mode or d.sdo_mode_display):
                 # 0x6060 or 0x6061 not mapped: written and/or read back by SDO (management thread);

@@ -39,9 +39,10 @@ class SdoJob:
     """An object served by SDO because the drive does not map it (never on the cycle thread).
 
     ``kind`` "mode": write 0x6060 = ``value`` (unless ``written``: it is in the PDOs), then read 0x6061 every :data:`MODE_POLL_NS` until
-    it echoes or ``deadline_ns``; "error_code": read 0x603F once. Reports
-    ``("sdo", slave, what, value, error)`` with what = "mode_write" (error only),
-    "mode_display" or "error_code"."""
+    it echoes or ``deadline_ns``; "error_code": read 0x603F once; "write": download ``writes``
+    ((index, subindex, data), in order, stopping at the first refusal; homing parameters).
+    Reports ``("sdo", slave, what, value, error)`` with what = "mode_write" (error only),
+    "mode_display", "error_code" or "written" (error: '' or the refused object and abort)."""
 
     slave: int
     kind: str
@@ -50,6 +51,7 @@ class SdoJob:
     next_ns: int = 0
     written: bool = False
     attempts: int = 0
+    writes: tuple[tuple[int, int, bytes], ...] = ()
 
 
 class Management:
@@ -211,6 +213,16 @@ class Management:
     def _sdo_step(self, job: SdoJob, now_ns: int) -> bool:
         """One step of a job; True while it is not finished."""
         bus = self.bus
+        if job.kind == "write":
+            error = ""
+            for index, subindex, data in job.writes:
+                try:
+                    bus.sdo_write(job.slave, index, subindex, data)
+                except Exception as e:  # the abort code names why; later objects are not written
+                    error = f"0x{index:04X}:{subindex}: {e}"
+                    break
+            self.reports.append(("sdo", job.slave, "written", None, error))
+            return False
         try:
             if job.kind == "error_code":
                 raw = bus.sdo_read(job.slave, 0x603F, 0, 2)

@@ -14,7 +14,9 @@ from typing import Sequence
 from bus_agent.cia402.states import State
 from bus_agent.cycle.base import CycleBase
 from bus_agent.cycle.drive import Drive
+from bus_agent.cycle.management import SdoJob
 from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected
+from bus_agent.motion.homing import MODE_HOMING
 from bus_agent.motion.planner import PlanError, plan_group
 from bus_agent.runtime import DriveCommand, Outcome
 
@@ -33,10 +35,19 @@ class MotionMixin(CycleBase):
         now_s = now_ns / 1e9
         start_ns = cmd.received_ns or now_ns
         deadline_s = (start_ns + int(cmd.timeout_s * 1e9)) / 1e9
-        if cmd.op == "home":
-            self._reply(d, cmd, "rejected", "homing is not available on this agent yet", now_ns, start_ns)
-            return
         token = (cmd, self.cycles)
+        if cmd.op == "home":
+            sup = d.ctrl.supported_modes
+            if sup is not None and MODE_HOMING not in sup:
+                self._reply(d, cmd, "rejected", f"homing (mode 6) is not supported by the drive (0x6502: modes "
+                            f"{sorted(sup)})", now_ns, start_ns)
+                return
+            ended = m.start_home(token, cmd.request_id, cmd.args, now_s, deadline_s, d.ctrl.mode)
+            if m.homing is not None:
+                # the parameters by SDO on the management thread (mailbox round trips, never here)
+                self._mgmt.sdo(SdoJob(d.slave, "write", writes=m.homing.sdo_writes))
+            self._motion_finished(d, ended, now_ns)
+            return
         ended = m.command(token, cmd.request_id, cmd.op, cmd.args, now_s, deadline_s)
         if m.active is not None and m.active.token is token:
             d.ctrl.set_halt(False)  # a new move after a halt: PLCopen MC_Halt may be overridden
@@ -116,7 +127,15 @@ class MotionMixin(CycleBase):
         drive is leaving Operation enabled or is lost), else decelerate on the profile."""
         m = d.motion
         ended = m.lose(reason, now_ns / 1e9) if drop else m.abort(reason, now_ns / 1e9)
+        self._motion_requests(d, now_ns)
         self._motion_finished(d, ended, now_ns)
+
+    def _motion_requests(self, d: Drive, now_ns: int) -> None:
+        """A mode the axis's motion asks for (homing: 6, then the previous mode back)."""
+        m = d.motion
+        if m.mode_request is not None:
+            d.ctrl.request_mode(m.mode_request, now_ns / 1e9)
+            m.mode_request = None
 
     def _motion_finished(self, d: Drive, ended: Sequence[Finished], now_ns: int) -> None:
         for f in ended:
@@ -133,10 +152,16 @@ class MotionMixin(CycleBase):
         state = d.state
         m.observe(enabled=state is State.OPERATION_ENABLED, fault=state in _FAULTS, state=state.value,
                   error_code=i.error_code, position=i.position_actual, velocity=i.velocity_actual,
-                  mode=i.modes_of_operation_display, halted=d.ctrl.halt, commanded=d.target_position)
+                  mode=i.modes_of_operation_display, halted=d.ctrl.halt, commanded=d.target_position,
+                  statusword=i.statusword)
         ended = m.step(now_ns / 1e9)
+        if m.mode_request is not None:
+            self._motion_requests(d, now_ns)
         if m.write and not hold_target:
-            if m.mode == MODE_CSV:
+            if m.homing is not None or m.mode == MODE_HOMING:
+                d.target_position = m.target_position
+                d.target_velocity = 0
+            elif m.mode == MODE_CSV:
                 d.target_velocity = m.target_velocity
                 d.target_position = i.position_actual
             elif m.mode == MODE_CSP:

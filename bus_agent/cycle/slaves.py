@@ -51,6 +51,8 @@ class SlavesMixin(CycleBase):
                     self._event(d.axis, "fault", f"0x603F = 0x{value:04X} (read by SDO: not in the PDO mapping)",
                                 to_state=d.state.value, error_code=value)
                 d.error_code_sdo = value
+            elif what == "written":
+                d.motion.sdo_written(error)
             elif what == "mode_write" and d.pending is not None and d.pending.kind == "mode":
                 self._resolve(d, "failed", f"0x6060 = {d.mode_written} by SDO refused: {error}", now_ns)
             elif error:

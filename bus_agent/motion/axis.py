@@ -25,7 +25,8 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Mapping
 
-from bus_agent.motion.config import MotionConfig
+from bus_agent.motion.config import HOMING_METHODS, MotionConfig
+from bus_agent.motion.homing import CONTROLWORD_HOMING_START, Homing
 from bus_agent.motion.planner import Kinematic, Limits, Plan, PlanError, plan_position, plan_stop, plan_velocity
 
 __all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMotion", "Rejected"]
@@ -135,12 +136,18 @@ class AxisMotion:
         self.mode = 0
         self.halted = False
         self.commanded = 0       # the position target the cycle wrote last
+        self.statusword = 0
+        # homing (mode 6, bus_agent.motion.homing): a run under way, and what it asks of the cycle
+        self.homing: Homing | None = None
+        self.controlword_bits = 0            # OR-ed into 0x6040 (homing start, bit 4)
+        self.mode_request: int | None = None  # modes of operation to request now (taken by the cycle)
 
     # ---- observation ----------------------------------------------------------------------
 
     def observe(self, *, enabled: bool, fault: bool, state: str, error_code: int, position: int,
-                velocity: int, mode: int, halted: bool, commanded: int) -> None:
+                velocity: int, mode: int, halted: bool, commanded: int, statusword: int = 0) -> None:
         """What the cycle saw this cycle (fresh inputs). Cycle-safe."""
+        self.statusword = statusword
         self.enabled = enabled
         self.fault = fault
         self.state = state
@@ -159,6 +166,8 @@ class AxisMotion:
             return AxisState.DISABLED
         if self.stop_latched:
             return AxisState.STOPPING
+        if self.homing is not None:
+            return AxisState.HOMING
         a = self.active
         if a is not None and a.op == "jog":
             return AxisState.CONTINUOUS_MOTION
@@ -261,6 +270,52 @@ class AxisMotion:
         except Rejected as e:
             return [Finished(token, request_id, "rejected", str(e))]
 
+    def start_home(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float, deadline_s: float,
+                   previous_mode: int) -> list[Finished]:
+        """Start homing in mode 6 (``method``: default the axis's configured one). The cycle then
+        writes :attr:`Homing.sdo_writes` by SDO and reports with :meth:`sdo_written`."""
+        try:
+            self.check("home")
+            if self.plan is not None or self.active is not None:
+                raise Rejected(f"home needs the axis at standstill (it is in {self.axis_state.value}): "
+                               "halt or wait for the running command first")
+            method = args.get("method", self.cfg.homing.method)
+            if method not in HOMING_METHODS:
+                raise Rejected(f"homing method {method!r} is not a supported 0x6098 method "
+                               "(1..14, 17..30, 33, 34, 35, 37)")
+        except Rejected as e:
+            return [Finished(token, request_id, "rejected", str(e))]
+        self.homing = Homing(self.cfg.homing, int(method), previous_mode, now_s, deadline_s)
+        self.active = _Active(token, request_id, "home", deadline_s)
+        return []
+
+    def sdo_written(self, error: str) -> None:
+        """The homing parameters' SDO writes finished (``error``: why one was refused)."""
+        if self.homing is not None:
+            self.homing.sdo_done(error)
+
+    def _step_homing(self, h: Homing, now_s: float) -> list[Finished]:
+        if not self.enabled:
+            if self.fault:
+                h.abort("failed", f"drive fault 0x{self.error_code:04X} in {self.state} during homing")
+            else:
+                h.abort("aborted", "quick stop" if self.state == "quick_stop_active"
+                        else f"drive left operation_enabled ({self.state})")
+        hs = h.step(now_s, self.statusword, self.mode, self.enabled)
+        # the targets follow the actual values throughout (no jump when the previous mode returns)
+        self.write = True
+        self.target_position = self.position
+        self.target_velocity = 0
+        self.controlword_bits = CONTROLWORD_HOMING_START if hs.start_bit else 0
+        if hs.request_mode is not None:
+            self.mode_request = hs.request_mode
+        if not hs.outcome:
+            return []
+        self.homing = None
+        self.homed = h.homed
+        a, self.active = self.active, None
+        return [Finished(a.token, a.request_id, hs.outcome, hs.reason)] if a is not None else []
+
     def start_plan(self, token: Any, request_id: str, kind: str, plan: Plan, now_s: float, deadline_s: float,
                    *, note: str = "", synchronized: bool = False, end_s: float = math.inf,
                    limit_ahead: str = "") -> list[Finished]:
@@ -335,6 +390,10 @@ class AxisMotion:
         """End the running command with ``outcome``; with ``decelerate`` (and still enabled) the
         axis comes to rest on its profile from the set-point being written, else the plan is dropped."""
         ended: list[Finished] = []
+        if self.homing is not None:
+            # homing ends with bit 4 low and the previous mode restored; its reply comes then
+            self.homing.abort(outcome, reason)
+            return ended
         a = self.active
         if a is not None:
             self.active = None
@@ -350,6 +409,14 @@ class AxisMotion:
 
     def lose(self, reason: str, now_s: float) -> list[Finished]:
         """The drive is lost or leaves Operation enabled: abort and forget the plan."""
+        h = self.homing
+        if h is not None and self.active is not None:
+            # lost: nothing reaches the drive; the previous mode is requested for its return
+            self.homing = None
+            self.controlword_bits = 0
+            self.mode_request = h.previous_mode
+            a, self.active = self.active, None
+            return [Finished(a.token, a.request_id, "aborted", reason)]
         ended = self.abort(reason, now_s, decelerate=False)
         self.plan = None
         return ended
@@ -358,6 +425,9 @@ class AxisMotion:
 
     def step(self, now_s: float) -> list[Finished]:
         """Sample the plan for this cycle's targets and decide outcomes. Call after :meth:`observe`."""
+        if self.homing is not None:
+            return self._step_homing(self.homing, now_s)
+        self.controlword_bits = 0
         if not self.enabled:
             self.write = False
             if self.active is None and self.plan is None:

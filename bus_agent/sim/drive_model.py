@@ -12,7 +12,9 @@ What it models (IEC 61800-7-201 / CiA 402, CiA 301):
   5..8 ramp and stay in Quick stop active, transition 16 back on Enable operation);
 - the fault reaction (0x605E) in Fault reaction active, then Fault (transition 14); 0x603F error
   code, 0x1001 error register and an EMCY record on fault, an EMCY with code 0 on reset;
-- modes PP 1, PV 3, PT 4, CSP 8, CSV 9, CST 10 with the 0x6061 echo; halt (controlword bit 8);
+- modes PP 1, PV 3, PT 4, homing 6 (:mod:`bus_agent.sim.homing_model`: 0x6098/0x6099/0x609A/
+  0x607C, a home switch on 0x60FD bit 2), CSP 8, CSV 9, CST 10 with the 0x6061 echo; halt
+  (controlword bit 8);
   simple kinematics (position integrates velocity); CSP following error (0x8611, window 0x6065);
 - an object dictionary as a constant table of :class:`ObjectEntry`, values per instance, SDO
   access with CoE abort codes (:class:`SdoAbort`).
@@ -37,6 +39,7 @@ from bus_agent.cia402.states import (
     State,
     StatuswordBit,
 )
+from bus_agent.sim.homing_model import HOME_SWITCH_BIT, HOMING_BITS_MASK, SimHoming
 from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, DriveInputs, DriveOutputs, mapping_entry
 
 log = logging.getLogger(__name__)
@@ -210,11 +213,20 @@ OBJECT_TABLE: tuple[ObjectEntry, ...] = (
     _e(0x6072, 0, "max torque", "u16", "rw", default=3000),
     _e(0x6077, 0, "torque actual value", "i16", "ro", pdo=True),
     _e(0x607A, 0, "target position", "i32", "rw", pdo=True),
+    _e(0x607C, 0, "home offset", "i32", "rw"),
+    _e(0x607D, 0, "software position limit: number", "u8", "ro", default=2),
+    _e(0x607D, 1, "min position limit", "i32", "rw", default=-0x80000000),
+    _e(0x607D, 2, "max position limit", "i32", "rw", default=0x7FFFFFFF),
     _e(0x607F, 0, "max profile velocity", "u32", "rw", default=1_000_000),
     _e(0x6081, 0, "profile velocity", "u32", "rw", pdo=True, default=100_000),
     _e(0x6083, 0, "profile acceleration", "u32", "rw", pdo=True, default=1_000_000),
     _e(0x6084, 0, "profile deceleration", "u32", "rw", pdo=True, default=1_000_000),
     _e(0x6085, 0, "quick stop deceleration", "u32", "rw", default=10_000_000),
+    _e(0x6098, 0, "homing method", "i8", "rw", default=37),
+    _e(0x6099, 0, "homing speeds: number", "u8", "ro", default=2),
+    _e(0x6099, 1, "speed during search for switch", "u32", "rw", default=10_000),
+    _e(0x6099, 2, "speed during search for zero", "u32", "rw", default=1_000),
+    _e(0x609A, 0, "homing acceleration", "u32", "rw", default=100_000),
     _e(0x60B8, 0, "touch probe function", "u16", "rw", pdo=True),
     _e(0x60B9, 0, "touch probe status", "u16", "ro", pdo=True),
     _e(0x60BA, 0, "touch probe 1 positive edge", "i32", "ro", pdo=True),
@@ -253,7 +265,7 @@ def _modes_bitmap(*modes: Mode) -> int:
     return bits
 
 
-_COMMON_MODES = _modes_bitmap(Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY, Mode.PROFILE_TORQUE,
+_COMMON_MODES = _modes_bitmap(Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY, Mode.PROFILE_TORQUE, Mode.HOMING,
                               Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE)
 
 
@@ -274,6 +286,7 @@ class DriveProfile:
     torque_accel: float = 10_000.0  # increments/s^2 per per-mille of torque (PT/CST kinematics)
     power_on_position: int = 0   # absolute encoder: position at power-on = this * serial
     power_on_mode: int = 0       # 0x6060/0x6061 at power-on (a drive's stored default mode)
+    home_switch_position: int | None = 5_000  # 0x60FD bit 2 active at and above (None: no switch)
 
 
 PROFILES: dict[str, DriveProfile] = {
@@ -371,6 +384,9 @@ class DriveModel:
         self._prev_new_setpoint = False
         self._following_error = False
         self._target_reached = False
+        self._homing = SimHoming()
+        self._prev_home_start = False
+        self.home_switch_position = p.home_switch_position
         self._update_statusword()
 
     def power_cycle(self) -> None:
@@ -548,6 +564,8 @@ class DriveModel:
         self._steps_in_state = 0
         if state is State.OPERATION_ENABLED:
             self._pp_target = None
+        else:
+            self._homing.interrupt()
 
     def step(self, dt_s: float) -> None:
         """Advance the drive by ``dt_s`` seconds: controlword commands, automatic transitions,
@@ -659,6 +677,7 @@ class DriveModel:
         self._torque = 0.0
         if s is State.OPERATION_ENABLED:
             if cw & CONTROLWORD_HALT:
+                self._homing.interrupt()
                 self._stop(int(v[(0x605D, 0)]), dt)
                 self._target_reached = self._velocity == 0.0
             else:
@@ -682,6 +701,8 @@ class DriveModel:
                 self._following_error = True
                 self.inject_fault(ERROR_FOLLOWING_ERROR)
         v[(0x6064, 0)] = int(round(self._position))
+        switch = self._switch_active()
+        v[(0x60FD, 0)] = (int(v[(0x60FD, 0)]) & ~HOME_SWITCH_BIT) | (HOME_SWITCH_BIT if switch else 0)
         v[(0x60F4, 0)] = (_clamp_int(int(v[(0x607A, 0)]) - int(round(self._position)), "i32")
                           if s is State.OPERATION_ENABLED and int(v[(0x6061, 0)]) == Mode.CYCLIC_SYNC_POSITION else 0)
         v[(0x606C, 0)] = _clamp_int(int(round(self._velocity)), "i32")
@@ -728,8 +749,32 @@ class DriveModel:
                 if dt > 0 and abs(dist) <= abs(self._velocity) * dt:
                     self._velocity = dist / dt  # land on the target this step
                 self._target_reached = abs(dist - self._velocity * dt) < 0.5
+        elif mode == Mode.HOMING:
+            self._home(cw, dt)
         else:
             self._ramp_to(0.0, accel, decel, dt)  # no mode: hold
+
+    def _switch_active(self) -> bool:
+        s = self.home_switch_position
+        return s is not None and self._position >= s
+
+    def _home(self, cw: int, dt: float) -> None:
+        """Mode 6 (bus_agent.sim.homing_model): bit 4 edges start and interrupt the procedure."""
+        v = self._values
+        h = self._homing
+        start = bool(cw & 0x10)
+        if start and not self._prev_home_start:
+            h.start(int(v[(0x6098, 0)]), self._position, self._switch_active())
+        elif not start and self._prev_home_start:
+            h.interrupt()
+        self._prev_home_start = start
+        want, at_edge = h.step(self._position, self._switch_active(), float(v[(0x6099, 1)]), float(v[(0x6099, 2)]))
+        if at_edge:
+            self._position = float(int(v[(0x607C, 0)]))  # the edge latched: position = home offset
+        accel = float(v[(0x609A, 0)]) or 1.0
+        self._ramp_to(want or 0.0, accel, accel, dt)
+        if self._velocity == 0.0:
+            h.at_rest()
 
     def _update_statusword(self) -> None:
         s = self._state
@@ -746,6 +791,8 @@ class DriveModel:
                 sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # drive follows the command value
             elif mode == Mode.PROFILE_POSITION and int(self._values[(0x6040, 0)]) & 0x10:
                 sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # set-point acknowledge
+            elif mode == Mode.HOMING:
+                sw = (sw & ~HOMING_BITS_MASK) | self._homing.bits(self._velocity)
         if self._following_error and mode == Mode.CYCLIC_SYNC_POSITION:
             sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_13
         self._values[(0x6041, 0)] = sw

@@ -99,3 +99,21 @@ def test_fault_fails_and_quick_stop_aborts_a_move_over_ecat_sim(agent4):
     a.send("quick_stop", ("axis1",))
     _wait(lambda: move, 5, "move outcome")
     assert move[0].outcome == "aborted" and "quick_stop" in move[0].reason, move
+
+
+def test_homing_over_ecat_sim_switch_and_current_position_methods(agent4):
+    """Homing parameters by CoE SDO on the management thread, mode 6 through the PDOs, bit 4, the
+    drive's statusword 13/12/10 and 0x60FD home switch (ecat-sim's drive model), CSP restored."""
+    a, _control, axes = agent4
+    got = a.do("home", ("axis0",), method=19)
+    assert got[0].outcome == "done" and "method 19" in got[0].reason, got
+    got = a.do("home", ("axis1",), method=37)
+    assert got[0].outcome == "done", got
+    bad = a.do("home", ("axis2",), method=99)
+    assert bad[0].outcome == "rejected" and "homing method 99" in bad[0].reason
+    d = a.cycle.latest.drives
+    assert d[0].homed and d[1].homed and not d[2].homed
+    assert d[0].mode_display == d[1].mode_display == 8 and d[0].axis_state == "standstill"
+    assert abs(d[0].position) < 50 and d[1].position == 0  # home offset 0x607C = 0 at the edge / here
+    # CSP again, from where homing left the axis: a move after it is done
+    assert a.do("move", ("axis0",), to=1_000)[0].outcome == "done"

@@ -16,7 +16,7 @@ from tests.integration.test_real_drives import _slaves
 
 pytestmark = [pytest.mark.root, pytest.mark.timeout(120)]
 ROOT = Path(__file__).resolve().parents[2]
-ALL_MODES = (1, 3, 4, 8, 9, 10)
+ALL_MODES = (1, 3, 4, 6, 8, 9, 10)
 
 
 def test_scan_reports_each_profile(ecat_segment):

@@ -94,3 +94,19 @@ def test_watch_json_shows_the_axis_state(bed: str) -> None:
                         "--duration", "1"], capture_output=True, text=True, timeout=60, env=_env())
     lines = [json.loads(x) for x in r.stdout.splitlines() if x.strip()]
     assert any(x.get("axis_state") == "standstill" for x in lines), r.stdout + r.stderr
+
+
+def test_home_by_fleet_and_drivectl(bed: str) -> None:
+    """Homing in mode 6 end to end: Fleet.home with the switch method, drivectl home --method 37,
+    a bad method rejected naming it (exit 1), status shows homed."""
+    with Fleet(connect=[bed]) as f:
+        f.wait_for_agents(HOSTS, 10, drives=4)
+        res = f.home("m1/axis1", method=19, timeout_s=20)
+        assert res.ok, res.failures
+        assert "method 19" in res.results[0].error
+        s = next(iter(f.fetch_status(["m1/axis1"]).values()))
+        assert s.homed and s.mode_display == 8 and s.axis_state == "standstill"
+    r = drivectl(bed, "home", "m2/axis1", "--method", "37", "--timeout", "20")
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = drivectl(bed, "home", "m2/axis1", "--method", "99")
+    assert r.returncode == 1 and "homing method 99" in r.stdout, r.stdout + r.stderr

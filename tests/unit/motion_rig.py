@@ -36,9 +36,10 @@ class Wire:
 
 
 class Rig:
-    def __init__(self, n: int = 1, motion: MotionConfig | None = None, mode: int = 8, **cfg: Any) -> None:
+    def __init__(self, n: int = 1, motion: MotionConfig | None = None, mode: int = 8, profile: Any = "generic",
+                 **cfg: Any) -> None:
         self.clock = Clock()
-        self.bus = SimBus(n, clock=lambda: self.clock.ns / 1e9)
+        self.bus = SimBus(n, profile, clock=lambda: self.clock.ns / 1e9)
         motion = motion or MotionConfig()
         drives = tuple(DriveConfig(slave=i, mode=mode, motion=motion) for i in range(n))
         self.cycle = Cycle(self.bus, AgentConfig(host="h1", sim_drives=n, drives=drives, **cfg),

@@ -56,7 +56,7 @@ def _set_mode(cyc: Cycle, clock: Clock, mode: int, rid: str) -> list[Outcome]:
 
 def test_decode_supported_modes():
     assert decode_supported_modes(0) == frozenset()
-    assert decode_supported_modes(PROFILES["generic"].supported_modes) == {1, 3, 4, 8, 9, 10}
+    assert decode_supported_modes(PROFILES["generic"].supported_modes) == {1, 3, 4, 6, 8, 9, 10}
     assert decode_supported_modes((1 << 7) | (1 << 8) | (1 << 4)) == {CSP, CSV}  # bit 4 is reserved
 
 
@@ -65,7 +65,7 @@ def test_unsupported_mode_rejected_at_once_with_the_reason():
     cyc.open()
     try:
         assert cyc.drives[0].ctrl.supported_modes == {CSP, CSV}
-        assert cyc.drives[1].ctrl.supported_modes == {1, 3, 4, 8, 9, 10}
+        assert cyc.drives[1].ctrl.supported_modes == {1, 3, 4, 6, 8, 9, 10}
         got = _set_mode(cyc, clock, PT, "m1")
         # answered in the very cycle that applied it; the drive's mode is unchanged
         assert [o.outcome for o in got] == ["rejected"]

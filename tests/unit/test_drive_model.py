@@ -360,7 +360,7 @@ def test_mode_echo_by_pdo_and_sdo(mode: int) -> None:
     assert m2.read(0x6061, 0) == mode
 
 
-@pytest.mark.parametrize("mode", [0, 2, 6, 7, -1, 11, 127])
+@pytest.mark.parametrize("mode", [0, 2, 7, -1, 11, 127])
 def test_unsupported_mode_refused_by_sdo_and_ignored_by_pdo(mode: int) -> None:
     m = booted()
     cw_step(m, 0, mode=8)
@@ -521,7 +521,7 @@ def test_sdo_read_aborts(index: int, sub: int, code: int) -> None:
     (0x6040, 0, b"\0\0\0\0", ABORT_LENGTH_MISMATCH),
     (0x605A, 0, struct.pack("<h", -1), ABORT_VALUE_RANGE),
     (0x605E, 0, struct.pack("<h", 5), ABORT_VALUE_RANGE),
-    (0x6060, 0, struct.pack("<b", 6), ABORT_VALUE_RANGE),
+    (0x6060, 0, struct.pack("<b", 7), ABORT_VALUE_RANGE),
     (0x1600, 1, struct.pack("<I", 0x60410010), ABORT_NOT_MAPPABLE),  # RxPDO: read-only
     (0x1600, 1, struct.pack("<I", 0x60650020), ABORT_NOT_MAPPABLE),  # not mappable
     (0x1600, 1, struct.pack("<I", 0x60400020), ABORT_NOT_MAPPABLE),  # wrong bit length

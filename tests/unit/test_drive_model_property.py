@@ -63,5 +63,5 @@ def test_random_controlwords_follow_the_graph(profile: str, option: int, steps: 
                 # only from Switched on (4) or back from Quick stop active with 0x605A 5..8 (16)
                 assert prev is S.SWITCHED_ON or (prev is S.QUICK_STOP_ACTIVE and option >= 5)
         assert decode_statusword(m.statusword) is now
-        assert m.read(0x6061, 0) in (0, 1, 3, 4, 8, 9, 10)
+        assert m.read(0x6061, 0) in (0, 1, 3, 4, 6, 8, 9, 10)
         prev = now

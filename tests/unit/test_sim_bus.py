@@ -220,7 +220,7 @@ def test_sdo_through_the_model() -> None:
     bus.sdo_write(0, 0x605A, 0, struct.pack("<h", 6))
     assert bus.sdo_read(0, 0x605A, 0, 2) == struct.pack("<h", 6)
     for index, data, code in ((0x2222, b"\0\0", ABORT_NO_OBJECT), (0x6041, b"\0\0", ABORT_READ_ONLY),
-                              (0x6060, b"\x06", ABORT_VALUE_RANGE)):
+                              (0x6060, b"\x07", ABORT_VALUE_RANGE)):
         with pytest.raises(SimSdoError) as e:
             bus.sdo_write(0, index, 0, data)
         assert e.value.abort_code == code
