@@ -65,10 +65,14 @@ def jitter_ratios(results: dict) -> dict:
             for k, v in results.items() if k != "bare" for q in ("p99", "p999", "max")}
 
 
-def _dump(args, periods) -> None:
+def _dump(args, periods, dc_offsets=None) -> None:
+    """The phase's periods (ns) into its log file; frame-to-SYNC0 offsets (ns) into ``<file>.dc``."""
     if getattr(args, "log_file", None):
         with open(args.log_file, "wb") as f:
             array("q", periods).tofile(f)
+        if dc_offsets is not None:
+            with open(args.log_file + ".dc", "wb") as f:
+                array("q", dc_offsets).tofile(f)
 
 
 # ---- phases (each in its own process) ---------------------------------------------------------
@@ -89,22 +93,27 @@ def phase_bare(args) -> dict:
     period = args.cycle_us * 1000
     wkc_errors = 0
     send, receive, timeout_us = m.send_processdata, m.receive_processdata, args.receive_timeout_us
+    cycles = int(args.seconds * 1e9 / period)
+    # the frame's phase in the SYNC0 period (no PI: the bare loop does not follow DC time)
+    offsets = array("q", bytes(8 * cycles)) if args.dc == "auto" and m.dc_time else None
 
-    def step(_: int) -> None:
+    def step(i: int) -> None:
         nonlocal wkc_errors
         send(release_gil=True)
         if receive(timeout_us, release_gil=True) != expected:
             wkc_errors += 1
+        if offsets is not None:
+            offsets[i] = m.dc_time % period
         for s, pk in zip(slaves, pack):  # what any program does each cycle: read inputs, write outputs
             _ = s.input
             s.output = pk()
 
-    run = paced_loop(int(args.seconds * 1e9 / period), period, step, args.rt_priority)
+    run = paced_loop(cycles, period, step, args.rt_priority)
     m.state = pysoem.INIT_STATE
     m.write_state()
     m.close()
     periods = run.periods[1:]
-    _dump(args, periods)
+    _dump(args, periods, offsets)
     return {"cycles": len(run.periods), "seconds": round(run.elapsed_s, 2), "overruns": run.overruns,
             "wkc_errors": wkc_errors, "cpu_s": round(run.cpu_s, 3), "cpu_pct": round(100 * run.cpu_s / run.elapsed_s, 1),
             **period_figures(list(periods), period)}
@@ -160,8 +169,10 @@ def _enable_all(cyc, timeout_s: float = 10.0) -> int:
 
 
 def _measure(cyc, args) -> dict:
+    """Periods (and, with SYNC0, frame-to-SYNC0 offsets) of the next ``args.seconds`` of cycles."""
     period = args.cycle_us * 1000
     n = int(args.seconds * 1e9 / period)
+    cyc.dc_log = array("q", bytes(8 * n)) if "sync0" in cyc.dc_states else None
     ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
     cpu0 = self_cpu_s()
     t0 = time.monotonic()
@@ -174,7 +185,8 @@ def _measure(cyc, args) -> dict:
     got = cyc.period_log_len
     log = list(cyc.period_log[:got])
     cyc.period_log = None
-    _dump(args, array("q", log))
+    dc_log, cyc.dc_log = cyc.dc_log, None
+    _dump(args, array("q", log), None if dc_log is None else dc_log[:got])
     return {"cycles": cyc.cycles - c0, "seconds": round(elapsed, 2), "overruns": cyc.overruns - ov0,
             "wkc_errors": cyc.wkc_errors - wk0, "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1),
             **period_figures(log, period)}
@@ -196,13 +208,10 @@ def phase_agent(args) -> dict:
     cyc.start()
     try:
         resets = _enable_all(cyc)
-        n = int(args.seconds * 1e9 / (args.cycle_us * 1000))
-        cyc.dc_log = array("q", bytes(8 * n)) if cyc.dc_states and "sync0" in cyc.dc_states else None
         out = _measure(cyc, args)
         out["startup_fault_resets"] = resets
-        if cyc.dc_log is not None:
-            offs = sorted(cyc.dc_log[:cyc.period_log_len or n])
-            out["dc_offset_us"] = {**quantiles(offs, ("p50", "p99", "p1"), 1e-3), "samples": len(offs)}
+        if cyc._dc is not None:
+            out["dc_pi_held_cycles"] = cyc._dc.held
         return out
     finally:
         cyc.stop()
@@ -547,13 +556,18 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, time
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
-    periods: list[int] = []
-    for path in logs:
+def _read_logs(paths: list[str]) -> list[int]:
+    out: list[int] = []
+    for path in paths:
         a = array("q")
         with open(path, "rb") as f:
             a.frombytes(f.read())
-        periods.extend(a)
+        out.extend(a)
+    return out
+
+
+def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
+    periods = _read_logs(logs)
     seconds = sum(p["seconds"] for p in parts)
     cpu = sum(p["cpu_s"] for p in parts)
     out = {"rounds": len(parts), "cycles": sum(p["cycles"] for p in parts), "seconds": round(seconds, 2),
@@ -562,6 +576,12 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
            "cpu_pct": round(100 * cpu / seconds, 1) if seconds else None,
            "overruns_per_round": [p["overruns"] for p in parts],
            "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **period_figures(periods, cycle_ns)}
+    dc_logs = [p + ".dc" for p in logs if os.path.exists(p + ".dc")]
+    if dc_logs:  # frame-to-SYNC0 offset: where in the SYNC0 period the frames passed the reference
+        offs = sorted(_read_logs(dc_logs))
+        out["dc_offset_us"] = {**quantiles(offs, ("p1", "p50", "p99"), 1e-3), "samples": len(offs)}
+    if any("dc_pi_held_cycles" in p for p in parts):  # cycles late enough to hold the PI (a loaded host)
+        out["dc_pi_held_cycles"] = sum(p.get("dc_pi_held_cycles", 0) for p in parts)
     for key in ("gateway_process_cpu_pct", "bridge_snapshots_per_s"):
         vals = [p[key] for p in parts if key in p]
         if vals:

@@ -66,6 +66,13 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               ("--seconds", "60", "--rounds", "6", "--rt-priority", "10"),
               ("--seconds", "8", "--rounds", "2", "--rt-priority", "10", "--enable-rounds", "10"), True,
               s.agent_figures, s.agent_headline, s.agent_targets),
+    Benchmark("agent_dc", "agent cycle with 16 DC drives (omron1s:dc-required: predefined PDOs, SYNC0, PI) next to "
+              "a bare pysoem loop on the same segment; frame-to-SYNC0 offset", "bench.bench_agent",
+              ("--profile", "omron1s:dc-required", "--no-gateway", "--enable-rounds", "0", "--seconds", "60",
+               "--rounds", "6", "--rt-priority", "10"),
+              ("--profile", "omron1s:dc-required", "--no-gateway", "--enable-rounds", "0", "--seconds", "6",
+               "--rounds", "2", "--rt-priority", "10"), True,
+              s.agent_dc_figures, s.agent_dc_headline, s.agent_dc_targets),
     Benchmark("supervisor", "two-phase enable/disable of 4x16 and 32x32 drives; status fan-in", "bench.bench_supervisor",
               (), ("--sizes", "4x16", "--rounds", "1", "--gets", "50"), False,
               s.supervisor_figures, s.supervisor_headline, s.supervisor_targets),

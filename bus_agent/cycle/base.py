@@ -100,6 +100,8 @@ class CycleBase:
         self._dc: DcSync | None = None
         self._dc_time: Callable[[], int] = lambda: 0
         self._dc_adjust_ns = 0
+        #: How late the running cycle started after its deadline (ns; 0 for tick()).
+        self._late_ns = 0
         self._dc_offsets = array("q", bytes(8 * STATS_WINDOW))
         self.dc_states: tuple[str, ...] = ()
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.

@@ -213,9 +213,11 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                 if now < deadline:
                     self._wait_until(deadline)
                     now = self.clock_ns()
+                self._late_ns = now - deadline
                 if now - deadline > period:
                     self.overruns += 1
-                    k = (now - t0) // period  # skip the missed slots: no catch-up burst
+                    # skip the missed slots (no catch-up burst), on the schedule shifted by DC
+                    k = (now - t0 - self._dc_adjust_ns) // period
                 self._cycle(now)
                 k += 1
                 if self._stop_requested.is_set() and self.state == "running":
@@ -290,7 +292,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         dcs = self._dc
         if dcs is not None and wkc > 0:
             # keep the cycle in step with SYNC0: PI on the frame's phase (bus_agent.bus.dc)
-            self._dc_adjust_ns += dcs.step(self._dc_time())
+            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns)
             self._dc_offsets[cycle % STATS_WINDOW] = dcs.offset_ns
             if self.dc_log is not None and 0 < self.period_log_len <= len(self.dc_log):
                 self.dc_log[self.period_log_len - 1] = dcs.offset_ns

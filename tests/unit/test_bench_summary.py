@@ -174,6 +174,31 @@ def test_a_json_the_row_cannot_read_is_a_failure_without_figures() -> None:
     assert "figures" not in row and "targets" not in row
 
 
+def _agent_dc(bare_p99: float, agent_p99: float, offset: dict | None) -> dict:
+    def phase(p99: float, off: dict | None) -> dict:
+        return {"jitter_us": {"p99": p99, "p999": 2 * p99, "max": 4 * p99}, "overruns": 0, "cycles": 1000,
+                "wkc_errors": 0, "cpu_pct": 10.0, **({"dc_offset_us": off} if off else {})}
+    return {"drives": 16, "profile": "omron1s:dc-required", "cycle_us": 1000,
+            "phases": {"bare": phase(bare_p99, {"p1": 100.0, "p50": 200.0, "p99": 300.0}),
+                       "agent": phase(agent_p99, offset)}, "ratios": {}}
+
+
+@pytest.mark.parametrize("agent_p99, offset, met", [
+    (12.0, {"p1": 400.0, "p50": 500.0, "p99": 700.0}, [True, True, True]),
+    (13.0, {"p1": 200.0, "p50": 500.0, "p99": 700.0}, [False, False, False]),
+    (12.0, None, [True, True, None]),
+])
+def test_agent_dc_targets_jitter_ratio_and_offset_window(agent_p99: float, offset: dict | None, met: list) -> None:
+    data = _agent_dc(10.0, agent_p99, offset)
+    t = s.agent_dc_targets(data)
+    assert [x.met for x in t] == met
+    assert t[0].name == "DC jitter p99.9, agent / bare (us)"
+    assert t[0].measured == {"agent": 2 * agent_p99, "bare": 20.0, "ratio": round(agent_p99 / 10.0, 2)}
+    assert t[2].limit == "within 250..750 us"
+    assert "frame-to-SYNC0 p50/p99" in s.agent_dc_headline(data)
+    assert s.agent_dc_figures(data)["phases"]["agent"]["dc_offset_us"] == offset
+
+
 def test_twin_targets_read_the_ten_host_size_and_every_stop() -> None:
     run = {"sizes": {"3": {"twin": {"ready_s": 2.0, "cpu_pct_twin_process": 0.5, "left_after_stop": 0}, "bare": {}},
                      "10": {"twin": {"ready_s": 12.5, "cpu_pct_twin_process": 2.0, "left_after_stop": 1},
