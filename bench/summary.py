@@ -238,6 +238,10 @@ def agent_dc_targets(r: Mapping[str, Any]) -> list[Target]:
 FANIN_CHANGES_PER_DRIVE_MIN = 2
 #: A killed agent is reported gone within the Zenoh link lease (deploy/router.json5).
 LINK_LEASE_S = 3.0
+#: Two-phase enable of 4 x 16 drives: the supervisor's and the network's share (wall time minus the
+#: slowest drive's own transition time) at most this many bare zenoh gets (issue 13).
+SUPERVISOR_ENABLE_SIZE = "4x16"
+SUPERVISOR_ENABLE_OVER_BARE_MAX = 10.0
 
 
 def supervisor_figures(r: Mapping[str, Any]) -> dict[str, Any]:
@@ -301,6 +305,12 @@ def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
         ok = sum(1 for x in rounds if x["enable"]["ok"] and x["disable"]["ok"])
         out.append(Target(f"{size}: enable/disable rounds ok", f"{ok}/{len(rounds)}", "all", bool(rounds) and
                           ok == len(rounds)))
+        if size == SUPERVISOR_ENABLE_SIZE:
+            bare = (s.get("get_rtt_bare") or {}).get("p50_ms")
+            overhead = s.get("enable_overhead_s_median")
+            out.append(at_most(f"{size}: two-phase enable overhead / bare get (p50)",
+                               _ratio(overhead * 1e3 if overhead is not None else None, bare),
+                               SUPERVISOR_ENABLE_OVER_BARE_MAX, " x"))
         d = s.get("departure")
         if d is not None:
             out.append(Target(f"{size}: killed agents reported gone (ms)", d["last_ms"],
@@ -341,6 +351,74 @@ def trust_headline(r: Mapping[str, Any]) -> str:
 def trust_targets(r: Mapping[str, Any]) -> list[Target]:
     ratio = r.get("audit_ratio")
     return [at_most("audit trail / existing per-command gateway work", ratio, AUDIT_RATIO_MAX)]
+
+
+# ---- fast paths (issue 13): command latency, the cross-host reflex, the reply path ------------------
+
+#: Enable latency beyond the drives' own transition cycles, p50, over a bare zenoh get's p50 in the
+#: same run: at most this for 16 drives and for 64 (one reply per drive).
+ENABLE_BEYOND_OVER_BARE_MAX = {16: 3.0, 64: 4.0}
+#: Cross-host group reflex, fault on h1 -> h2's member leaving operation_enabled (ms).
+REFLEX_P50_MS_MAX = 2.0
+REFLEX_P99_MS_MAX = 3.0
+
+
+def enable_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    en = r.get("enable_latency") or {}
+    return {"drives": r.get("drives"), **{k: en.get(k) for k in (
+        "rounds", "timed", "n_failures", "latency", "beyond_cycles", "beyond_elapsed", "bare_get",
+        "transition_cycles", "ratios")}}
+
+
+def enable_headline(r: Mapping[str, Any]) -> str:
+    en = r.get("enable_latency") or {}
+    lat, beyond, bare = en.get("latency") or {}, en.get("beyond_cycles") or {}, en.get("bare_get") or {}
+    return (f"enable of {r.get('drives')} drives p50/p99 {lat.get('p50_ms')}/{lat.get('p99_ms')} ms, beyond the "
+            f"transition cycles {beyond.get('p50_ms')}/{beyond.get('p99_ms')} ms, bare get "
+            f"{bare.get('p50_ms')}/{bare.get('p99_ms')} ms ({en.get('n_failures')} failures)")
+
+
+def enable_targets(r: Mapping[str, Any]) -> list[Target]:
+    en = r.get("enable_latency") or {}
+    limit = ENABLE_BEYOND_OVER_BARE_MAX.get(r.get("drives") or 0)
+    if limit is None:
+        return []
+    ratio = (en.get("ratios") or {}).get("beyond_cycles_p50_over_bare_get_p50")
+    return [at_most(f"enable of {r['drives']} drives beyond the transition cycles / bare get (p50)", ratio, limit,
+                    " x"),
+            Target("enable rounds without failure", en.get("n_failures"), 0, en.get("n_failures") == 0)]
+
+
+def reflex_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "fault_to_status_in_sup",
+                                  "bare_put", "ratios", "n_failures")}
+
+
+def reflex_headline(r: Mapping[str, Any]) -> str:
+    lv, rf, b = r.get("fault_to_leave") or {}, r.get("fault_to_reflex") or {}, r.get("bare_put") or {}
+    return (f"fault on h1 -> h2's member leaves operation_enabled p50/p99 {lv.get('p50_ms')}/{lv.get('p99_ms')} ms "
+            f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms), bare put h1 -> h2 across the routers "
+            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)")
+
+
+def reflex_targets(r: Mapping[str, Any]) -> list[Target]:
+    lv = r.get("fault_to_leave") or {}
+    return [at_most("cross-host reflex p50 (ms)", lv.get("p50_ms"), REFLEX_P50_MS_MAX),
+            at_most("cross-host reflex p99 (ms)", lv.get("p99_ms"), REFLEX_P99_MS_MAX),
+            Target("reflex rounds without failure", r.get("n_failures"), 0, r.get("n_failures") == 0)]
+
+
+def replies_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {"drives": r.get("drives"), "loadavg_start": r.get("loadavg_start")}
+
+
+def replies_headline(r: Mapping[str, Any]) -> str:
+    parts = []
+    for n, f in (r.get("drives") or {}).items():
+        parts.append(f"{n} drives: gateway {f['gateway_us']} us ({f['gateway_over_bare']}x bare msgpack), collector "
+                     f"{f['collector_us']} us ({f['collector_over_bare']}x), publish pass {f['publish_pass_us']} us "
+                     f"({f['publish_pass_over_bare']}x)")
+    return "CPU per command: " + "; ".join(parts)
 
 
 # ---- the README table -----------------------------------------------------------------------------

@@ -589,16 +589,56 @@ def _check_field(cls: type[Any], f: dataclasses.Field, value: Any) -> Any:
 
 
 _PLANS: dict[type, tuple[frozenset, tuple]] = {}
+#: Strings one field row accepted, remembered up to this many per row (names, states, outcomes and
+#: ids repeat in every status and reply: the full check runs once per distinct value).
+_SEEN_MAX = 512
+
+
+class _Fast:
+    """What :func:`_validated` may accept without :func:`_check_value` for one field row: a value
+    of exactly the field's scalar type inside its range and choices, or a string the full check
+    already accepted for this row. Everything else (and the first sight of a string) takes the
+    full check, so the answer and the error text are the same; only repeats are cheaper."""
+
+    __slots__ = ("t", "range", "choices", "seen")
+
+    def __init__(self, t: type, meta: Any) -> None:
+        self.t = t
+        self.range = meta.get("range")
+        self.choices = frozenset(meta["choices"]) if "choices" in meta else None
+        self.seen: set[str] = set()
+
+    def ok(self, value: Any) -> bool:
+        vt = type(value)
+        if vt is not self.t:
+            return False
+        if vt is str:
+            return value in self.seen
+        if vt is float and (value != value or value in _INFINITIES):
+            return False
+        if self.range is not None and not self.range[0] <= value <= self.range[1]:
+            return False
+        return self.choices is None or value in self.choices
+
+    def learn(self, value: Any) -> None:
+        if type(value) is str and self.t is str:
+            if len(self.seen) >= _SEEN_MAX:
+                self.seen.clear()
+            self.seen.add(value)
+
+
+_INFINITIES = (float("inf"), float("-inf"))
 
 
 def _plan(cls: type[Any]) -> tuple[frozenset, tuple]:
-    """Per class, once: known field names and (name, where, type, meta, allow_empty, required)."""
+    """Per class, once: known field names and (name, where, type, meta, allow_empty, required, fast)."""
     plan = _PLANS.get(cls)
     if plan is None:
         ftypes = _field_types(cls)
         rows = tuple(
             (f.name, f"{cls.TYPE}.{f.name}", ftypes[f.name], f.metadata, f.default == "",
-             f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
+             f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING,
+             _Fast(ftypes[f.name], f.metadata) if ftypes[f.name] in (str, int, float, bool) else None)
             for f in dataclasses.fields(cls)
         )
         plan = _PLANS[cls] = (frozenset(r[0] for r in rows) | {"v", "type"}, rows)
@@ -612,9 +652,15 @@ def _validated(cls: type[Any], body: dict) -> dict:
         unknown = set(body) - known
         raise SchemaError(f"{cls.TYPE}: unknown field(s) {', '.join(sorted(map(repr, unknown)))}")
     kwargs = {}
-    for name, where, t, meta, allow_empty, required in rows:
+    for name, where, t, meta, allow_empty, required, fast in rows:
         if name in body:
-            kwargs[name] = _check_value(where, t, meta, body[name], allow_empty)
+            value = body[name]
+            if fast is not None and fast.ok(value):
+                kwargs[name] = value
+            else:
+                kwargs[name] = value = _check_value(where, t, meta, value, allow_empty)
+                if fast is not None:
+                    fast.learn(value)
         elif required:
             raise SchemaError(f"{where}: required field missing")
     if cls is CommandRequest:
@@ -624,13 +670,20 @@ def _validated(cls: type[Any], body: dict) -> dict:
     return kwargs
 
 
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
 def to_dict(msg: Any) -> dict:
     """The wire map of a message (``v``, ``type`` and every field), without validation."""
     if type(msg) not in _BY_TYPE.values():
         raise SchemaError(f"not a message type: {type(msg).__name__}")
+    cls = type(msg)
+    names = _FIELD_NAMES.get(cls)
+    if names is None:
+        names = _FIELD_NAMES[cls] = tuple(f.name for f in dataclasses.fields(cls))
     body: dict[str, Any] = {"v": SCHEMA_VERSION, "type": msg.TYPE}
-    for f in dataclasses.fields(msg):
-        body[f.name] = getattr(msg, f.name)
+    for name in names:
+        body[name] = getattr(msg, name)
     return body
 
 

@@ -112,11 +112,14 @@ class GatewayBase:
         self._wake = threading.Event()
         # command thread state
         self._inbox: queue.SimpleQueue[tuple[Callable[..., None], tuple]] = queue.SimpleQueue()
+        self._cycle_outcomes: collections.deque[tuple[Request, rt.Outcome]] = collections.deque()
         self._requests: collections.OrderedDict[str, Request] = collections.OrderedDict()
         self._pending: set[Request] = set()
         self.leases = LeaseTable()
         self._lease_holders: dict[str, str] = {}   # published copy, replaced whole
         self._remotes: list[RemoteMember] = []
+        # Remote members change on zenoh's callback threads (status) and the command thread (tokens).
+        self._remotes_lock = threading.Lock()
         for group, members in settings.groups.items():
             for member in members:
                 host, _, axis = member.partition("/")

@@ -24,6 +24,9 @@ from bus_agent.gateway.wire import (RECORD_MARGIN_S, SUBMIT_TIMEOUT_S, Msg, deco
 
 log = logging.getLogger("bus_agent.gateway.bridge")
 
+#: The gateway process's GIL switch interval (Python's default is 5 ms).
+GIL_SWITCH_INTERVAL_S = 0.0005
+
 # ---- gateway process side ---------------------------------------------------------------------------
 
 
@@ -124,17 +127,18 @@ class CycleProxy:
         kind = msg[0]
         if kind is Msg.UPDATE:
             _, snap_t, events_t, outcomes_t = msg
+            # Outcomes first, before decoding the snapshot (64 drives: a fraction of a millisecond)
+            # and before the sinks wake the publish thread, whose pass (a status put per changed
+            # drive, an event put per event) would otherwise hold the GIL while the command thread
+            # waits to send the replies.
+            for cid, o in outcomes_t:
+                self._deliver(cid, decode_outcome(o))
             events = [decode_event(e) for e in events_t]
             if snap_t is not None:
                 snap = decode_snapshot(snap_t, () if self.event_sink is not None
                                        else tuple(e for e, _, _ in events))
                 self.latest = snap
                 self.state = snap.agent_state
-            # Outcomes first: the sinks wake the publish thread, whose pass (a status put per
-            # changed drive, an event put per event) would otherwise hold the GIL while the
-            # command thread waits to send the replies.
-            for cid, o in outcomes_t:
-                self._deliver(cid, decode_outcome(o))
             if events and self.event_sink is not None:
                 self.event_sink(events)
             if snap_t is not None and self.snapshot_sink is not None and self.latest is not None:
@@ -171,6 +175,9 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     # The cycle process decides when to stop (after the ordered shutdown, while we still publish).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # Threads here (reader, publish, command, zenoh callbacks) hand the GIL back and forth around
+    # every zenoh call; a shorter switch interval bounds how long a reply waits for a busy thread.
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     conn = Connection(args.fd)
     try:
         kind, settings, zcfg, sim = loads(conn.recv_bytes())

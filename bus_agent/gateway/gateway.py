@@ -99,10 +99,12 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
             keys.ALL_SUPERVISORS, lambda smp: enqueue((self._on_supervisor_token, (smp,))), history=True))
         self._other_decls.append(s.declare_subscriber(
             keys.agent_status(self.host), lambda smp: enqueue((self._on_own_host_status, (smp,)))))
-        remote_hosts = sorted({r.host for r in self._remotes})
-        for host in remote_hosts:
-            self._other_decls.append(s.declare_subscriber(
-                keys.drive_status(host, "*"), lambda smp: enqueue((self._on_remote_status, (smp,)))))
+        # The group reflex's path: only the members' own status (not every drive of their hosts),
+        # handled on zenoh's callback thread, not queued behind the command thread's work (see
+        # PeersMixin._on_remote_status).
+        for host, axis in sorted({(r.host, r.axis) for r in self._remotes}):
+            self._other_decls.append(s.declare_subscriber(keys.drive_status(host, axis), self._on_remote_status))
+        for host in sorted({r.host for r in self._remotes}):
             self._other_decls.append(s.liveliness().declare_subscriber(
                 keys.alive(host), lambda smp: enqueue((self._on_remote_token, (smp,))), history=True))
         self._other_decls.append(s.declare_queryable(keys.agent_recording(self.host), self._on_recording_query))
@@ -382,8 +384,18 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         return ", ".join(blocked)
 
     def _outcome_from_cycle(self, req: Request, outcome: rt.Outcome) -> None:
-        """Called from the cycle thread: enqueue only. (The cycle publishes its own outcome event.)"""
-        self._inbox.put((self._outcome, (req, outcome, False)))
+        """Called from the cycle thread (or the bridge's reader): enqueue only. (The cycle publishes
+        its own outcome event.) Outcomes gather in one deque and every put is a drain of all of
+        them, so one cycle's outcomes are answered in one go on ``gw-command``: the publish pass,
+        which waits while that thread is busy, cannot slip in between two replies of a batch."""
+        self._cycle_outcomes.append((req, outcome))
+        self._inbox.put((self._drain_outcomes, ()))
+
+    def _drain_outcomes(self) -> None:
+        outcomes = self._cycle_outcomes
+        while outcomes:
+            req, outcome = outcomes.popleft()
+            self._outcome(req, outcome, False)
 
     def _outcome(self, req: Request, outcome: rt.Outcome, event: bool = True) -> None:
         """Record one axis' terminal outcome and answer the waiting queries. ``event``: also

@@ -129,6 +129,9 @@ class PeersMixin(GatewayBase):
         self._next_agent_s = 0.0  # say it in the agent status now
 
     def _on_remote_status(self, sample: zenoh.Sample) -> None:
+        """A remote group member's status, on zenoh's callback thread: a member turning bad
+        triggers the group at once (``trigger_group`` is thread-safe and only queues), rather
+        than after whatever the command thread is doing (replies, validation, lease timers)."""
         try:
             st = m.decode(sample.payload.to_bytes(), m.DriveStatus)
         except m.SchemaError as exc:
@@ -138,11 +141,12 @@ class PeersMixin(GatewayBase):
         reason = f"{st.host}/{st.axis} {'lost' if st.lost else st.state}"
         for r in self._remotes:
             if r.host == st.host and r.axis == st.axis:
-                if not r.seen:
-                    r.seen = True
+                with self._remotes_lock:
+                    seen, r.seen = r.seen, True
+                    self._remote_member(r, bad, reason)
+                if not seen:
                     log.info("agent %s: group %s member %s/%s seen: %s", self.host, r.group, r.host, r.axis,
                              "lost" if st.lost else st.state)
-                self._remote_member(r, bad, reason)
 
     def _on_remote_token(self, sample: zenoh.Sample) -> None:
         try:
@@ -152,10 +156,12 @@ class PeersMixin(GatewayBase):
         if sample.kind == zenoh.SampleKind.DELETE:
             for r in self._remotes:
                 if r.host == host:
-                    self._remote_member(r, True, f"agent {host} lost (liveliness)")
+                    with self._remotes_lock:
+                        self._remote_member(r, True, f"agent {host} lost (liveliness)")
 
     def _remote_member(self, r: RemoteMember, bad: bool, reason: str) -> None:
+        """Trigger ``r``'s group once per change to bad. Hold ``_remotes_lock``."""
         if bad and not r.bad:
-            log.warning("agent %s: group %s member %s/%s: %s -> trigger", self.host, r.group, r.host, r.axis, reason)
             self.cycle.trigger_group(r.group, reason)
+            log.warning("agent %s: group %s member %s/%s: %s -> trigger", self.host, r.group, r.host, r.axis, reason)
         r.bad = bad

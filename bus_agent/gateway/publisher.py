@@ -13,7 +13,7 @@ import logging
 import time
 
 from bus_agent import runtime as rt
-from bus_agent.gateway.base import CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
+from bus_agent.gateway.base import BAD_STATES, CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
 from schemas import messages as m
 from schemas.error_codes import describe
 
@@ -55,9 +55,15 @@ class PublisherMixin(GatewayBase):
                 self._next_heartbeat_s = now + self.s.heartbeat_s
             holders = self._lease_holders
             if snap is not None:
+                # A drive in fault or lost first and without waiting for the command thread: group
+                # members on other hosts react to this status (docs/agent-gateway.md, reflexes).
                 for d in snap.drives:
-                    self._commands_first(until_s)
-                    self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, heartbeat)
+                    if d.lost or d.state in BAD_STATES:
+                        self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, heartbeat)
+                for d in snap.drives:
+                    if not (d.lost or d.state in BAD_STATES):
+                        self._commands_first(until_s)
+                        self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, heartbeat)
             while self._events:
                 self._commands_first(until_s)
                 ev, cycle, time_ns = self._events.popleft()

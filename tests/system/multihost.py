@@ -131,7 +131,7 @@ class MultiHostRun:
     """The whole stack on a bed of ``hosts`` host namespaces plus a ``sup`` namespace."""
 
     def __init__(self, hosts: int = 2, drives: int = 3, groups: dict[str, list[str]] | None = None,
-                 prefix: str | None = None, pki: str | None = None) -> None:
+                 prefix: str | None = None, pki: str | None = None, agent_args: Sequence[str] = ()) -> None:
         self.prefix = prefix or f"zm{os.getpid() % 100000}"
         #: A drives-pki directory holding router certificates ``r-<host>`` (SAN: the host's
         #: address), agent certificates ``<host>`` and testbed certificates ``sim-<host>`` (each
@@ -141,6 +141,8 @@ class MultiHostRun:
         self.pki = pki
         self.drives = drives
         self.groups = groups or {}
+        #: Extra ``bus-agent`` options for every agent (benchmarks: ``--rt-priority N``).
+        self.agent_args = list(agent_args)
         self.bed: MultiHostBed = multihost_plan(self.prefix, hosts, extra=("sup",))
         self.workdir = tempfile.mkdtemp(prefix="multihost-")
         self.procs: list[Proc] = []
@@ -200,7 +202,8 @@ class MultiHostRun:
         cfg.write_text("\n".join(lines) + "\n")
         return self.spawn(Proc, f"bus-agent {host}", host, [
             sys.executable, "-m", "bus_agent.cli", "--config", str(cfg), "--ifname", hb.ecat_master or "",
-            "--host", host, "--connect", self.router_endpoint(host), "--log-level", "WARNING", *self.security(host)],
+            "--host", host, "--connect", self.router_endpoint(host), "--log-level", "WARNING", *self.security(host),
+            *self.agent_args],
             ready_marker="bus-agent ready")
 
     def start_supervisor(self, ns: str, connect_host: str, name: str, ready_timeout_s: float = 20.0) -> SupervisorProc:

@@ -149,9 +149,10 @@ def _sup(**fanin) -> dict:
     ({"supervisor_missed_by_seq": 1}, False),
 ])
 def test_fanin_target_needs_commands_ok_state_changes_and_nothing_missed(change: dict, met: bool) -> None:
-    rounds, fanin = s.supervisor_targets(_sup(**change))
+    t = {x.name: x for x in s.supervisor_targets(_sup(**change))}
+    rounds, fanin = t["4x16: enable/disable rounds ok"], t["4x16: status fan-in"]
     assert rounds.met is True and rounds.measured == "1/1"
-    assert fanin.met is met and fanin.name == "4x16: status fan-in"
+    assert fanin.met is met
 
 
 @pytest.mark.parametrize("departure, met", [
@@ -163,8 +164,8 @@ def test_fanin_target_needs_commands_ok_state_changes_and_nothing_missed(change:
 def test_departure_target_all_killed_agents_within_the_link_lease(departure: dict, met: bool) -> None:
     data = _sup()
     data["sizes"][0]["departure"] = departure
-    rounds, gone, fanin = s.supervisor_targets(data)
-    assert gone.name == "4x16: killed agents reported gone (ms)" and gone.met is met
+    gone = {x.name: x for x in s.supervisor_targets(data)}["4x16: killed agents reported gone (ms)"]
+    assert gone.met is met
     assert "killed agents reported gone" in s.supervisor_headline(data)
 
 
@@ -172,6 +173,39 @@ def test_a_json_the_row_cannot_read_is_a_failure_without_figures() -> None:
     row = s.build_row("x", "fake", s.OK, {"time": "now"}, figures, targets, None, headline)
     assert row["status"] == "failed: JSON not readable (KeyError: 'value')"
     assert "figures" not in row and "targets" not in row
+
+
+@pytest.mark.parametrize("overhead_s, bare_ms, met", [(0.004, 0.5, True), (0.006, 0.5, False), (None, 0.5, None)])
+def test_supervisor_enable_overhead_target_is_ten_bare_gets(overhead_s: float | None, bare_ms: float,
+                                                             met: bool | None) -> None:
+    data = _sup()
+    data["sizes"][0].update(enable_overhead_s_median=overhead_s, get_rtt_bare={"p50_ms": bare_ms, "p99_ms": 1.0})
+    t = {x.name: x for x in s.supervisor_targets(data)}["4x16: two-phase enable overhead / bare get (p50)"]
+    assert t.met is met and t.limit == "<= 10 x"
+
+
+def _enable(drives: int, ratio: float, failures: int = 0) -> dict:
+    return {"drives": drives, "enable_latency": {"n_failures": failures, "latency": {"p50_ms": 9.0},
+                                                  "ratios": {"beyond_cycles_p50_over_bare_get_p50": ratio}}}
+
+
+@pytest.mark.parametrize("drives, ratio, met", [(16, 2.9, True), (16, 3.1, False), (64, 3.9, True), (64, 4.2, False)])
+def test_enable_latency_targets_are_3x_for_16_and_4x_for_64_drives(drives: int, ratio: float, met: bool) -> None:
+    beyond, failures = s.enable_targets(_enable(drives, ratio))
+    assert beyond.met is met and failures.met is True
+    assert s.enable_targets(_enable(drives, ratio, failures=1))[1].met is False
+    assert f"enable of {drives} drives" in s.enable_headline(_enable(drives, ratio))
+
+
+@pytest.mark.parametrize("p50, p99, met", [(1.9, 2.9, (True, True)), (2.1, 2.9, (False, True)),
+                                           (1.5, 3.5, (True, False))])
+def test_reflex_targets_p50_2ms_p99_3ms(p50: float, p99: float, met: tuple) -> None:
+    data = {"fault_to_leave": {"n": 10, "p50_ms": p50, "p99_ms": p99}, "n_failures": 0,
+            "fault_to_reflex": {"p50_ms": 1.0, "p99_ms": 2.0}, "bare_put": {"p50_ms": 0.5, "p99_ms": 1.0}}
+    t50, t99, failures = s.reflex_targets(data)
+    assert (t50.met, t99.met) == met and failures.met is True
+    assert "bare put" in s.reflex_headline(data)
+    assert s.reflex_targets({"fault_to_leave": {"n": 0}, "n_failures": 3})[0].met is None
 
 
 def _agent_dc(bare_p99: float, agent_p99: float, offset: dict | None) -> dict:
