@@ -386,15 +386,8 @@ class Twin:
     def restart_agent(self, host: str, timeout_s: float = 30.0) -> None:
         """Start ``host``'s agent again (stopping it first if it still runs) and wait until it answers."""
         check_host(self.expected, host)
-        old = self.agents[host]
-        with self._lock:
-            self._expected_down.add(old.pid)
-        old.stop(STOP_TIMEOUT_S)
-        p = self._spawn_agent(host)
-        with self._lock:
-            self.agents[host] = p
-        if not self._ready(p, timeout_s):
-            raise self._not_ready(p, "restart")
+        self._respawn(self.agents[host], lambda: self._spawn_agent(host),
+                      lambda p: self.agents.__setitem__(host, p), timeout_s)
         self.wait_answering([host], timeout_s)
 
     def kill_router(self) -> None:
@@ -405,15 +398,21 @@ class Twin:
     def restart_router(self, timeout_s: float = 30.0) -> None:
         """Start the router again on the same endpoints and wait until every host answers again."""
         assert self.router is not None
+        self._respawn(self.router, self._spawn_router, lambda p: setattr(self, "router", p), timeout_s)
+        self.wait_answering(self.expected.hosts, timeout_s)
+
+    def _respawn(self, old: ChildProcess, spawn: Callable[[], ChildProcess], keep: Callable[[ChildProcess], None],
+                 timeout_s: float) -> None:
+        """Stop ``old`` on purpose (not reported), start its successor, ``keep`` it (so the monitor
+        watches it and :meth:`stop` stops it, ready or not) and wait for its readiness line."""
         with self._lock:
-            self._expected_down.add(self.router.pid)
-        self.router.stop(STOP_TIMEOUT_S)
-        p = self._spawn_router()
+            self._expected_down.add(old.pid)
+        old.stop(STOP_TIMEOUT_S)
+        p = spawn()
         with self._lock:
-            self.router = p
+            keep(p)
         if not self._ready(p, timeout_s):
             raise self._not_ready(p, "restart")
-        self.wait_answering(self.expected.hosts, timeout_s)
 
     def pids(self) -> dict[str, int]:
         """Process id of every running child, by name (leftover checks)."""
