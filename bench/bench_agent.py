@@ -457,6 +457,7 @@ def phase_enable_client(args) -> dict:
             raise RuntimeError(f"agent or echo not reachable ({n} drive status, echo {bool(echo)})")
         time.sleep(0.2)
     latency, beyond, beyond_elapsed, cycles, bare, failures = [], [], [], [], [], []
+    cpu0 = time.process_time()
     for i in range(-1, args.enable_rounds):  # round -1: warm-up, not counted
         for _ in range(args.gets_per_round):
             t0 = time.perf_counter()
@@ -482,6 +483,7 @@ def phase_enable_client(args) -> dict:
         time.sleep(0.02)  # let the disable's status publications pass before the next round
     session.close()
     out = {"rounds": args.enable_rounds, "drives": args.drives, "timed": len(latency), "failures": failures[:10],
+           "client_cpu_s": time.process_time() - cpu0,
            "n_failures": len(failures),
            "latency": summary_ms(latency), "beyond_cycles": summary_ms(beyond),
            "beyond_elapsed": summary_ms(beyond_elapsed), "bare_get": summary_ms(bare),
@@ -516,7 +518,16 @@ def phase_enable_latency(args) -> dict:
             raise RuntimeError("echo queryable did not start")
         cyc = agent.cycle
         resets = _ready(cyc)
+        # CPU of the gateway process and of this (the cycle) process: idle for a while, then over
+        # the client's rounds, so the rounds' own cost can be told from publishing at rest (CPU
+        # time holds up on a loaded machine where wall-clock latencies do not).
+        gw_pid, me = agent.bridge.pid if agent.bridge is not None else None, os.getpid()
+        idle_s, g_idle0, c_idle0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0, proc_cpu_s(me)
+        time.sleep(ENABLE_IDLE_S)
+        idle_s = time.monotonic() - idle_s
+        g_idle, c_idle = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g_idle0, proc_cpu_s(me) - c_idle0
         ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
+        t0, g0, cpu0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0, proc_cpu_s(me)
         client = subprocess.Popen(
             [sys.executable, "-m", "bench.bench_agent", "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
              "--host", "bench", "--drives", str(args.drives), "--cycle-us", str(args.cycle_us),
@@ -526,7 +537,13 @@ def phase_enable_latency(args) -> dict:
         out, _ = client.communicate(timeout=60 + args.enable_rounds * 25)
         if client.returncode != 0:
             raise RuntimeError(f"enable client failed ({client.returncode})")
+        el = time.monotonic() - t0
         res = json.loads(out.strip().splitlines()[-1])
+        n = args.enable_rounds + 1  # with the warm-up round
+        beyond_idle = {"gateway_process": (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g0 - g_idle / idle_s * el,
+                       "cycle_process": proc_cpu_s(me) - cpu0 - c_idle / idle_s * el}
+        res["cpu_ms_per_round_beyond_idle"] = {k: round(1e3 * v / n, 3) for k, v in beyond_idle.items()}
+        res["cpu_ms_per_round_beyond_idle"]["client_process"] = round(1e3 * res.pop("client_cpu_s") / n, 3)
         res["cycle"] = {"cycles": cyc.cycles - c0, "overruns": cyc.overruns - ov0, "wkc_errors": cyc.wkc_errors - wk0}
         res["startup_fault_resets"] = resets
         return res
@@ -535,6 +552,9 @@ def phase_enable_latency(args) -> dict:
             stop_process(p)
         agent.stop()
 
+
+#: The enable phase first measures the processes' CPU at rest for this long.
+ENABLE_IDLE_S = 2.0
 
 PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway_thread": phase_gateway_thread,
           "gateway_process": phase_gateway_process, "load": phase_load, "enable_latency": phase_enable_latency,

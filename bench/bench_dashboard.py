@@ -8,25 +8,24 @@ Per round one drive is faulted through the simulator's key space; the page recor
 turned ``fault`` (its clock) minus the agent's status time (the agent's clock, same machine): the
 change-to-browser time. In the same run a plain ``supervisor.Fleet`` subscriber timestamps the
 same status (the baseline: what Zenoh alone takes). Dashboard CPU is measured idle (heartbeats
-of every drive) and during the rounds. The machine's load average is recorded with the figures.
+of every drive, counted by the plain subscriber: CPU per status, a figure the machine's load
+does not inflate) and during the rounds. The machine's load average is recorded with the figures.
 """
 
 from __future__ import annotations
 
-import shutil
 import sys
-import tempfile
 import time
 from typing import Any
 
 import zenoh
 
 from bench.common import bench_parser, loadavg, percentile, proc_cpu_s, quantiles, run_stamp, write_result
-from bus_agent.sim.child import ChildProcess, free_port, wait_for
+from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas.messages import DriveStatus
 from supervisor.fleet import Fleet, zenoh_config
-from supervisor.testbed import start_agents, start_router
+from supervisor.testbed import headless_chromium, start_agents, start_dashboard, start_router
 
 
 def _stats(values_ms: list[float]) -> dict[str, Any]:
@@ -34,44 +33,34 @@ def _stats(values_ms: list[float]) -> dict[str, Any]:
 
 
 def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
     load_start = loadavg()
     names = [f"bd{i}" for i in range(hosts)]
     router, ep = start_router()
-    agents = dash = driver = None
-    profile = tempfile.mkdtemp(prefix="bench-dash-chromium-")
+    agents = dash = None
     try:
         agents = start_agents(names, drives, ep, cycle_us=20000, sm_watchdog_s=2.0, ready_timeout_s=240)
-        port = free_port()
-        dash = ChildProcess("drives-dashboard", [sys.executable, "-m", "dashboard.cli", "--connect", ep, "--http",
-                                                 f"127.0.0.1:{port}"], ready_marker="drives-dashboard ready")
-        assert dash.wait_ready(120), dash.output()
-        opts = webdriver.ChromeOptions()
-        opts.binary_location = "/usr/bin/chromium"
-        for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                     "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
-                     f"--user-data-dir={profile}"):
-            opts.add_argument(flag)
-        driver = webdriver.Chrome(service=Service(executable_path="/usr/bin/chromedriver"), options=opts)
-        driver.get(f"http://127.0.0.1:{port}/")
+        dash, url = start_dashboard(ep, ready_timeout_s=120)
         total = hosts * drives
-        wait_for(lambda: driver.execute_script("return document.querySelectorAll('#drives tbody tr').length;")
-                 >= total, 180, f"{total} rows on the page", poll_s=0.5)
-        pid = dash.popen.pid
-        c0, t0 = proc_cpu_s(pid), time.monotonic()
-        time.sleep(idle_s)
-        idle_cpu = 100 * (proc_cpu_s(pid) - c0) / (time.monotonic() - t0)
+        statuses = [0]
         seen: dict[tuple[str, str], float] = {}
         page_lag: list[float] = []
         zenoh_lag: list[float] = []
         missed = 0
-        with Fleet(connect=[ep]) as fleet, zenoh.open(zenoh_config("client", [ep])) as s:
+        with headless_chromium() as driver, Fleet(connect=[ep]) as fleet, \
+                zenoh.open(zenoh_config("client", [ep])) as s:
             def on_status(st: DriveStatus) -> None:
+                statuses[0] += 1
                 if st.state == "fault" and (st.host, st.axis) not in seen:
                     seen[(st.host, st.axis)] = time.time() * 1e3 - st.time_ns / 1e6
             fleet.on("status", on_status)
+            driver.get(url + "/")
+            wait_for(lambda: driver.execute_script("return document.querySelectorAll('#drives tbody tr').length;")
+                     >= total, 180, f"{total} rows on the page", poll_s=0.5)
+            pid = dash.popen.pid
+            # Idle: every drive's heartbeat; the plain subscriber counts the same publications.
+            n0, c0, t0 = statuses[0], proc_cpu_s(pid), time.monotonic()
+            time.sleep(idle_s)
+            idle_wall, idle_cpu, idle_n = time.monotonic() - t0, proc_cpu_s(pid) - c0, statuses[0] - n0
             c1, t1 = proc_cpu_s(pid), time.monotonic()
             for r in range(rounds):
                 host, slave = names[r % hosts], (r // hosts) % drives
@@ -90,16 +79,16 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                     missed += 1  # reported: the subscriber never saw it (a starved machine drops links)
             busy_cpu = 100 * (proc_cpu_s(pid) - c1) / (time.monotonic() - t1)
         return {"benchmark": "dashboard", **run_stamp(load_start), "drives": total, "hosts": hosts, "rounds": rounds,
-                "dashboard_cpu_idle_pct": round(idle_cpu, 1), "dashboard_cpu_changes_pct": round(busy_cpu, 1),
+                "idle_s": round(idle_wall, 1), "statuses_per_s_idle": round(idle_n / idle_wall, 1),
+                "dashboard_cpu_idle_pct": round(100 * idle_cpu / idle_wall, 1),
+                "dashboard_cpu_us_per_status": round(idle_cpu * 1e6 / idle_n, 1) if idle_n else None,
+                "dashboard_cpu_changes_pct": round(busy_cpu, 1),
                 "change_to_page_ms": _stats(page_lag), "change_to_subscriber_ms": _stats(zenoh_lag),
                 "subscriber_missed": missed,
                 "page_over_subscriber_p50": (round(percentile(sorted(page_lag), 0.5) /
                                                    max(percentile(sorted(zenoh_lag), 0.5), 1e-3), 1)
                                              if zenoh_lag else None)}
     finally:
-        if driver is not None:
-            driver.quit()
-        shutil.rmtree(profile, ignore_errors=True)
         for p in (dash, agents, router):
             if p is not None:
                 p.stop()

@@ -55,6 +55,25 @@ class _Collector:
     replies: dict[DriveRef, CommandReply] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
     finished: int = 0
+    #: Addressed drives per host still without a reply.
+    left: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for ref in self.addressed:
+            self.left[ref.host] = self.left.get(ref.host, 0) + 1
+
+    def add(self, ref: DriveRef, reply: CommandReply) -> bool:
+        """Keep the first reply per drive; True when it was the last one its host owed. The
+        waiting caller is woken then (once per host), not for every one of 64 replies: each
+        wake-up walks every addressed drive under the Fleet's lock, which the status callbacks
+        need too."""
+        if ref in self.replies:
+            return False
+        self.replies[ref] = reply
+        if ref not in self.addressed:
+            return False
+        self.left[ref.host] -= 1
+        return self.left[ref.host] == 0
 
 
 class FleetCommands:
@@ -131,8 +150,8 @@ class FleetCommands:
                     return
                 ref = DriveRef(msg.host, "" if agent_level else msg.axis)
                 with self._lock:
-                    col.replies.setdefault(ref, msg)
-                    self._lock.notify_all()
+                    if col.add(ref, msg):
+                        self._lock.notify_all()
             else:
                 text = reply.err.payload.to_string() if reply.err is not None else "?"
                 if text != "Timeout":  # zenoh's own end-of-query marker, not an agent's answer

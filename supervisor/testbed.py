@@ -16,10 +16,13 @@ Not for production: it picks free loopback ports and turns multicast scouting of
 
 from __future__ import annotations
 
+import contextlib
+import shutil
 import signal
 import sys
+import tempfile
 import threading
-from typing import Sequence
+from typing import Any, Iterator, Sequence
 
 from bus_agent.sim.child import ChildProcess, child_env, free_port
 
@@ -70,6 +73,45 @@ def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: f
     argv = [sys.executable, "-m", "bus_agent.cli", "--sim", str(n_drives), "--host", host,
             "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", router, "--log-level", log_level]
     return _spawn_ready(f"bus-agent {host}", argv, "bus-agent ready", ready_timeout_s)
+
+
+def start_dashboard(router: str, *extra: str, ready_timeout_s: float = 60.0) -> tuple[Proc, str]:
+    """``drives-dashboard --connect ROUTER --http 127.0.0.1:<free port> [extra]`` in a child
+    process; returns it and its base URL."""
+    port = free_port()
+    argv = [sys.executable, "-m", "dashboard.cli", "--connect", router, "--http", f"127.0.0.1:{port}", *extra]
+    return _spawn_ready("drives-dashboard", argv, "drives-dashboard ready", ready_timeout_s), f"http://127.0.0.1:{port}"
+
+
+#: Debian's chromium and its driver (deploy/apt-packages.txt).
+CHROMIUM = "/usr/bin/chromium"
+CHROMEDRIVER = "/usr/bin/chromedriver"
+
+
+@contextlib.contextmanager
+def headless_chromium(console_log: bool = False) -> Iterator[Any]:
+    """A selenium driver of Debian's headless chromium with a profile of its own (removed at the
+    end); ``console_log``: the page's console is readable with ``driver.get_log("browser")``."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    profile = tempfile.mkdtemp(prefix="testbed-chromium-")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
+                 f"--user-data-dir={profile}"):
+        opts.add_argument(flag)
+    if console_log:
+        opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    try:
+        driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+        try:
+            yield driver
+        finally:
+            driver.quit()
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
 
 
 def _spawn_ready(name: str, argv: Sequence[str], marker: str, timeout_s: float) -> Proc:

@@ -13,7 +13,7 @@ import collections
 import threading
 import time
 from array import array
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from bus_agent.bus.base import ALState, Bus, SlaveALStatus, SlaveInfo
 from bus_agent.bus.dc import DcSync
@@ -22,6 +22,7 @@ from bus_agent.cycle.drive import Drive, NmtRun
 from bus_agent.cycle.groups import Groups
 from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, Management
 from bus_agent.cycle.recorder import Recorder
+from bus_agent.motion.axis import Finished
 from bus_agent.runtime import AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand, Outcome
 
 #: Periods kept for p50/p99/max (one statistics window), and how often they are recomputed.
@@ -129,6 +130,8 @@ class CycleBase:
         def _motion_abort(self, d: Drive, reason: str, now_ns: int, *, drop: bool = False) -> None: ...
 
         def _motion_command(self, d: Drive, cmd: DriveCommand, now_ns: int) -> None: ...
+
+        def _motion_finished(self, d: Drive, ended: Sequence[Finished], now_ns: int) -> None: ...
 
         def _group_move(self, cmd: DriveCommand, now_ns: int) -> None: ...
 

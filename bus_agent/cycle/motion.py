@@ -17,6 +17,7 @@ from bus_agent.cycle.drive import Drive
 from bus_agent.cycle.management import SdoJob
 from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected
 from bus_agent.motion.homing import MODE_HOMING
+from bus_agent.motion.profile import MODE_PP, MODE_PV
 from bus_agent.motion.planner import PlanError, plan_group
 from bus_agent.runtime import DriveCommand, Outcome
 
@@ -43,12 +44,11 @@ class MotionMixin(CycleBase):
                             f"{sorted(sup)})", now_ns, start_ns)
                 return
             ended = m.start_home(token, cmd.request_id, cmd.args, now_s, deadline_s, d.ctrl.mode)
-            if m.homing is not None:
-                # the parameters by SDO on the management thread (mailbox round trips, never here)
-                self._mgmt.sdo(SdoJob(d.slave, "write", writes=m.homing.sdo_writes))
+            self._motion_requests(d, now_ns)
             self._motion_finished(d, ended, now_ns)
             return
         ended = m.command(token, cmd.request_id, cmd.op, cmd.args, now_s, deadline_s)
+        self._motion_requests(d, now_ns)
         if m.active is not None and m.active.token is token:
             d.ctrl.set_halt(False)  # a new move after a halt: PLCopen MC_Halt may be overridden
         self._motion_finished(d, ended, now_ns)
@@ -131,11 +131,16 @@ class MotionMixin(CycleBase):
         self._motion_finished(d, ended, now_ns)
 
     def _motion_requests(self, d: Drive, now_ns: int) -> None:
-        """A mode the axis's motion asks for (homing: 6, then the previous mode back)."""
+        """What the axis's motion asks of the cycle: a mode (homing: 6, then the previous mode
+        back), SDO downloads (homing or profile parameters: on the management thread, since
+        mailbox round trips never run on the cycle thread; answered in ``_apply_sdo``)."""
         m = d.motion
         if m.mode_request is not None:
             d.ctrl.request_mode(m.mode_request, now_ns / 1e9)
             m.mode_request = None
+        if m.sdo_request is not None:
+            self._mgmt.sdo(SdoJob(d.slave, "write", writes=m.sdo_request))
+            m.sdo_request = None
 
     def _motion_finished(self, d: Drive, ended: Sequence[Finished], now_ns: int) -> None:
         for f in ended:
@@ -155,7 +160,7 @@ class MotionMixin(CycleBase):
                   mode=i.modes_of_operation_display, halted=d.ctrl.halt, commanded=d.target_position,
                   statusword=i.statusword)
         ended = m.step(now_ns / 1e9)
-        if m.mode_request is not None:
+        if m.mode_request is not None or m.sdo_request is not None:
             self._motion_requests(d, now_ns)
         if m.write and not hold_target:
             if m.homing is not None or m.mode == MODE_HOMING:
@@ -164,8 +169,12 @@ class MotionMixin(CycleBase):
             elif m.mode == MODE_CSV:
                 d.target_velocity = m.target_velocity
                 d.target_position = i.position_actual
-            elif m.mode == MODE_CSP:
+            elif m.mode in (MODE_CSP, MODE_PP):
                 d.target_position = m.target_position
+            elif m.mode == MODE_PV:
+                d.target_velocity = m.target_velocity
+        if m.mode == MODE_PV and m.profile_run is None:
+            d.target_velocity = 0  # no stale 0x60FF in profile velocity (a jump on the next enable)
         if ended:
             self._motion_finished(d, ended, now_ns)
 

@@ -52,7 +52,7 @@ class SlavesMixin(CycleBase):
                                 to_state=d.state.value, error_code=value)
                 d.error_code_sdo = value
             elif what == "written":
-                d.motion.sdo_written(error)
+                self._motion_finished(d, d.motion.sdo_written(error), now_ns)
             elif what == "mode_write" and d.pending is not None and d.pending.kind == "mode":
                 self._resolve(d, "failed", f"0x6060 = {d.mode_written} by SDO refused: {error}", now_ns)
             elif error:

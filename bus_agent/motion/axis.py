@@ -21,92 +21,26 @@ Rules (PLCopen Part 1 semantics; the issue's safety rules):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from enum import Enum
 from typing import Any, Mapping
 
-from bus_agent.motion.config import HOMING_METHODS, MotionConfig
-from bus_agent.motion.homing import CONTROLWORD_HOMING_START, Homing
+from bus_agent.motion.config import MotionConfig
+from bus_agent.motion.drive_runs import DriveRunsMixin
+from bus_agent.motion.homing import Homing
 from bus_agent.motion.planner import Kinematic, Limits, Plan, PlanError, plan_position, plan_stop, plan_velocity
+from bus_agent.motion.profile import MODE_PP, MODE_PV, ProfileRun
+from bus_agent.motion.records import (ACCEPTS, MODE_CSP, MODE_CSV, MOTION_OPS, REFUSAL, Active, AxisState, Finished,
+                                      Rejected)
+from bus_agent.motion.records import num as _num
 
-__all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMotion", "Rejected"]
+__all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMotion", "Rejected", "MODE_CSP",
+           "MODE_CSV"]
 
-MODE_CSP = 8
-MODE_CSV = 9
-
-
-class AxisState(str, Enum):
-    """PLCopen axis states (values are the wire names of ``drive_status.axis_state``)."""
-
-    DISABLED = "disabled"
-    STANDSTILL = "standstill"
-    HOMING = "homing"
-    DISCRETE_MOTION = "discrete_motion"
-    CONTINUOUS_MOTION = "continuous_motion"
-    SYNCHRONIZED_MOTION = "synchronized_motion"
-    STOPPING = "stopping"
-    ERROR_STOP = "error_stop"
+_Active = Active
 
 
-#: Motion ops of the drive command key space handled by this module.
-MOTION_OPS = ("move", "jog", "home", "stop")
-
-_A = AxisState
-_MOVING = frozenset({"move", "jog", "home", "stop"})
-#: PLCopen: the ops each axis state accepts (a new motion command aborts the running one).
-ACCEPTS: dict[AxisState, frozenset[str]] = {
-    _A.DISABLED: frozenset({"stop"}),
-    _A.ERROR_STOP: frozenset({"stop"}),
-    _A.STANDSTILL: _MOVING,
-    _A.DISCRETE_MOTION: _MOVING,
-    _A.CONTINUOUS_MOTION: _MOVING,
-    _A.SYNCHRONIZED_MOTION: _MOVING,
-    _A.HOMING: frozenset({"stop"}),
-    _A.STOPPING: frozenset({"stop"}),
-}
-#: Why a state refuses the ops it does not accept.
-REFUSAL: dict[AxisState, str] = {
-    _A.DISABLED: "not enabled: motion needs operation_enabled",
-    _A.ERROR_STOP: "axis in error_stop (drive fault): reset the fault and enable first",
-    _A.HOMING: "homing in progress: stop it first",
-    _A.STOPPING: "axis busy with a stop: release it first (stop --release)",
-}
 
 
-class Rejected(Exception):
-    """A command refused before anything changed; the message is the reply's reason."""
-
-
-@dataclass(frozen=True)
-class Finished:
-    """The terminal outcome of one motion command (``token`` is the caller's command)."""
-
-    token: Any
-    request_id: str
-    outcome: str   # done | aborted | failed | timeout | rejected
-    reason: str = ""
-    duration_s: float = 0.0  # the profile's planned duration (done moves)
-
-
-@dataclass(slots=True)
-class _Active:
-    token: Any
-    request_id: str
-    op: str                 # move | jog | stop (home: bus_agent.motion.homing)
-    deadline_s: float       # the command's timeout, on the caller's clock
-    end_s: float = math.inf  # jog: when it starts to decelerate
-    synchronized: bool = False
-    note: str = ""          # clamps, appended to the done reason
-    limit_ahead: str = ""   # jog (CSP): the software limit its position plan ends at
-    limit_stop: str = ""    # jog: the software limit it stopped at
-
-
-def _num(args: Mapping[str, Any], name: str) -> float | None:
-    v = args.get(name)
-    return None if v is None else float(v)
-
-
-class AxisMotion:
+class AxisMotion(DriveRunsMixin):
     """Motion state of one axis (see the module docstring). ``cfg`` in user units."""
 
     def __init__(self, cfg: MotionConfig, period_s: float) -> None:
@@ -141,6 +75,11 @@ class AxisMotion:
         self.homing: Homing | None = None
         self.controlword_bits = 0            # OR-ed into 0x6040 (homing start, bit 4)
         self.mode_request: int | None = None  # modes of operation to request now (taken by the cycle)
+        #: SDO downloads to make now (taken by the cycle; answered through :meth:`sdo_written`)
+        self.sdo_request: tuple[tuple[int, int, bytes], ...] | None = None
+        # Profile Position / Profile Velocity (bus_agent.motion.profile): the drive's own profile
+        self.profile_run: ProfileRun | None = None
+        self._profile_params: tuple[int, int, int] | None = None  # 0x6081/0x6083/0x6084 written last
 
     # ---- observation ----------------------------------------------------------------------
 
@@ -169,6 +108,9 @@ class AxisMotion:
         if self.homing is not None:
             return AxisState.HOMING
         a = self.active
+        r = self.profile_run
+        if r is not None:
+            return AxisState.CONTINUOUS_MOTION if r.kind == "pv" and r.replies else AxisState.DISCRETE_MOTION
         if a is not None and a.op == "jog":
             return AxisState.CONTINUOUS_MOTION
         if a is not None and a.synchronized:
@@ -232,12 +174,14 @@ class AxisMotion:
         if not -2**31 <= round(target) < 2**31:
             raise Rejected(f"target {target:.0f} counts is outside the 32-bit range of 0x607A")
 
-    def prepare_move(self, args: Mapping[str, Any], now_s: float) -> tuple[Kinematic, float, Limits, list[str]]:
+    def prepare_move(self, args: Mapping[str, Any], now_s: float,
+                     drive_profile: bool = False) -> tuple[Kinematic, float, Limits, list[str]]:
         """Check a move (``to`` or ``by``, optional velocity/accel/jerk): start, target in counts,
         limits and clamp notes. Raises Rejected (nothing changed)."""
         self.check("move")
-        if self.mode != MODE_CSP:
-            raise Rejected(f"move needs cyclic synchronous position (0x6061 = 8); the drive is in mode {self.mode}")
+        if self.mode != MODE_CSP and not (drive_profile and self.mode == MODE_PP):
+            raise Rejected(f"move needs cyclic synchronous position (0x6061 = 8)"
+                           f"{' or profile position (1)' if drive_profile else ''}; the drive is in mode {self.mode}")
         to, by = _num(args, "to"), _num(args, "by")
         if (to is None) == (by is None):
             raise Rejected("give exactly one of to (absolute) or by (relative)")
@@ -255,6 +199,10 @@ class AxisMotion:
         """Start ``op`` (move, jog, stop) now. Returns the commands this ends: the new one when it is
         rejected or already done, the aborted one it replaces. Cycle-safe."""
         try:
+            if op == "move" and self.mode == MODE_PP:
+                return self._pp_move(token, request_id, args, now_s, deadline_s)
+            if op == "jog" and self.mode == MODE_PV:
+                return self._pv_jog(token, request_id, args, now_s, deadline_s)
             if op == "move":
                 start, target, limits, notes = self.prepare_move(args, now_s)
                 try:
@@ -269,52 +217,6 @@ class AxisMotion:
             raise Rejected(f"op {op!r} is not a motion op of this axis")
         except Rejected as e:
             return [Finished(token, request_id, "rejected", str(e))]
-
-    def start_home(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float, deadline_s: float,
-                   previous_mode: int) -> list[Finished]:
-        """Start homing in mode 6 (``method``: default the axis's configured one). The cycle then
-        writes :attr:`Homing.sdo_writes` by SDO and reports with :meth:`sdo_written`."""
-        try:
-            self.check("home")
-            if self.plan is not None or self.active is not None:
-                raise Rejected(f"home needs the axis at standstill (it is in {self.axis_state.value}): "
-                               "halt or wait for the running command first")
-            method = args.get("method", self.cfg.homing.method)
-            if method not in HOMING_METHODS:
-                raise Rejected(f"homing method {method!r} is not a supported 0x6098 method "
-                               "(1..14, 17..30, 33, 34, 35, 37)")
-        except Rejected as e:
-            return [Finished(token, request_id, "rejected", str(e))]
-        self.homing = Homing(self.cfg.homing, int(method), previous_mode, now_s, deadline_s)
-        self.active = _Active(token, request_id, "home", deadline_s)
-        return []
-
-    def sdo_written(self, error: str) -> None:
-        """The homing parameters' SDO writes finished (``error``: why one was refused)."""
-        if self.homing is not None:
-            self.homing.sdo_done(error)
-
-    def _step_homing(self, h: Homing, now_s: float) -> list[Finished]:
-        if not self.enabled:
-            if self.fault:
-                h.abort("failed", f"drive fault 0x{self.error_code:04X} in {self.state} during homing")
-            else:
-                h.abort("aborted", "quick stop" if self.state == "quick_stop_active"
-                        else f"drive left operation_enabled ({self.state})")
-        hs = h.step(now_s, self.statusword, self.mode, self.enabled)
-        # the targets follow the actual values throughout (no jump when the previous mode returns)
-        self.write = True
-        self.target_position = self.position
-        self.target_velocity = 0
-        self.controlword_bits = CONTROLWORD_HOMING_START if hs.start_bit else 0
-        if hs.request_mode is not None:
-            self.mode_request = hs.request_mode
-        if not hs.outcome:
-            return []
-        self.homing = None
-        self.homed = h.homed
-        a, self.active = self.active, None
-        return [Finished(a.token, a.request_id, hs.outcome, hs.reason)] if a is not None else []
 
     def start_plan(self, token: Any, request_id: str, kind: str, plan: Plan, now_s: float, deadline_s: float,
                    *, note: str = "", synchronized: bool = False, end_s: float = math.inf,
@@ -380,6 +282,9 @@ class AxisMotion:
             return [Finished(token, request_id, "done", "stop released" if was else "no stop to release")]
         ended = self.abort(f"aborted by {request_id} (stop)", now_s, decelerate=True)
         self.stop_latched = True
+        if self.profile_run is not None and self.enabled:
+            self.active = _Active(token, request_id, "stop", math.inf)
+            return ended
         if self.plan is None or not self.enabled:
             return ended + [Finished(token, request_id, "done", "at rest; motion refused until released")]
         self.plan_kind = "stop"
@@ -398,6 +303,10 @@ class AxisMotion:
         if a is not None:
             self.active = None
             ended.append(Finished(a.token, a.request_id, outcome, reason))
+        if self.profile_run is not None:
+            if decelerate:
+                self._profile_stop(now_s)
+            return ended
         if not decelerate:
             return ended  # the caller replaces or drops the plan
         if self.enabled and not self.halted and self.plan is not None:
@@ -419,6 +328,8 @@ class AxisMotion:
             return [Finished(a.token, a.request_id, "aborted", reason)]
         ended = self.abort(reason, now_s, decelerate=False)
         self.plan = None
+        self.profile_run = None
+        self.controlword_bits = 0
         return ended
 
     # ---- the cycle step -------------------------------------------------------------------
@@ -428,8 +339,11 @@ class AxisMotion:
         if self.homing is not None:
             return self._step_homing(self.homing, now_s)
         self.controlword_bits = 0
+        if self.profile_run is not None and self.enabled and not self.halted:
+            return self._step_profile(self.profile_run, now_s)
         if not self.enabled:
             self.write = False
+            self.profile_run = None
             if self.active is None and self.plan is None:
                 return []
             if self.fault:
@@ -440,6 +354,7 @@ class AxisMotion:
         if self.halted:
             # controlword bit 8: the drive stops on its own ramp (0x605D); follow it, no jump on release
             halted = self.abort("halt (controlword bit 8)", now_s, decelerate=False) + self._drop()
+            self.profile_run = None
             self.write = True
             self.target_position = self.position
             self.target_velocity = 0
@@ -506,7 +421,7 @@ class AxisMotion:
                              f"(error {err / abs(self.scale):g}, velocity {self.velocity / abs(self.scale):g})")]
         return []
 
-    def _csv_limit_ahead(self, velocity: float) -> str:
+    def _csv_limit_ahead(self, velocity: float, lim: Limits | None = None) -> str:
         """CSV jog at (up to) ``velocity``: the software limit the axis would pass if it braked a
         cycle later, or ''. Conservative braking distance: bringing the acceleration to zero
         (at most |v| a/j), then a jerk-limited stop from |v| at zero acceleration
@@ -515,7 +430,7 @@ class AxisMotion:
         limit = c.max_position if velocity > 0 else c.min_position
         if limit is None or velocity == 0:
             return ""
-        lim = self.limits
+        lim = lim or self.limits
         speed = abs(velocity)
         brake = (speed * lim.acceleration / lim.jerk + speed * (speed / lim.acceleration + lim.acceleration / lim.jerk) / 2
                  + speed * 3 * self.lead_s)

@@ -382,6 +382,12 @@ class DriveModel:
         self._mode_delay = 0
         self._pp_target: float | None = None
         self._prev_new_setpoint = False
+        self._pp_ack = False
+        self._pp_wait: int | None = None
+        #: test knobs of the PP handshake: steps before a set-point is acknowledged, and an
+        #: acknowledge that never falls (a drive bug the master must survive)
+        self.pp_ack_delay_steps = 0
+        self.pp_ack_stuck = False
         self._following_error = False
         self._target_reached = False
         self._homing = SimHoming()
@@ -678,6 +684,7 @@ class DriveModel:
         if s is State.OPERATION_ENABLED:
             if cw & CONTROLWORD_HALT:
                 self._homing.interrupt()
+                self._pp_target = None  # halt ends a profile position set-point (nothing resumes)
                 self._stop(int(v[(0x605D, 0)]), dt)
                 self._target_reached = self._velocity == 0.0
             else:
@@ -732,13 +739,25 @@ class DriveModel:
             self._ramp_to(target_v, accel, decel, dt)
             self._target_reached = abs(self._velocity - target_v) <= _VELOCITY_WINDOW
         elif mode == Mode.PROFILE_POSITION:
+            # set-point handshake: bit 4 rising -> take 0x607A (after pp_ack_delay_steps) and set
+            # the acknowledge (statusword bit 12); it falls with bit 4 (unless pp_ack_stuck)
             new_setpoint = bool(cw & 0x10)
             if new_setpoint and not self._prev_new_setpoint:
-                target = float(int(v[(0x607A, 0)]))
-                if cw & 0x40:  # relative
-                    target += self._pp_target if self._pp_target is not None else self._position
-                self._pp_target = target
+                self._pp_wait = self.pp_ack_delay_steps
             self._prev_new_setpoint = new_setpoint
+            if new_setpoint and self._pp_wait is not None:
+                if self._pp_wait <= 0:
+                    target = float(int(v[(0x607A, 0)]))
+                    if cw & 0x40:  # relative
+                        target += self._pp_target if self._pp_target is not None else self._position
+                    self._pp_target = target
+                    self._pp_ack = True
+                    self._pp_wait = None
+                else:
+                    self._pp_wait -= 1
+            elif not new_setpoint and not self.pp_ack_stuck:
+                self._pp_wait = None
+                self._pp_ack = False
             if self._pp_target is None:
                 self._ramp_to(0.0, accel, decel, dt)
             else:
@@ -789,7 +808,7 @@ class DriveModel:
         if s is State.OPERATION_ENABLED:
             if mode in (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE):
                 sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # drive follows the command value
-            elif mode == Mode.PROFILE_POSITION and int(self._values[(0x6040, 0)]) & 0x10:
+            elif mode == Mode.PROFILE_POSITION and self._pp_ack:
                 sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # set-point acknowledge
             elif mode == Mode.HOMING:
                 sw = (sw & ~HOMING_BITS_MASK) | self._homing.bits(self._velocity)

@@ -23,7 +23,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from bus_agent.sim.child import ChildProcess, free_port, wait_for
 from schemas.messages import AgentStatus, DriveStatus
 from supervisor.fleet import Fleet
-from supervisor.testbed import start_router
+from supervisor.testbed import start_dashboard, start_router
 
 pytestmark = [pytest.mark.root, pytest.mark.timeout(150)]
 
@@ -76,11 +76,7 @@ def test_dc_offset_and_following_error_metrics_against_a_dc_drive(ecat_segment, 
         agent = ChildProcess("bus-agent", [sys.executable, "-m", "bus_agent.cli", "--config", str(cfg), "--listen", f"tcp/127.0.0.1:{free_port()}",
                                            "--connect", ep], ready_marker="bus-agent ready")
         agent.expect_ready(60)
-        port = free_port()
-        dash = ChildProcess("drives-dashboard", [sys.executable, "-m", "dashboard.cli", "--connect", ep, "--http",
-                                                 f"127.0.0.1:{port}"], ready_marker="drives-dashboard ready")
-        assert dash.wait_ready(60), dash.output()
-        url = f"http://127.0.0.1:{port}"
+        dash, url = start_dashboard(ep)
         published: dict[tuple[str, str], set[int]] = {("axis0", "0x60F4"): set(), ("axis1", "agent"): set()}
         offsets: set[tuple[float, float]] = set()
 

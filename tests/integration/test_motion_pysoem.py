@@ -80,10 +80,11 @@ def test_sync_move_of_four_over_ecat_sim_arrives_within_one_cycle(agent4):
     assert len(set(start)) == 1, start                # every target changed in the same cycle
     assert max(arrive) - min(arrive) <= 1, arrive     # positions reported by the drives
     # the wire: per drive, the targets' speed over every 10 cycles within the velocity limit
-    # (the snapshot's wall time is taken after the cycle's work, its targets at the start: 5 ms slack)
+    # (the snapshot's wall time is taken after the cycle's work, its targets at the start; the work's
+    # duration varies by milliseconds on a loaded machine: 10 ms slack)
     for i in range(4):
         for (c0, t0, d0), (c1, t1, d1) in zip(rows, rows[10:]):
-            dt = (t1 - t0) / 1e9 + 0.005
+            dt = (t1 - t0) / 1e9 + 0.010
             assert abs(d1[i][0] - d0[i][0]) <= CFG.max_velocity * dt + 2, (i, c1, d0[i], d1[i], dt)
 
 
@@ -117,3 +118,21 @@ def test_homing_over_ecat_sim_switch_and_current_position_methods(agent4):
     assert abs(d[0].position) < 50 and d[1].position == 0  # home offset 0x607C = 0 at the edge / here
     # CSP again, from where homing left the axis: a move after it is done
     assert a.do("move", ("axis0",), to=1_000)[0].outcome == "done"
+
+
+def test_profile_position_and_profile_velocity_over_ecat_sim(agent4):
+    """PP: 0x6081/0x6083/0x6084 by CoE SDO, the set-point handshake through the PDOs (bit 4 and
+    0x607A out, bit 12 and bit 10 back) against ecat-sim's drive model; PV: a jog on 0x60FF."""
+    a, control, axes = agent4
+    assert a.do("set_mode", ("axis2",), mode=1)[0].outcome == "done"
+    assert a.do("set_mode", ("axis3",), mode=3)[0].outcome == "done"
+    got = a.do("move", ("axis2",), to=25_000, velocity=50_000)
+    assert got[0].outcome == "done", got
+    assert a.cycle.latest.drives[2].position == 25_000
+    first = a.send("move", ("axis2",), to=-40_000)
+    _wait(lambda: abs(a.cycle.latest.drives[2].velocity) > 10_000, 5, "moving")
+    second = a.do("move", ("axis2",), to=0)
+    assert first[0].outcome == "aborted" and second[0].outcome == "done", (first, second)
+    assert a.cycle.latest.drives[2].position == 0
+    got = a.do("jog", ("axis3",), velocity=20_000, for_s=0.3)
+    assert got[0].outcome == "done" and a.cycle.latest.drives[3].position > 3_000, got

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
-import tempfile
 import urllib.error
 import urllib.request
 from typing import Any, Iterator
@@ -21,10 +19,11 @@ import pytest
 import zenoh
 from prometheus_client.parser import text_string_to_metric_families
 
-from bus_agent.sim.child import ChildProcess, free_port, wait_for
+from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from supervisor.fleet import Fleet, zenoh_config
-from supervisor.testbed import Proc, start_cli_agent, start_router
+from supervisor.testbed import (CHROMEDRIVER, CHROMIUM, Proc, headless_chromium, start_cli_agent, start_dashboard,
+                               start_router)
 
 from tests.conftest import require
 
@@ -32,8 +31,6 @@ pytestmark = pytest.mark.timeout(240)
 
 HOST = "dash1"
 OFFLINE = "dash-gone"
-CHROMIUM = "/usr/bin/chromium"
-CHROMEDRIVER = "/usr/bin/chromedriver"
 
 
 def _get(url: str) -> bytes:
@@ -47,15 +44,11 @@ def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     fleet_file.write_text(f'[hosts.{HOST}]\naxes = ["axis0", "axis1", "axis2"]\n[hosts.{OFFLINE}]\naxes = ["x"]\n')
     router, ep = start_router()
     agent: Proc | None = None
-    dash: ChildProcess | None = None
+    dash: Proc | None = None
     try:
         agent = start_cli_agent(HOST, 3, ep)
-        port = free_port()
-        dash = ChildProcess("drives-dashboard", [sys.executable, "-m", "dashboard.cli", "--connect", ep, "--fleet",
-                                                 str(fleet_file), "--http", f"127.0.0.1:{port}"],
-                            ready_marker="drives-dashboard ready")
-        assert dash.wait_ready(60), dash.output()
-        yield {"ep": ep, "url": f"http://127.0.0.1:{port}"}
+        dash, url = start_dashboard(ep, "--fleet", str(fleet_file))
+        yield {"ep": ep, "url": url}
     finally:
         if dash is not None:
             dash.stop()
@@ -68,23 +61,8 @@ def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
 def browser() -> Iterator[Any]:
     require(shutil.which(CHROMIUM) is not None and shutil.which(CHROMEDRIVER) is not None,
             "Debian chromium and chromium-driver", "apt-get install chromium chromium-driver (deploy/apt-packages.txt)")
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    profile = tempfile.mkdtemp(prefix="dash-chromium-")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = CHROMIUM
-    for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
-                 f"--user-data-dir={profile}"):
-        opts.add_argument(flag)
-    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
-    try:
+    with headless_chromium(console_log=True) as driver:
         yield driver
-    finally:
-        driver.quit()
-        shutil.rmtree(profile, ignore_errors=True)
 
 
 def row_state(driver: Any, host: str, axis: str) -> str | None:
