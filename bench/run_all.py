@@ -105,6 +105,11 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("reflex", "cross-host group reflex over namespaced hosts and routers, next to a bare zenoh put "
               "across the same routers", "bench.bench_reflex", ("--rounds", "50", "--bare", "500"),
               ("--rounds", "8", "--bare", "100"), True, s.reflex_figures, s.reflex_headline, s.reflex_targets),
+    Benchmark("motion", "16 axes moving at 1 kHz over ecat-sim: cycle jitter and CPU with motion vs idle vs bare, "
+              "query to first target, synchronized arrival spread", "bench.bench_motion",
+              ("--seconds", "60", "--rounds", "3", "--rt-priority", "10"),
+              ("--seconds", "6", "--rounds", "1", "--rt-priority", "10", "--latency-moves", "10", "--sync-moves", "3"),
+              True, s.motion_figures, s.motion_headline, s.motion_targets),
     Benchmark("replies", "CPU of the command reply path per 16/64-drive command, next to bare msgpack",
               "bench.bench_replies", ("--rounds", "500"), ("--rounds", "50"), False,
               s.replies_figures, s.replies_headline, s.no_targets),

@@ -598,3 +598,46 @@ def twin_targets(r: Mapping[str, Any]) -> list[Target]:
             at_most("the twin's own process at rest, 10 hosts, % of a core", twin10.get("cpu_pct_twin_process"),
                     TWIN_OWN_CPU_PCT_MAX),
             at_most("processes left after SIGTERM, every size", max(left) if left and None not in left else None, 0)]
+
+
+# ---- bench_motion ---------------------------------------------------------------------------------
+
+#: A synchronized move of every axis on one host: arrival spread (cycles) at most this.
+MOTION_SYNC_SPREAD_CYCLES_MAX = 1
+#: Move query submitted to the cycle that applies it (plans and starts the profile), p50.
+MOTION_APPLIED_MS_P50_MAX = 2.0
+
+
+def motion_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    ph = r["phases"]
+    return {"phases": {k: {"jitter_us": {q: v["jitter_us"][q] for q in JITTER_QUANTILES}, "overruns": v["overruns"],
+                           "cycles": v["cycles"], "cpu_pct": v["cpu_pct"], "cpu_us_per_cycle": v.get("cpu_us_per_cycle"),
+                           "sync_moves": v.get("sync_moves"), "moves_not_done": v.get("moves_not_done")}
+                       for k, v in ph.items()},
+            "ratios": r.get("ratios"), "step_cost": r.get("step_cost"), "query_to_applied": r.get("query_to_applied"),
+            "query_to_first_target": r.get("query_to_first_target"), "sync_arrival": r.get("sync_arrival"),
+            "loadavg_start": r.get("loadavg_start"), "loadavg_end": r.get("loadavg_end")}
+
+
+def motion_headline(r: Mapping[str, Any]) -> str:
+    ph, sc = r["phases"], r.get("step_cost") or {}
+    parts = [f"{k} {ph[k]['jitter_us']['p99']}/{ph[k]['jitter_us']['p999']}/{ph[k]['jitter_us']['max']}"
+             for k in ("bare", "idle", "motion") if k in ph]
+    applied, first, sync = r.get("query_to_applied") or {}, r.get("query_to_first_target") or {}, r.get("sync_arrival") or {}
+    return (f"jitter p99/p99.9/max us: {', '.join(parts)}; motion adds {sc.get('added_us_per_axis')} us per moving "
+            f"axis per cycle ({sc.get('axes')} axes: {sc.get('moving_us_per_cycle')} vs {sc.get('idle_us_per_cycle')} "
+            f"us), a {sc.get('axes')}-axis synchronized plan {sc.get('plan_group_us')} us; query to applied p50 "
+            f"{applied.get('p50_ms')} ms, to first target change p50 {first.get('ms_p50')} ms; sync arrival spread "
+            f"max {sync.get('spread_cycles_max')} cycles")
+
+
+def motion_targets(r: Mapping[str, Any]) -> list[Target]:
+    ph = r["phases"]
+    out = jitter_targets("jitter", "motion", ph["motion"], ph["bare"]) if "motion" in ph and "bare" in ph else []
+    sync = r.get("sync_arrival") or {}
+    out.append(at_most("synchronized move of every axis: arrival spread (cycles)", sync.get("spread_cycles_max"),
+                       MOTION_SYNC_SPREAD_CYCLES_MAX))
+    out.append(at_most("move query to the cycle applying it, p50", (r.get("query_to_applied") or {}).get("p50_ms"),
+                       MOTION_APPLIED_MS_P50_MAX, " ms"))
+    out.append(at_most("moves not done in the motion phase", (ph.get("motion") or {}).get("moves_not_done"), 0))
+    return out

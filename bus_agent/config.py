@@ -123,12 +123,14 @@ class DriveConfig:
 
     @property
     def setup(self) -> SlaveSetup:
-        """Mapping policy and start-up SDOs of this drive's slave."""
+        """Mapping policy and start-up SDOs of this drive's slave: the software position limits
+        of ``[drives.motion]`` (0x607D:1/2) first, then ``[[drives.sdo]]`` (which may override them)."""
         policy = self.mapping
         if policy is None:
             policy = (MappingPolicy("default", rx_pdo=self.pdo.rx_pdo, tx_pdo=self.pdo.tx_pdo) if self.pdo
                       else MappingPolicy())
-        return SlaveSetup(policy, self.sdos)
+        limits = tuple(StartupSdo(index, sub, "i32", value) for index, sub, value in self.motion.limit_sdos())
+        return SlaveSetup(policy, limits + self.sdos)
 
     @property
     def needs_setup(self) -> bool:
@@ -557,6 +559,7 @@ def _motion(t: _Table, base: MotionConfig) -> MotionConfig:
             settle_s=m.get("settle_s", _NUM, base.settle_s),
             limit_policy=m.get("limit_policy", str, base.limit_policy),
             require_homing=m.get("require_homing", bool, base.require_homing),
+            write_limits=m.get("write_limits", bool, base.write_limits),
             counts_per_unit=m.get("counts_per_unit", _NUM, base.counts_per_unit),
             unit=m.get("unit", str, base.unit),
             homing=homing)

@@ -10,6 +10,11 @@
 - with ``backend="ecat"`` (root) per host a network namespace with an EtherCAT veth pair
   (``twin.ecat``), ``ecat-sim --name <host>`` on one end and the agent's pysoem on the other.
 
+With ``pki=DIR`` (sim backend) every link is mutual TLS and the router enforces the ACL: the twin
+issues its router's, agents' and its own certificates into a copy of DIR (``twin.secure``), the
+links are loopback TCP ports relayed to the router's ``tls/`` endpoint, and :attr:`fleet` is an
+operator (``twin-operator``, or ``identity``).
+
 It is ready when every expected drive answered on Zenoh with exactly the expected axes per host.
 A monitor thread watches the children: one that exits without being asked to is recorded in
 :attr:`Twin.unexpected_exits` and reported through ``on_unexpected_exit`` (the CLI then stops

@@ -306,12 +306,20 @@ class DriveController:
         self._mode_pending = True  # the initial mode is confirmed by its echo too
         self._mode_deadline_s: float | None = None
         self._pending_events: list[ControllerEvent] = []
+        #: The output of the last step when the controller had settled (see :meth:`step`), keyed by
+        #: the inputs it saw: (statusword, mode display, output). Dropped by every command.
+        self._settled: tuple[int, int, ControllerOutput] | None = None
+
+    #: Reuse a settled step's output when its inputs repeat (False: always step in full; tests
+    #: compare both).
+    reuse_settled = True
 
     # -- commands (applied by the cycle at a cycle start) --
 
     def set_goal(self, goal: Goal, now_s: float) -> None:
         """Drive toward ``goal``; (re)starts the goal deadline (transition_timeout_s)."""
         goal = Goal(goal)  # ValueError for anything not a goal, before changing anything
+        self._settled = None
         self.goal = goal
         self._phase = _GoalPhase.ACTIVE
         self._goal_deadline_s = now_s + self.config.transition_timeout_s
@@ -327,6 +335,7 @@ class DriveController:
         under way is ignored (the bound on edges stays).
         """
         if self._reset is None:
+            self._settled = None
             self._reset = _FaultReset(requested_s=now_s)
             self._goal_set_during_reset = False
 
@@ -334,6 +343,7 @@ class DriveController:
         """Request modes of operation ``mode`` (0x6060); MODE_CONFIRMED when 0x6061 echoes it,
         MODE_TIMEOUT after ``mode_timeout_s``, MODE_REJECTED (nothing changed) if unsupported."""
         self._check_mode_value(mode)
+        self._settled = None
         if self.supported_modes is not None and mode not in self.supported_modes:
             self._pending_events.append(ControllerEvent(
                 EventKind.MODE_REJECTED, self.state, self.state,
@@ -345,6 +355,7 @@ class DriveController:
 
     def set_halt(self, on: bool) -> None:
         """Halt: controlword bit 8 (stop with 0x605D, stay in the current state)."""
+        self._settled = None
         self.halt = bool(on)
 
     # -- read-only views --
@@ -368,7 +379,16 @@ class DriveController:
         """One cycle: decode 0x6041, advance goal / fault reset / mode, return 0x6040 and 0x6060.
 
         Pure and cycle-safe. Raises ValueError (changing nothing) if statusword is not a u16.
+
+        Settled steps are reused: once the goal is decided (reached, failed or timed out), no fault
+        reset and no mode change is under way and no event waits, a step depends on nothing but
+        its two inputs (no deadline is running), so while they repeat the last output is returned
+        as it was (without events) and nothing else is done. Any command drops it.
         """
+        settled = self._settled
+        if (settled is not None and statusword == settled[0] and mode_display == settled[1]
+                and type(statusword) is int and type(mode_display) is int):
+            return settled[2]
         if not _is_int(statusword) or not 0 <= statusword <= 0xFFFF:
             raise ValueError(f"statusword (0x6041) must be a u16, got {statusword!r}")
         if not _is_int(mode_display):
@@ -393,6 +413,13 @@ class DriveController:
         controlword = int(command) | (CONTROLWORD_HALT if self.halt else 0)
         hold_target = self.mode in _HOLD_TARGET_MODES and (
             state is not State.OPERATION_ENABLED or mode_display != self.mode)
+        if (self.reuse_settled and self._phase is not _GoalPhase.ACTIVE and self._reset is None
+                and not self._mode_pending and not self._pending_events):
+            # _observe leaves a repeated state alone, _step_goal acts on a decided goal only when
+            # the state changes, _goal_command reads the clock only for an active goal
+            self._settled = (statusword, mode_display, ControllerOutput(controlword, self.mode, hold_target, ()))
+        else:
+            self._settled = None
         return ControllerOutput(controlword, self.mode, hold_target, tuple(events))
 
     # -- internals --

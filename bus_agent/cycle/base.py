@@ -23,7 +23,8 @@ from bus_agent.cycle.groups import Groups
 from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, Management
 from bus_agent.cycle.recorder import Recorder
 from bus_agent.motion.axis import Finished
-from bus_agent.runtime import AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand, Outcome
+from bus_agent.runtime import (AgentCommand, CycleEvent, CycleSnapshot, CycleStats, DriveCommand, DriveSnapshot,
+                               Outcome)
 
 #: Periods kept for p50/p99/max (one statistics window), and how often they are recomputed.
 STATS_WINDOW = 1000
@@ -54,6 +55,7 @@ class CycleBase:
         #: Called (group, reason) from the cycle thread when a local member triggers a group.
         self.group_sink: Callable[[str, str], None] | None = None
         self.latest: CycleSnapshot | None = None
+        self._drive_snaps: tuple[DriveSnapshot, ...] = ()
         self.state = "starting"            # schemas.messages.AGENT_STATES
         self.slaves: list[SlaveInfo] = []
         self.drives: list[Drive] = []

@@ -14,7 +14,7 @@ from bus_agent.cia402.controller import DriveController, Goal
 from bus_agent.cia402.states import Mode, State
 from bus_agent.config import DriveConfig
 from bus_agent.motion.axis import AxisMotion
-from bus_agent.runtime import AgentCommand, DriveCommand
+from bus_agent.runtime import AgentCommand, DriveCommand, DriveSnapshot
 
 #: Goals that move a drive towards torque; withdrawn when nobody waits for them any more.
 UPWARD_GOALS = (Goal.READY, Goal.SWITCHED_ON, Goal.ENABLED)
@@ -71,6 +71,9 @@ class Drive:
     mode_display_sdo: int = 0
     error_code_sdo: int = 0
     dc: str = "none"                    # DC state of the slave (bus dc_states)
+    # the last published snapshot and the values it was built from (Cycle._drive_snapshots)
+    snapshot: DriveSnapshot | None = None
+    snapshot_key: tuple = ()
 
 
 @dataclass(slots=True)

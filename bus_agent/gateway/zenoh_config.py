@@ -92,6 +92,8 @@ def secure_settings(pki: str | Path, identity: str, *, acl: bool) -> dict[str, A
         "listen_certificate": str(files.cert), "listen_private_key": str(files.key),
         "connect_certificate": str(files.cert), "connect_private_key": str(files.key),
         "enable_mtls": True, "verify_name_on_connect": True,
+        # A link ends when the peer's certificate expires, not at the next reconnection.
+        "close_link_on_expiration": True,
     }}
     if acl:
         settings["access_control"] = roles.compile_acl(known.values(), revoked)

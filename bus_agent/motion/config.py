@@ -52,9 +52,23 @@ class MotionConfig:
     counts_per_unit: float = 1.0
     unit: str = "counts"
     homing: HomingConfig = HomingConfig()
+    write_limits: bool = True                # write min/max_position to 0x607D:1/2 at start-up
 
     def __post_init__(self) -> None:
         validate(self)
+
+    def limit_sdos(self) -> tuple[tuple[int, int, int], ...]:
+        """(0x607D, subindex, value in counts) to write at start-up: the software position limits
+        (CiA 402: 1 min, 2 max, i32) when any is configured and ``write_limits``; an end without
+        a limit gets the i32 extreme (no limit), values beyond the i32 range are clamped to it."""
+        c = self.in_counts()
+        if not self.write_limits or (c.min_position is None and c.max_position is None):
+            return ()
+
+        def i32(v: float | None, default: int) -> int:
+            return default if v is None else max(-2**31, min(2**31 - 1, int(round(v))))
+
+        return ((0x607D, 1, i32(c.min_position, -2**31)), (0x607D, 2, i32(c.max_position, 2**31 - 1)))
 
     def to_counts(self, value: float) -> float:
         return value * self.counts_per_unit
@@ -103,6 +117,8 @@ def validate(c: MotionConfig, key: str = "motion") -> None:
             raise MotionConfigError(f"{key}.{name}: {v!r} must be a finite number")
     if c.min_position is not None and c.max_position is not None and not c.min_position < c.max_position:
         raise MotionConfigError(f"{key}.min_position: {c.min_position} must be below max_position {c.max_position}")
+    if not isinstance(c.write_limits, bool):
+        raise MotionConfigError(f"{key}.write_limits: {c.write_limits!r} must be true or false")
     if c.limit_policy not in LIMIT_POLICIES:
         raise MotionConfigError(f"{key}.limit_policy: {c.limit_policy!r} is not one of {', '.join(LIMIT_POLICIES)}")
     if not isinstance(c.unit, str) or not 1 <= len(c.unit) <= 16:

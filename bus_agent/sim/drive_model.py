@@ -724,7 +724,7 @@ class DriveModel:
         if mode == Mode.CYCLIC_SYNC_POSITION:
             # follow the target with the speed limit 0x607F; following error checked in _motion
             limit = vmax * dt
-            delta = max(-limit, min(limit, float(int(v[(0x607A, 0)])) - self._position))
+            delta = max(-limit, min(limit, self._within_limits(float(int(v[(0x607A, 0)]))) - self._position))
             self._velocity = delta / dt if dt > 0 else 0.0
         elif mode == Mode.CYCLIC_SYNC_VELOCITY:
             self._velocity = max(-vmax, min(vmax, float(int(v[(0x60FF, 0)]))))
@@ -750,7 +750,7 @@ class DriveModel:
                     target = float(int(v[(0x607A, 0)]))
                     if cw & 0x40:  # relative
                         target += self._pp_target if self._pp_target is not None else self._position
-                    self._pp_target = target
+                    self._pp_target = self._within_limits(target)
                     self._pp_ack = True
                     self._pp_wait = None
                 else:
@@ -772,6 +772,11 @@ class DriveModel:
             self._home(cw, dt)
         else:
             self._ramp_to(0.0, accel, decel, dt)  # no mode: hold
+
+    def _within_limits(self, target: float) -> float:
+        """A position target limited to the software position limits 0x607D:1/2 (CiA 402)."""
+        lo, hi = int(self._values[(0x607D, 1)]), int(self._values[(0x607D, 2)])
+        return max(float(lo), min(float(hi), target)) if lo < hi else target
 
     def _switch_active(self) -> bool:
         s = self.home_switch_position

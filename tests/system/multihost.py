@@ -311,7 +311,26 @@ def _handle(fleet: Any, req: dict) -> Any:
     if op == "lease":
         res = fleet.lease(*req["selectors"], ttl_s=req.get("ttl_s"))
         return {"ok": all(r.ok for r in res.results), "outcomes": {r.name: r.outcome for r in res.results}}
+    if op == "group_move":
+        res = fleet.group_move(req["targets"], timeout_s=req.get("move_timeout_s", 30.0))
+        return {"ok": res.ok, "outcomes": {r.name: r.outcome for r in res.results},
+                "durations": {r.name: round(r.duration_s, 6) for r in res.results},
+                "errors": [f"{r.name}: {r.error}" for r in res.results if not r.ok]}
+    if op == "recording":
+        return _recorded_motion(fleet, req["host"], req.get("last_s", 10.0))
     raise ValueError(f"unknown op {op!r}")
+
+
+def _recorded_motion(fleet: Any, host: str, last_s: float) -> dict[str, list[tuple[float, int, int]]]:
+    """Per axis of ``host``'s flight recording (its last ``last_s``): (the agent's wall clock of
+    the cycle in s, the 0x607A it wrote, the 0x6064 its drive reported)."""
+    from supervisor.recordings import fetch_recording
+
+    rec = fetch_recording(fleet.session, host, "now", last_s)
+    ch, n = rec.channels, len(rec.axes)
+    t = ch["time_ns"]
+    return {axis: [((rec.time_origin_ns + t[i] - t[0]) / 1e9, ch["target_position"][i * n + j], ch["position"][i * n + j])
+                   for i in range(rec.n_cycles)] for j, axis in enumerate(rec.axes)}
 
 
 if __name__ == "__main__":

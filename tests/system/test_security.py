@@ -184,6 +184,22 @@ def test_expired_certificate_gets_no_link(bed: Bed, tmp_path: Path) -> None:
         make_zenoh_config("client", [], [bed.ep], pki=d, identity="old")
 
 
+def test_a_link_ends_when_its_certificate_expires(bed: Bed, tmp_path: Path) -> None:
+    """``close_link_on_expiration``: a certificate that expires while its link is up loses the
+    link then (not at the next reconnection); a link with a valid certificate stays."""
+    d = tmp_path / "pki"
+    shutil.copytree(bed.pki, d)
+    now = dt.datetime.now(dt.timezone.utc)
+    pki.issue(d, "soon", ["viewer"], days=1, valid_from=now - dt.timedelta(days=1) + dt.timedelta(seconds=10))
+    soon = zenoh.open(make_zenoh_config("client", [], [bed.ep], pki=d, identity="soon"))
+    try:
+        assert list(soon.info.routers_zid()), "linked while the certificate is valid"
+        wait_for(lambda: not list(soon.info.routers_zid()), 30, "the link of the expired certificate closed")
+        assert list(bed.session("vic").info.routers_zid())  # control: a valid certificate links
+    finally:
+        soon.close()
+
+
 # ---- roles ----------------------------------------------------------------------------------------
 
 

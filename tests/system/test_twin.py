@@ -126,6 +126,13 @@ def test_cli_bad_fleet_failed_start_and_sigint(tmp_path, fleet_file):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "cannot read" in done.stderr
 
+    # --pki and --identity are passed through: their refusals come from the twin, before anything runs
+    for extra, needle in ((["--identity", "alice"], "--identity needs --pki"),
+                          (["--pki", str(tmp_path)], f"--pki {tmp_path}: no ca.pem there")):
+        done = subprocess.run([sys.executable, "-m", "twin.cli", "--fleet", str(fleet_file), *extra],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and needle in done.stderr, done.stderr
+
     done = subprocess.run([sys.executable, "-m", "twin.cli", "--fleet", str(fleet_file), "--listen", "tcp/x"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 3 and re.search(r"drives-router did not become ready \(exit [23]\)", done.stderr), \

@@ -243,3 +243,16 @@ def test_twin_targets_read_the_ten_host_size_and_every_stop() -> None:
     assert (left.measured, left.met) == (1, False)
     assert [t.met for t in s.twin_targets({"sizes": {"3": {"twin": {}, "bare": {}}}})] == [None, None, None]
     assert "10 hosts: ready 12.5 s (bare processes 5.0 s)" in s.twin_headline(run)
+
+
+def test_motion_row_targets_and_headline():
+    ph = {k: {"jitter_us": {"p50": 0.1, "p99": 1.0, "p999": j, "max": 2 * j}, "overruns": 0, "cycles": 1000,
+              "cpu_pct": 50.0, "cpu_us_per_cycle": 500.0} for k, j in (("bare", 10.0), ("idle", 11.0), ("motion", 12.0))}
+    ph["motion"]["moves_not_done"] = 0
+    r = {"phases": ph, "step_cost": {"axes": 16, "added_us_per_axis": 1.2}, "query_to_applied": {"p50_ms": 0.9},
+         "query_to_first_target": {"ms_p50": 5.0}, "sync_arrival": {"spread_cycles_max": 2}}
+    met = {t.name: t.met for t in s.motion_targets(r)}
+    assert met["jitter p99.9, motion / bare (us)"] is True and met["jitter max, motion / bare (us)"] is True
+    assert met["synchronized move of every axis: arrival spread (cycles)"] is False
+    assert met["move query to the cycle applying it, p50"] is True and met["moves not done in the motion phase"] is True
+    assert "1.2 us per moving axis" in s.motion_headline(r) and s.motion_figures(r)["phases"]["motion"]["moves_not_done"] == 0

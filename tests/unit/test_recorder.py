@@ -3,6 +3,7 @@ explicit requests, and the cycle recording every drive into it (SimBus, fake clo
 
 from __future__ import annotations
 
+import gc
 import threading
 import tracemalloc
 from types import SimpleNamespace
@@ -117,6 +118,45 @@ def test_record_allocates_nothing_per_cycle():
     # A few counters (ints) are rebound; anything kept per cycle would be >= 5000 x 28 bytes.
     assert grown < 1024, f"recorder kept {grown} bytes over 5000 cycles"
     assert rec.memory_bytes == 1000 * (8 * 3 + 4) + 1000 * 16 * (2 + 2 + 8 * 3 + 4 + 4 + 2 + 2 + 1)
+
+
+def _traced(rec: Recorder, drives, events, first: int, n: int) -> tuple[int, int]:
+    """(bytes kept by recorder.py, peak traced bytes above the start) over ``n`` record calls."""
+    gc.collect()
+    tracemalloc.start()
+    before = tracemalloc.take_snapshot()
+    base = tracemalloc.get_traced_memory()[0]
+    tracemalloc.reset_peak()
+    for c in range(first, first + n):
+        rec.record(c, c * 1_000_000, 1_000_000, 48, drives, events)
+    peak = tracemalloc.get_traced_memory()[1]
+    after = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    kept = sum(s.size_diff for s in after.compare_to(before, "filename")
+               if s.traceback[0].filename.endswith("recorder.py"))
+    return kept, peak - base
+
+
+def test_record_of_the_cycle_s_own_drives_keeps_nothing_and_builds_nothing_up():
+    # The cycle's real drive records (bus_agent.cycle.drive.Drive with the inputs its bus decoded,
+    # after an enable: controllers and motion stepping), not stand-ins: whatever others add to
+    # them, record() must still only read their fields. A non-trigger event walks the trigger scan.
+    h = Harness(n=16).open()
+    rid = h.cmd("enable", *(f"axis{i}" for i in range(16)))
+    h.until(h.done(rid))
+    ds = h.cycle.drives
+    assert len(ds) == 16 and all(d.state is State.OPERATION_ENABLED for d in ds)
+    rec = Recorder([d.axis for d in ds], cycle_us=1000, seconds=1.0, pre_s=0.2, post_s=0.1)
+    events = (CycleEvent(axis="axis0", kind="transition"),)
+    for c in range(1, 2000):  # warm up: every slot written once
+        rec.record(c, c * 1_000_000, 1_000_000, 48, ds, events)
+    kept_short, peak_short = _traced(rec, ds, events, 2000, 500)
+    kept, peak = _traced(rec, ds, events, 3000, 5000)
+    assert not rec.error and rec.written == 1999 + 500 + 5000
+    # Nothing stays per cycle (anything would be >= 5000 x 28 bytes), and nothing builds up while
+    # it runs: ten times the cycles, the same peak (CPython's transient int results come and go).
+    assert kept < 1024 and kept_short < 1024, (kept, kept_short)
+    assert peak <= peak_short + 256, (peak, peak_short)
 
 
 def test_value_beyond_its_channel_stops_recording_not_the_caller():

@@ -282,3 +282,17 @@ def test_principals_file_names_bad_revoked_entries(tmp_path: Path) -> None:
         (tmp_path / principals.FILE_NAME).write_text(text)
         with pytest.raises(principals.PrincipalsError, match=match):
             principals.load(tmp_path)
+
+
+
+def test_zenoh_tls_has_no_revocation_list_and_links_close_on_expiry(tmp_path: Path) -> None:
+    """docs/security.md says revocation is the ACL's alone because zenoh's TLS settings hold no
+    revocation list: when a zenoh upgrade adds one, this fails and drives-pki revoke should use it."""
+    conf = zenoh.Config()
+    for key in ("crl", "certificate_revocation_list", "root_ca_crl"):
+        with pytest.raises(Exception, match="unknown key"):
+            conf.insert_json5(f"transport/link/tls/{key}", '"x.pem"')
+    pki.init(tmp_path)
+    pki.issue(tmp_path, "alice", ["operator"])
+    tls = make_zenoh_config("client", [], ["tls/127.0.0.1:1"], pki=tmp_path, identity="alice").get_json("transport/link/tls")
+    assert '"close_link_on_expiration":true' in tls.replace(" ", "")
