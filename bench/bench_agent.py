@@ -48,7 +48,6 @@ import sys
 import threading
 import time
 from array import array
-from typing import Callable
 
 from bench.common import (ROOT, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
                           pysoem_to_op, quantiles, segment, self_cpu_s, stop_process, summary_ms)
@@ -299,48 +298,11 @@ def encoding_figures(drives: int, n: int = 2000) -> dict:
 
 
 def codec_figures(drives: int, n: int = 3000) -> dict:
-    """CPU of one cycle's decode + encode of every drive: the fixed 13/15-byte structs (before
-    per-drive codecs) vs ``DriveCodec`` for the default layout and for the Omron-like predefined
-    0x1701/0x1B01 (in-process, best of 5 runs of ``n`` cycles)."""
-    from bus_agent.bus.codec import DriveCodec
-    from bus_agent.bus.mapping import DEFAULT_MAPPING, mapping_of
-    from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT, DriveInputs, DriveOutputs
-    from bus_agent.sim.ecat.profiles import OMRON_LIKE
+    """CPU of one cycle's decode + encode of every drive, ``DriveCodec`` against the fixed
+    13/15-byte structs (``bench.bench_cycle.codec_figures``, where it is described)."""
+    from bench.bench_cycle import codec_figures as figures
 
-    recs = [DriveInputs() for _ in range(drives)]
-    outs = [DriveOutputs() for _ in range(drives)]
-    tx_raw = bytes(TX_STRUCT.size)
-
-    def fixed() -> None:
-        for rec, o in zip(recs, outs):
-            (rec.statusword, rec.position_actual, rec.velocity_actual, rec.torque_actual,
-             rec.modes_of_operation_display, rec.error_code) = TX_STRUCT.unpack_from(tx_raw)
-            RX_STRUCT.pack(o.controlword, o.target_position, o.target_velocity, o.target_torque, o.modes_of_operation)
-
-    def with_codec(codec: DriveCodec) -> "Callable[[], None]":
-        raw = bytes(codec.in_size)
-
-        def run() -> None:
-            for rec, o in zip(recs, outs):
-                codec.decode_into(rec, raw)
-                codec.encode(o)
-        return run
-
-    omron = mapping_of([(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C12]],
-                       [(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C13]])
-
-    def best_us(fn) -> float:
-        best = float("inf")
-        for _ in range(5):
-            t0 = time.perf_counter_ns()
-            for _ in range(n):
-                fn()
-            best = min(best, (time.perf_counter_ns() - t0) / n / 1000)
-        return round(best, 2)
-
-    f, d, o = best_us(fixed), best_us(with_codec(DriveCodec(DEFAULT_MAPPING))), best_us(with_codec(DriveCodec(omron)))
-    return {"drives": drives, "fixed_struct_us_per_cycle": f, "codec_default_us_per_cycle": d,
-            "codec_predefined_us_per_cycle": o, "ratio_default": round(d / f, 2), "ratio_predefined": round(o / f, 2)}
+    return figures(drives, n)
 
 
 def phase_load(args) -> dict:
@@ -518,16 +480,17 @@ def phase_enable_latency(args) -> dict:
             raise RuntimeError("echo queryable did not start")
         cyc = agent.cycle
         resets = _ready(cyc)
-        # CPU of the gateway process and of this (the cycle) process: idle for a while, then over
-        # the client's rounds, so the rounds' own cost can be told from publishing at rest (CPU
-        # time holds up on a loaded machine where wall-clock latencies do not).
-        gw_pid, me = agent.bridge.pid if agent.bridge is not None else None, os.getpid()
-        idle_s, g_idle0, c_idle0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0, proc_cpu_s(me)
+        # CPU of the gateway process: idle for a while, then over the client's rounds, so the
+        # rounds' own cost can be told from publishing at rest (CPU time holds up on a loaded
+        # machine where wall-clock latencies do not). Not the cycle process: its spin before each
+        # deadline varies with the load, so its idle rate does not carry over.
+        gw_pid = agent.bridge.pid if agent.bridge is not None else None
+        idle_s, g_idle0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
         time.sleep(ENABLE_IDLE_S)
         idle_s = time.monotonic() - idle_s
-        g_idle, c_idle = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g_idle0, proc_cpu_s(me) - c_idle0
+        g_idle = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g_idle0
         ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
-        t0, g0, cpu0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0, proc_cpu_s(me)
+        t0, g0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
         client = subprocess.Popen(
             [sys.executable, "-m", "bench.bench_agent", "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
              "--host", "bench", "--drives", str(args.drives), "--cycle-us", str(args.cycle_us),
@@ -540,10 +503,9 @@ def phase_enable_latency(args) -> dict:
         el = time.monotonic() - t0
         res = json.loads(out.strip().splitlines()[-1])
         n = args.enable_rounds + 1  # with the warm-up round
-        beyond_idle = {"gateway_process": (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g0 - g_idle / idle_s * el,
-                       "cycle_process": proc_cpu_s(me) - cpu0 - c_idle / idle_s * el}
-        res["cpu_ms_per_round_beyond_idle"] = {k: round(1e3 * v / n, 3) for k, v in beyond_idle.items()}
-        res["cpu_ms_per_round_beyond_idle"]["client_process"] = round(1e3 * res.pop("client_cpu_s") / n, 3)
+        gateway_s = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g0 - g_idle / idle_s * el
+        res["cpu_ms_per_round_beyond_idle"] = {"gateway_process": round(1e3 * gateway_s / n, 3),
+                                               "client_process": round(1e3 * res.pop("client_cpu_s") / n, 3)}
         res["cycle"] = {"cycles": cyc.cycles - c0, "overruns": cyc.overruns - ov0, "wkc_errors": cyc.wkc_errors - wk0}
         res["startup_fault_resets"] = resets
         return res
