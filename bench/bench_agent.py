@@ -50,7 +50,7 @@ import time
 from array import array
 
 from bench.common import (ROOT, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
-                          pysoem_to_op, quantiles, segment, self_cpu_s, stop_process, summary_ms)
+                          pysoem_to_op, quantiles, read_period_logs, segment, self_cpu_s, stop_process, summary_ms)
 
 ECHO_KEY = "bench/echo"
 
@@ -538,18 +538,8 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, time
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def _read_logs(paths: list[str]) -> list[int]:
-    out: list[int] = []
-    for path in paths:
-        a = array("q")
-        with open(path, "rb") as f:
-            a.frombytes(f.read())
-        out.extend(a)
-    return out
-
-
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
-    periods = _read_logs(logs)
+    periods = read_period_logs(logs)
     seconds = sum(p["seconds"] for p in parts)
     cpu = sum(p["cpu_s"] for p in parts)
     out = {"rounds": len(parts), "cycles": sum(p["cycles"] for p in parts), "seconds": round(seconds, 2),
@@ -560,7 +550,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
            "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **period_figures(periods, cycle_ns)}
     dc_logs = [p + ".dc" for p in logs if os.path.exists(p + ".dc")]
     if dc_logs:  # frame-to-SYNC0 offset: where in the SYNC0 period the frames passed the reference
-        offs = sorted(_read_logs(dc_logs))
+        offs = sorted(read_period_logs(dc_logs))
         out["dc_offset_us"] = {**quantiles(offs, ("p1", "p50", "p99"), 1e-3), "samples": len(offs)}
     if any("dc_pi_held_cycles" in p for p in parts):  # cycles late enough to hold the PI (a loaded host)
         out["dc_pi_held_cycles"] = sum(p.get("dc_pi_held_cycles", 0) for p in parts)
