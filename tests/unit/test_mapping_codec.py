@@ -194,3 +194,22 @@ def test_config_mapping_and_sdos_from_toml_dict():
                        ({"sdo": [{"index": 0x6065, "type": "u32", "value": -1}]}, r"sdo\[0\].*does not fit u32")):
         with pytest.raises(ConfigError, match=match):
             config_from_dict({"host": "h1", "ifname": "e", "drives": [{"slave": 0, **bad}]})
+
+
+def test_objects_decode_with_their_cia402_type_and_unknown_ones_unsigned_by_index():
+    """INTEGER objects of the table (0x60F4, 0x6077, 0x60BA, 0x60FC) decode signed; UNSIGNED
+    ones (0x60B9, 0x60FD) and a vendor object not in the table (0x2205:01) unsigned, named by index."""
+    tx = [(0x6041, 0, 16), (0x60F4, 0, 32), (0x6077, 0, 16), (0x60BA, 0, 32), (0x60FC, 0, 32), (0x60B9, 0, 16),
+          (0x60FD, 0, 32), (0x2205, 1, 16)]
+    m = mapping_of([(0x1600, [mapping_entry(0x6040, 0, 16)])], [(0x1A00, [mapping_entry(*e) for e in tx])])
+    codec = DriveCodec(m)
+    assert codec.extra_names == ("following_error_actual_value", "touch_probe_1_positive_edge",  # 0x6077: torque
+                                 "position_demand_internal_value", "touch_probe_status", "digital_inputs", "0x2205:01")
+    raw = struct.pack("<HihiiHIH", 0x0237, -1234, -5, -70000, -3, 0xFFFF, 0xFFFFFFFF, 0xFFFE)
+    rec = DriveInputs()
+    codec.decode_into(rec, raw)
+    objs = dict(zip(codec.extra_names, rec.extra))
+    assert objs["following_error_actual_value"] == -1234 and objs["touch_probe_1_positive_edge"] == -70000
+    assert objs["position_demand_internal_value"] == -3 and rec.torque_actual == -5
+    assert objs["touch_probe_status"] == 0xFFFF and objs["digital_inputs"] == 0xFFFFFFFF and objs["0x2205:01"] == 0xFFFE
+    assert OBJECTS[(0x60FC, 0)].datatype == "i32" and OBJECTS[(0x60B9, 0)].datatype == "u16"
