@@ -205,6 +205,15 @@ def thread_cpu_ns(pid: int) -> dict[str, int]:
     return out
 
 
+def task_cpu_ns(tid: int, pid: int | None = None) -> int:
+    """CPU time (ns) of thread ``tid`` of process ``pid`` (default: this one), from
+    /proc/<pid>/task/<tid>/schedstat; 0 when the thread is gone."""
+    try:
+        return int(Path(f"/proc/{pid or os.getpid()}/task/{tid}/schedstat").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
 def self_cpu_s() -> float:
     """User + system CPU time of this process in seconds (getrusage)."""
     r = resource.getrusage(resource.RUSAGE_SELF)

@@ -73,6 +73,14 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               ("--profile", "omron1s:dc-required", "--no-gateway", "--enable-rounds", "0", "--seconds", "6",
                "--rounds", "2", "--rt-priority", "10"), True,
               s.agent_dc_figures, s.agent_dc_headline, s.agent_dc_targets),
+    Benchmark("cycle_cpu", "the cycle thread's CPU per drive, 16 and 64 drives at 1 kHz, next to a bare pysoem loop; "
+              "codec CPU next to the fixed structs", "bench.bench_cycle",
+              ("--drives", "16,64", "--seconds", "30", "--rounds", "3", "--rt-priority", "10"),
+              ("--drives", "16,64", "--seconds", "4", "--rounds", "1", "--rt-priority", "10"), True,
+              s.cycle_figures, s.cycle_headline, s.cycle_targets),
+    Benchmark("idle", "the idle demo (bus-agent --sim 4): CPU per process and thread; the cycle's spin fixed "
+              "against adaptive", "bench.bench_idle", ("--seconds", "20", "--rounds", "2"),
+              ("--seconds", "4", "--rounds", "1"), False, s.idle_figures, s.idle_headline, s.idle_targets),
     Benchmark("supervisor", "two-phase enable/disable of 4x16 and 32x32 drives; status fan-in", "bench.bench_supervisor",
               (), ("--sizes", "4x16", "--rounds", "1", "--gets", "50"), False,
               s.supervisor_figures, s.supervisor_headline, s.supervisor_targets),

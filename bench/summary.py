@@ -421,6 +421,92 @@ def replies_headline(r: Mapping[str, Any]) -> str:
     return "CPU per command: " + "; ".join(parts)
 
 
+# ---- bench_cycle, bench_idle (issue 13: the cycle's CPU per drive, the idle demo) ---------------------
+
+#: The cycle thread with 64 drives at 1 kHz at most this % of a core (58.7 % before issue 13; the
+#: bare pysoem loop 18.2 %), its jitter at p99.9 at most this many times the bare loop's; the
+#: mapped codec at most this many times the CPU of the fixed 13/15-byte structs (issue 8).
+CYCLE_CPU_PCT_MAX_64 = 30.0
+CYCLE_JITTER_RATIO_MAX = 1.25
+CODEC_RATIO_MAX = 1.10
+#: The idle demo (``bus-agent --sim 4``, agent and gateway processes) at most this % of a core
+#: (18 % before issue 13), with the adaptive spin's jitter at p99.9 at most this many times the
+#: fixed spin's.
+IDLE_CPU_PCT_MAX = 8.0
+SPIN_JITTER_RATIO_MAX = 1.25
+
+
+def cycle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {"codec": r.get("codec")}
+    for n, size in (r.get("sizes") or {}).items():
+        ph = size["phases"]
+        out[n] = {"cycle_cpu_pct": {k: v["cycle_cpu_pct"] for k, v in ph.items()},
+                  "cpu_pct_of_period": {k: v.get("cpu_pct_of_period") for k, v in ph.items()},
+                  "cpu_us_per_cycle": {k: v["cpu_us_per_cycle"] for k, v in ph.items()},
+                  "jitter_us": {k: v["jitter_us"] for k, v in ph.items()},
+                  "overruns": {k: v["overruns"] for k, v in ph.items()},
+                  "beyond_bare_us_per_drive": size["beyond_bare_us_per_drive"],
+                  "jitter_p999_over_bare": size["jitter_p999_over_bare"]}
+    return out
+
+
+def cycle_headline(r: Mapping[str, Any]) -> str:
+    parts = []
+    for n, size in (r.get("sizes") or {}).items():
+        ph = size["phases"]
+        parts.append(f"{n} drives: cycle thread {ph['agent'].get('cpu_pct_of_period')} % of a core at 1 kHz (bare "
+                     f"loop {ph['bare'].get('cpu_pct_of_period')} %), {size['beyond_bare_us_per_drive']} us per drive beyond the "
+                     f"bare loop, jitter p99.9 {ph['agent']['jitter_us']['p999']} us (bare {ph['bare']['jitter_us']['p999']})")
+    c = r.get("codec") or {}
+    parts.append(f"codec per cycle ({c.get('drives')} drives) {c.get('codec_default_us_per_cycle')} us default, "
+                 f"{c.get('codec_predefined_us_per_cycle')} us predefined, fixed structs {c.get('fixed_struct_us_per_cycle')} us")
+    return "; ".join(parts)
+
+
+def cycle_targets(r: Mapping[str, Any]) -> list[Target]:
+    out = []
+    size = (r.get("sizes") or {}).get("64")
+    if size is not None:
+        ph = size["phases"]
+        out.append(at_most("64 drives: cycle thread CPU per cycle, % of the 1 ms period",
+                           ph["agent"].get("cpu_pct_of_period"), CYCLE_CPU_PCT_MAX_64))
+    for n, size in (r.get("sizes") or {}).items():
+        ratio = size["jitter_p999_over_bare"]
+        out.append(at_most(f"{n} drives: jitter p99.9, agent / bare", ratio, CYCLE_JITTER_RATIO_MAX, " x",
+                           "" if ratio is not None else "bare figure is 0 at 0.1 us resolution: no ratio"))
+    c = r.get("codec") or {}
+    # the predefined mapping decodes 9 objects where the fixed structs decoded 6: reported, no target
+    out.append(at_most("codec CPU per cycle, default layout / fixed structs", c.get("ratio_default"), CODEC_RATIO_MAX, " x"))
+    return out
+
+
+def idle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    d, sp = r.get("demo") or {}, r.get("spin") or {}
+    return {"demo": {k: d.get(k) for k in ("agent_cpu_pct", "gateway_cpu_pct", "total_cpu_pct", "threads_cpu_pct",
+                                           "cycle_stats")},
+            "spin": {k: {"cycle_cpu_pct": v["cycle_cpu_pct"], "jitter_us": v["jitter_us"],
+                         "spin_us_at_end": v["spin_us_at_end"]}
+                     for k, v in sp.items() if k != "ratios"},
+            "spin_ratios": sp.get("ratios")}
+
+
+def idle_headline(r: Mapping[str, Any]) -> str:
+    d, sp = r.get("demo") or {}, r.get("spin") or {}
+    f, a = sp.get("spin_fixed") or {}, sp.get("spin_auto") or {}
+    return (f"bus-agent --sim {r.get('drives')} idle: {d.get('total_cpu_pct')} % of a core (agent "
+            f"{d.get('agent_cpu_pct')} %, gateway {d.get('gateway_cpu_pct')} %); cycle thread with the fixed 150 us "
+            f"spin {f.get('cycle_cpu_pct')} %, adaptive {a.get('cycle_cpu_pct')} %, jitter p99.9 "
+            f"{(f.get('jitter_us') or {}).get('p999')} / {(a.get('jitter_us') or {}).get('p999')} us")
+
+
+def idle_targets(r: Mapping[str, Any]) -> list[Target]:
+    d, ratios = r.get("demo") or {}, (r.get("spin") or {}).get("ratios") or {}
+    ratio = ratios.get("jitter_p999_auto_over_fixed")
+    return [at_most("idle demo, agent + gateway processes, % of a core", d.get("total_cpu_pct"), IDLE_CPU_PCT_MAX),
+            at_most("jitter p99.9, adaptive spin / fixed spin", ratio, SPIN_JITTER_RATIO_MAX, " x",
+                    "" if ratio is not None else "fixed-spin figure is 0 at 0.1 us resolution: no ratio")]
+
+
 # ---- the README table -----------------------------------------------------------------------------
 
 

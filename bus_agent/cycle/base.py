@@ -107,6 +107,11 @@ class CycleBase:
         self._late_ns = 0
         self._dc_offsets = array("q", bytes(8 * STATS_WINDOW))
         self.dc_states: tuple[str, ...] = ()
+        #: Spin before each deadline (ns): None adapts it to the sleep's overshoot (SPIN_MIN_NS
+        #: .. SPIN_NS, see bus_agent.cycle.cycle), a number fixes it (benchmarks compare both).
+        self.spin_ns: int | None = None
+        self._spin_auto_ns = 150_000       # SPIN_NS until the first sleeps are measured
+        self._oversleep = array("q", bytes(8 * STATS_WINDOW))
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.
         self.period_log = array("q", bytes(8 * record_periods)) if record_periods else None
         self.period_log_len = 0

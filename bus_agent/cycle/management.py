@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from bus_agent.bus.base import ALState, Bus, SlaveALStatus
-from bus_agent.cycle.realtime import set_thread_fifo
+from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +133,7 @@ class Management:
 
     def _run(self) -> None:
         set_thread_fifo(self.rt_priority, f"the management thread of {self.host}")
+        name_thread(f"mgmt-{self.host}")
         while not self._stop.is_set():
             self._wake.clear()
             try:

@@ -36,6 +36,8 @@ __all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMot
            "MODE_CSV"]
 
 _Active = Active
+#: A step this many periods after the previous one is a stall: the profile pauses (see step()).
+STALL_PERIODS = 3
 
 
 
@@ -50,6 +52,9 @@ class AxisMotion(DriveRunsMixin):
         self.limits = Limits(c.max_velocity, c.max_acceleration, c.max_jerk)
         #: Targets take effect at the next exchange: plans are sampled one period ahead.
         self.lead_s = period_s
+        #: The last step's time, and how many cycle stalls paused the profile (see step()).
+        self._last_step_s: float | None = None
+        self.stalls = 0
         self.homed = False
         self.stop_latched = False
         self.active: _Active | None = None
@@ -335,7 +340,16 @@ class AxisMotion(DriveRunsMixin):
     # ---- the cycle step -------------------------------------------------------------------
 
     def step(self, now_s: float) -> list[Finished]:
-        """Sample the plan for this cycle's targets and decide outcomes. Call after :meth:`observe`."""
+        """Sample the plan for this cycle's targets and decide outcomes. Call after :meth:`observe`.
+
+        A stalled cycle (more than :data:`STALL_PERIODS` periods since the last step) pauses the
+        profile instead of jumping ahead on it: the drive held the last target meanwhile (no
+        frames), so a target sampled at the wall-clock time would jump by velocity x stall and
+        trip the drive's following error (0x8611). The profile then ends later by the stall."""
+        last, self._last_step_s = self._last_step_s, now_s
+        if last is not None and self.plan is not None and now_s - last > STALL_PERIODS * self.lead_s:
+            self.plan_t0 += now_s - last - self.lead_s
+            self.stalls += 1
         if self.homing is not None:
             return self._step_homing(self.homing, now_s)
         self.controlword_bits = 0

@@ -127,6 +127,14 @@ const Dashboard = (() => {
     document.title = host + "/" + axis;
     const events = document.getElementById("events");
     const stateEl = document.getElementById("state");
+    const ferr = document.getElementById("ferr");
+    const showDrive = (d) => {
+      stateEl.textContent = d.state; stateEl.dataset.state = d.state;
+      // following error: known only from 0x60F4 or, in CSP while enabled, from the agent
+      const known = d.following_error !== null && d.following_error !== undefined;
+      ferr.textContent = known ? "following error " + d.following_error : "";
+      ferr.dataset.value = known ? String(d.following_error) : "";
+    };
     const canvas = document.getElementById("live");
     const refresh = () => fetch("/api/drive/" + encodeURIComponent(host) + "/" + encodeURIComponent(axis))
       .then((r) => r.json()).then((d) => {
@@ -138,11 +146,9 @@ const Dashboard = (() => {
     refresh();
     setInterval(refresh, 500);
     fetch("/api/drive/" + encodeURIComponent(host) + "/" + encodeURIComponent(axis)).then((r) => r.json())
-      .then((d) => { stateEl.textContent = d.drive.state; stateEl.dataset.state = d.drive.state;
-                     d.events.forEach((e) => eventItem(events, e)); });
+      .then((d) => { showDrive(d.drive); d.events.forEach((e) => eventItem(events, e)); });
     live((ch) => {
-      ch.drives.filter((d) => d.host === host && d.axis === axis).forEach((d) => {
-        stateEl.textContent = d.state; stateEl.dataset.state = d.state; });
+      ch.drives.filter((d) => d.host === host && d.axis === axis).forEach(showDrive);
       if (!ch.full) ch.events.filter((e) => e.host === host && e.axis === axis).forEach((e) => eventItem(events, e));
     });
     const info = document.getElementById("rec-info");

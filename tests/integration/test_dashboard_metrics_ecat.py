@@ -94,6 +94,8 @@ def test_dc_offset_and_following_error_metrics_against_a_dc_drive(ecat_segment, 
             fleet.on("status", on_status)
             fleet.on("agent", on_agent)
             assert fleet.wait_for_agents([HOST], 20, drives=2), agent.output()
+            wait_for(lambda: (a := fleet.agents().get(HOST)) is not None and a.status is not None, 20,
+                     "the agent's status")
             assert dict(fleet.agents()[HOST].status.dc) == {"axis0": "sync0", "axis1": "none"}
             # DC: the agent's offset, as it published it, in seconds; no following error at rest
             # but the drive's own 0x60F4 (the generic drive is disabled: unknown).
@@ -108,7 +110,7 @@ def test_dc_offset_and_following_error_metrics_against_a_dc_drive(ecat_segment, 
             assert set(_samples(fams, "drives_drive_following_error_increments", "axis", "source")) == \
                 {("axis0", "0x60F4")}
 
-            res = fleet.command("enable", fleet.select(f"{HOST}/*"))
+            res = fleet.command("enable", fleet.select(f"{HOST}/*"), timeout_s=20.0)
             assert res.ok, res.to_dict()
             jog: list[Any] = []
             t = threading.Thread(target=lambda: jog.append(fleet.jog(f"{HOST}/*", velocity=JOG, for_s=JOG_S,

@@ -70,6 +70,13 @@ def row_state(driver: Any, host: str, axis: str) -> str | None:
                                  f"drive-{host}-{axis}")
 
 
+def fleet_status_following_error(bed: dict[str, Any], axis: str) -> int:
+    with Fleet(connect=[bed["ep"]]) as fleet:
+        assert fleet.wait_for_agents([HOST], 10)
+        (st,) = fleet.fetch_status(f"{HOST}/{axis}").values()
+        return st.following_error
+
+
 def console_errors(driver: Any) -> list[dict]:
     return [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
@@ -109,6 +116,9 @@ def test_live_table_state_change_fault_offline_host_and_plots(bed: dict[str, Any
     wait_for(lambda: int(browser.find_element("id", "live").get_attribute("data-samples") or 0) >= 2, 20,
              "the live plot")
     assert browser.find_element("id", "state").get_attribute("data-state") == "operation_enabled"
+    # enabled in CSP on a drive without 0x60F4: the agent's following error, a number
+    assert int(browser.find_element("id", "ferr").get_attribute("data-value")) == \
+        fleet_status_following_error(bed, "axis0")
     browser.find_element("id", "rec-last").click()
     wait_for(lambda: int(browser.find_element("id", "recording").get_attribute("data-samples") or 0) >= 1000, 30,
              "the flight recording plot")

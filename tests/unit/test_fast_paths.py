@@ -7,11 +7,13 @@
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bus_agent.cia402.controller import ControllerConfig, DriveController, Goal
 from bus_agent.cia402.states import STATUSWORD_OF_STATE, STATUSWORD_PATTERNS, State, decode_statusword
+from tests.unit.test_mapping_codec import _byte_aligned, _objects
 
 # a few statuswords per state (bit 4 and bits 8+ vary), so that inputs repeat often
 _sw = st.builds(lambda low, extra: low | extra, st.sampled_from(sorted(STATUSWORD_OF_STATE.values())),
@@ -98,3 +100,171 @@ def test_the_statusword_table_equals_the_standards_patterns():
     for sw in range(0x10000):
         expected = next((s for mask, value, s in STATUSWORD_PATTERNS if sw & mask == value), State.UNKNOWN)
         assert decode_statusword(sw) is expected
+
+
+# ---- the cycle's snapshots: rebuilt only for drives whose values changed ---------------------------
+
+#: Every DriveSnapshot field the cycle fills. A new field must also be added to the change key in
+#: Cycle._drive_snapshots (else a change of it alone would not be published): update both.
+SNAPSHOT_FIELDS = ("axis", "slave", "state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
+                   "position", "velocity", "torque", "error_code", "error_text", "al_state", "lost", "absent",
+                   "object_names", "objects", "dc", "axis_state", "homed", "target_position", "following_error",
+                   "motion_request_id")
+
+
+def test_the_snapshot_fields_are_the_ones_the_change_key_covers():
+    import dataclasses
+
+    from bus_agent.runtime import DriveSnapshot
+
+    assert tuple(f.name for f in dataclasses.fields(DriveSnapshot)) == SNAPSHOT_FIELDS
+
+
+def test_a_drive_at_rest_keeps_its_snapshot_and_a_change_builds_a_new_one():
+    from tests.unit.test_cycle import Harness
+
+    h = Harness(n=3).open()
+    try:
+        rid = h.cmd("enable", "axis0", "axis1", "axis2")
+        h.until(h.done(rid, 3))
+        first = h.ticks(3)
+        second = h.tick()
+        assert second is not first and second.cycle == first.cycle + 1
+        assert second.drives is first.drives            # nothing changed: the same tuple
+        rid = h.cmd("halt", "axis1", on=True)
+        third = h.until(h.done(rid))
+        assert third.drives[1] is not first.drives[1] and third.drives[1].halt is True
+        assert third.drives[0] is first.drives[0] and third.drives[2] is first.drives[2]
+        h.bus.inject_fault(2, 0x2310)
+        faulted = h.until(lambda s: s.drives[2].state == "fault")
+        assert faulted.drives[2].error_code == 0x2310 and faulted.drives[0] is first.drives[0]
+        # every published value equals a snapshot built from scratch of the same cycle
+        assert h.cycle._drive_snapshots() is faulted.drives
+        for d in h.cycle.drives:
+            d.snapshot = None
+        assert h.cycle._drive_snapshots() == faulted.drives
+    finally:
+        h.cycle.stop(timeout_s=1.0)
+
+
+# ---- the codec: one pass over the whole process image -------------------------------------------
+
+
+def _random_layouts(data, n: int):
+    layouts = []
+    for _ in range(n):
+        tx = data.draw(_objects(False))
+        tx.insert(data.draw(st.integers(0, len(tx))), (0x6041, 0, 16))
+        layouts.append(_byte_aligned(tx))
+    return layouts
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_the_segment_decoder_equals_each_drives_own_decode(data):
+    import random
+    from types import SimpleNamespace
+
+    from bus_agent.bus.codec import DriveCodec, segment_decoder
+    from bus_agent.bus.mapping import mapping_of
+    from bus_agent.bus.pdo import DriveInputs, mapping_entry
+
+    layouts = _random_layouts(data, data.draw(st.integers(1, 5)))
+    codecs = [DriveCodec(mapping_of([(0x1600, [mapping_entry(0x6040, 0, 16)])],
+                                    [(0x1A00, [mapping_entry(*e) for e in tx])])) for tx in layouts]
+    rng = random.Random(data.draw(st.integers(0, 2**32)))
+    sources = [SimpleNamespace(input=rng.randbytes(c.in_size)) for c in codecs]
+    # records that held other values before: every field is written (0 where not mapped)
+    records = [DriveInputs(7, 7, 7, 7, 7, 7, (7,)) for _ in codecs]
+    segment_decoder(codecs, records, sources)()
+    for c, src, rec in zip(codecs, sources, records):
+        alone = DriveInputs()
+        c.decode_into(alone, src.input)
+        assert rec == alone
+    with pytest.raises(ValueError):
+        segment_decoder(codecs, records, sources, attr="input; import os")
+
+
+def test_decode_into_writes_every_field_of_a_reused_record():
+    from bus_agent.bus.codec import DriveCodec
+    from bus_agent.bus.mapping import mapping_of
+    from bus_agent.bus.pdo import DriveInputs, mapping_entry
+
+    c = DriveCodec(mapping_of([(0x1600, [mapping_entry(0x6040, 0, 16)])],
+                              [(0x1A00, [mapping_entry(0x6041, 0, 16), mapping_entry(0x60FD, 0, 32)])]))
+    rec = DriveInputs(1, 2, 3, 4, 5, 6, (7,))
+    c.decode_into(rec, bytes([0x37, 0x02, 1, 0, 0, 0]))
+    assert rec == DriveInputs(0x0237, 0, 0, 0, 0, 0, (1,))
+    assert c.absent_inputs == ("position", "velocity", "torque", "mode_display", "error_code")
+
+
+# ---- the spin before each deadline ----------------------------------------------------------------
+
+
+class _TickingClock:
+    """A fake monotonic clock that moves 1 us per read (so a spin ends) and by what sleep asks
+    plus ``over`` ns (how late the kernel wakes the thread)."""
+
+    def __init__(self) -> None:
+        self.ns = 1_000_000_000
+        self.over = 0
+
+    def __call__(self) -> int:
+        self.ns += 1000
+        return self.ns
+
+    def sleep(self, s: float) -> None:
+        self.ns += int(s * 1e9) + self.over
+
+
+def test_the_spin_adapts_to_how_late_the_sleep_wakes():
+    from bus_agent.bus.sim_bus import SimBus
+    from bus_agent.config import AgentConfig
+    from bus_agent.cycle.cycle import SPIN_MIN_NS, SPIN_NS, Cycle
+
+    clock = _TickingClock()
+    cyc = Cycle(SimBus(1), AgentConfig(host="h1", sim_drives=1), clock_ns=clock, sleep=clock.sleep,
+                manage_gc=False, switch_interval_s=None)
+
+    def wait(cycles: int) -> list[int]:
+        late = []
+        for _ in range(cycles):
+            deadline = clock.ns + 1_000_000
+            cyc._wait_until(deadline)
+            late.append(clock.ns - deadline)
+            cyc.cycles += 1
+        cyc._adapt_spin()
+        return late
+
+    assert cyc._spin_auto_ns == SPIN_NS                 # until sleeps were measured
+    clock.over = 20_000
+    assert max(wait(50)) < 5_000                        # woken 20 us late, spun 150 us: on time
+    assert SPIN_MIN_NS <= cyc._spin_auto_ns <= 20_000 + 30_000 + 5_000
+    clock.over = 0
+    wait(2000)                                          # a whole window of punctual sleeps
+    assert SPIN_MIN_NS <= cyc._spin_auto_ns <= SPIN_MIN_NS + 5_000  # the fake clock ticks 1 us a read
+    clock.over = 400_000                                # a loaded host: the spin goes back up
+    wait(10)
+    assert cyc._spin_auto_ns == SPIN_NS
+    cyc.spin_ns = 100_000                               # fixed (benchmarks)
+    clock.over = 0
+    deadline = clock.ns + 1_000_000
+    cyc._wait_until(deadline)
+    assert 0 <= clock.ns - deadline < 5_000
+
+
+def test_the_cycle_thread_gets_its_name_and_timer_slack():
+    import threading
+
+    from bus_agent.cycle.realtime import name_thread, set_timer_slack_ns
+
+    seen: list = []
+
+    def run() -> None:
+        seen.append(name_thread("cycle-test") and set_timer_slack_ns(1))
+        seen.append(open(f"/proc/self/task/{threading.get_native_id()}/comm").read().strip())
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join()
+    assert seen == [True, "cycle-test"]

@@ -278,3 +278,22 @@ def test_prepare_returns_the_minimum_duration_and_moves_nothing():
     assert r.status("axis0").position == 0  # not started before start_at
     r.run_until(lambda: len(commit) == 2)
     assert {o.outcome for o in commit} == {"done"}
+
+
+@pytest.mark.parametrize("stall_ms", [20, 90])
+def test_a_stalled_cycle_pauses_the_profile_instead_of_jumping(stall_ms):
+    """Heavy load: the cycle thread stalls (no frames; the drive holds the last target). The next
+    target must continue from there, not jump by velocity x stall onto the drive's following
+    error (window 0x6065 narrowed to 5000 counts: a 90 ms jump at 100000 counts/s is 9000)."""
+    r = rig()
+    r.model(0).write(0x6065, 0, 5_000)
+    move = r.send("move", "axis0", {"to": 600_000}, timeout_s=20)
+    r.tick(300)
+    before = r.wire[0].rows[-1][1]
+    r.clock.ns += stall_ms * 1_000_000  # one late cycle: the drive stepped over the whole gap
+    r.tick(2)  # the stalled cycle's target reaches the drive at the next exchange
+    after = r.wire[0].rows[-1][1]
+    assert abs(after - before) <= CFG.max_velocity * DT * 3 + 1, (before, after)
+    r.run_until(lambda: move)
+    assert move[0].outcome == "done" and r.model(0).state.value == "operation_enabled", move
+    assert r.cycle.drives[0].motion.stalls == 1
