@@ -36,6 +36,7 @@ from bus_agent.bus.codec import DriveCodec, segment_decoder
 from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort_hint, check_mapping, describe,
                                    plan_writes, read_mapping)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
+from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S, PysoemDc
 
 log = logging.getLogger(__name__)
 
@@ -49,19 +50,14 @@ OP_DEADLINE_S = 5.0
 STATE_REWRITE_S = 0.25
 #: Short state_check polls (us) so the GIL is given up between them.
 STATE_POLL_US = 5000
-#: Single-datagram timeout (us) of management reads/writes; each holds the GIL at most this long.
-MGMT_TIMEOUT_US = 1000
 #: Kept for callers of the previous name.
 RECOVER_TIMEOUT_US = MGMT_TIMEOUT_US
 #: A slave whose AL status reads get no frame back (lost/late frames: the link, not the slave)
 #: keeps its last known status for this long before it reads NONE. A frame that comes back
 #: without the slave's working counter (the slave is silent) reads NONE at once.
 NO_FRAME_GRACE_S = 0.05
-#: SOEM's dc_sync starts SYNC0 100 ms (SyncDelay) after now: wait this long before the next AL state.
-SYNC0_START_S = 0.12
 # ESC registers (ETG.1000.4 Table 31 ff.)
 _REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
-_REG_FEATURES = 0x0008       # ESC features: bit 2 = distributed clocks
 _REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
 _REG_FMMU0 = 0x0600          # 16 bytes per FMMU
 _REG_SM0 = 0x0800            # 8 bytes per SyncManager
@@ -76,8 +72,8 @@ def _al_state(value: int) -> ALState:
         return ALState.NONE
 
 
-class PysoemBus:
-    """The Bus protocol over pysoem (backend "pysoem")."""
+class PysoemBus(PysoemDc):
+    """The Bus protocol over pysoem (backend "pysoem"); distributed clocks in :class:`PysoemDc`."""
 
     backend = "pysoem"
 
@@ -98,6 +94,8 @@ class PysoemBus:
         self._dc_capable: list[bool] = []
         self._sync0: dict[int, tuple[int, int]] = {}
         self._sync0_armed_at: dict[int, float] = {}
+        #: Per SYNC0 slave: its propagation delay (0x0928) as config_dc set it, for recovery.
+        self._dc_delay: dict[int, int] = {}
         self._preop_values: dict[tuple[int, int], bytes | BusError] = {}
         self._mappings: dict[int, SlaveMapping] = {}
         self._codecs: list[DriveCodec] = []
@@ -149,42 +147,6 @@ class PysoemBus:
             log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.ifname, pos, s.name, s.man, s.id, s.rev)
         return infos
-
-    @staticmethod
-    def _read_dc_capable(s: Any) -> bool:
-        """ESC feature register 0x0008 bit 2: distributed clocks available."""
-        try:
-            return bool(struct.unpack("<H", bytes(s._fprd(_REG_FEATURES, 2, 2000))[:2])[0] & 0x0004)
-        except Exception:
-            return False
-
-    def dc_capable(self, position: int) -> bool:
-        """True when the slave's ESC has distributed clocks (0x0008 bit 2), read at open()."""
-        return self._dc_capable[position]
-
-    def dc_states(self) -> list[str]:
-        """Per slave: "sync0" (SYNC0 started), "off" (DC capable, unused) or "none"."""
-        return ["sync0" if p in self._sync0 else "off" if cap else "none" for p, cap in enumerate(self._dc_capable)]
-
-    @property
-    def dc_active(self) -> bool:
-        return bool(self._sync0)
-
-    def dc_time_ns(self) -> int:
-        """System time of the reference clock from the last frame's FRMW (0x0910). Cycle-safe."""
-        return self._master.dc_time
-
-    def _start_sync0(self, positions: Sequence[int]) -> None:
-        """``dc_sync`` (SOEM ecx_dcsync0: 0x0981 = 0, 0x0990 start = whole cycles after now + 100 ms
-        + shift, 0x09A0 cycle, 0x0981 = 3) for each slave; SYNC0 runs from the start time on."""
-        for pos in positions:
-            cycle_ns, shift_ns = self._sync0[pos]
-            try:
-                self._slaves[pos].dc_sync(True, cycle_ns, shift_ns)
-            except Exception as e:
-                raise BusError(f"slave {pos} ({self._slaves[pos].name!r}): SYNC0 not started: {e}") from None
-            self._sync0_armed_at[pos] = time.monotonic()
-            log.info("%s: slave %d: SYNC0 %d ns, shift %d ns", self.ifname, pos, cycle_ns, shift_ns)
 
     def _abort_open(self) -> None:
         try:
@@ -342,20 +304,10 @@ class PysoemBus:
         m.write_state()
         self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
         self._read_esc_config()
+        self._read_dc_delays()
         log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
                  self._expected_wkc)
         return self._expected_wkc
-
-    def _wait_sync0_start(self, exchange: bool = False) -> None:
-        """Until every started SYNC0's start time (armed + 100 ms) has passed: a drive that
-        needs SYNC0 refuses the next state before its first pulse."""
-        if not self._sync0_armed_at:
-            return
-        until = max(self._sync0_armed_at.values()) + SYNC0_START_S
-        while time.monotonic() < until:
-            if exchange:
-                self.exchange()
-            time.sleep(0.001)
 
     def _read_esc_config(self) -> None:
         """Read back each slave's SM (0x0800) and FMMU (0x0600) registers as SOEM programmed
@@ -535,7 +487,7 @@ class PysoemBus:
                 self._recover_step.pop(position, None)  # start again from INIT
             return False
         if state == ALState.SAFEOP:
-            if position in self._sync0 and step == "to_safeop":
+            if position in self._sync0 and step == "to_safeop" and not self._setups[position].sync0_before_safeop:
                 # a power cycle reset the slave's DC unit: SYNC0 again, OP after its first pulse
                 try:
                     self._start_sync0([position])
@@ -566,13 +518,19 @@ class PysoemBus:
             self._write_al_control(position, int(ALState.PREOP))
             self._recover_step[position] = "to_preop"
             return False
-        if state == ALState.PREOP and step in ("to_preop", "to_safeop"):
+        if state == ALState.PREOP and step in ("to_preop", "sync0_preop", "to_safeop"):
             if step == "to_preop":
                 _sm, fmmu = self._esc_config[position]
                 try:
                     self._configure_slave(position)  # a power cycle forgot mapping and SDOs
                     if fmmu:
                         s._fpwr(_REG_FMMU0, fmmu, MGMT_TIMEOUT_US)
+                    if position in self._sync0:  # ... and its DC time: set again before SYNC0
+                        self._restore_dc_time(position)
+                        if self._setups[position].sync0_before_safeop:
+                            self._start_sync0([position])
+                            self._recover_step[position] = "sync0_preop"
+                            return False
                 except BusError as e:
                     log.warning("%s", e)
                     self._recover_step.pop(position, None)
@@ -580,6 +538,8 @@ class PysoemBus:
                 except Exception as e:
                     log.debug("slave %d: FMMU configuration not taken: %s", position, e)
                     return False
+            if step == "sync0_preop" and time.monotonic() - self._sync0_armed_at.get(position, 0.0) < SYNC0_START_S:
+                return False
             self._write_al_control(position, int(ALState.SAFEOP))
             self._recover_step[position] = "to_safeop"
             return False

@@ -11,6 +11,8 @@ import pytest
 
 from bus_agent.bus.base import ALState, BusError
 from bus_agent.bus.dc import DcConfig
+from bus_agent.bus.mapping import StartupSdo
+from bus_agent.config import DriveConfig
 from bus_agent.sim.ecat.esc import Esc
 from bus_agent.sim.ecat.profiles import as_ecat
 from tests.integration.test_real_drives import Agent, _slaves, _wait
@@ -35,6 +37,47 @@ def test_dc_auto_starts_sync0_and_keeps_the_cycle_in_step(ecat_segment):
         outs = agent.cmd("enable", "axis0", "axis1", "axis2")
         assert all(o.outcome == "done" for o in outs), outs
         assert all(s["al_state"] == "op" and not s["al_error"] for s in _slaves(control))
+    finally:
+        agent.cycle.stop()
+
+
+def _sync0_phase_ns(slave: dict) -> int:
+    dc = slave["dc"]
+    return dc["sync0_start_ns"] % dc["sync0_cycle_ns"]
+
+
+@pytest.mark.parametrize("before_safeop", [False, True])
+def test_a_recovered_dc_slave_gets_its_sdos_dc_time_and_sync0_back(ecat_segment, before_safeop):
+    """Power cycle (unplug, plug) of a DC-required drive while the others run: its start-up
+    SDOs, DC offset and delay, and SYNC0 (at the others' phase) are set again before it returns
+    to OP; the agent keeps running, the other drive stays enabled, the recovered one is not
+    enabled by itself."""
+    ifname, control = ecat_segment(2, "omron1s:dc-required")
+    drives = (DriveConfig(slave=0), DriveConfig(slave=1, sdos=(StartupSdo(0x6065, 0, "u32", 4321),)))
+    agent = Agent(ifname, drives=drives, dc=DcConfig(before_safeop=before_safeop))
+    agent.cycle.start()
+    try:
+        _wait(lambda: agent.cycle.latest is not None and all(d.mode_display == 8 for d in agent.cycle.latest.drives),
+              20, "both drives in OP, mode 8 echoed")
+        outs = agent.cmd("enable", "axis0", "axis1")
+        assert all(o.outcome == "done" for o in outs), outs
+        before = _slaves(control)
+        assert _sync0_phase_ns(before[0]) == _sync0_phase_ns(before[1])
+        assert control.request("unplug", slave=1)["ok"]
+        _wait(lambda: agent.drive("axis1").lost, 10, "axis1 lost")
+        assert control.request("plug", slave=1)["ok"]
+        _wait(lambda: not agent.drive("axis1").lost and agent.drive("axis1").al_state == "op", 30, "axis1 back in OP")
+        after = _slaves(control)
+        assert [s["al_state"] for s in after] == ["op", "op"] and not after[1]["al_error"]
+        assert after[1]["dc"]["sync0"] and not after[1]["dc"]["sync0_late"]
+        # its system time reads the other's again (power-on reset it to 0), so SYNC0 is in phase
+        assert abs(after[1]["dc"]["system_time_ns"] - after[0]["dc"]["system_time_ns"]) < 2_000_000
+        assert abs(_sync0_phase_ns(after[1]) - _sync0_phase_ns(after[0])) < 100_000
+        assert struct.unpack("<I", agent.bus.sdo_read(1, 0x6065, 0, 4))[0] == 4321
+        assert agent.cycle.state == "running"
+        assert agent.drive("axis0").state == "operation_enabled"
+        assert agent.drive("axis1").state == "switch_on_disabled"  # never re-enabled by itself
+        assert after[1]["drive_state"] == "switch_on_disabled"
     finally:
         agent.cycle.stop()
 

@@ -77,7 +77,9 @@ def test_predefined_drives_with_no_configuration(ecat_segment):
             objs = dict(zip(d.object_names, d.objects))
             assert set(objs) == {"following_error_actual_value", "touch_probe_status", "touch_probe_1_positive_edge",
                                  "touch_probe_2_positive_edge", "digital_inputs"}
-            assert objs["digital_inputs"] == (k + 1) << 16  # each drive decoded at its own offsets
+            # each drive decoded at its own offsets: its serial in bits 16..31, the home switch
+            # (bit 2, active at and above 5000 increments) on at the omron1s power-on position
+            assert objs["digital_inputs"] == (k + 1) << 16 | 0x4
             assert d.position == OMRON_POSITION * (k + 1)
         assert [s["mode_display"] for s in _slaves(control)] == [8, 8, 8]
         outs = agent.cmd("enable", "axis0", "axis1", "axis2")

@@ -112,4 +112,5 @@ class DcClock:
 
     def status(self) -> dict:
         return {"sync0": self.sync0_running(), "sync0_cycle_ns": self.sync0[1] if self.sync0 else 0,
+                "sync0_start_ns": self.sync0[0] if self.sync0 else 0,
                 "sync0_late": self.sync0_late, "system_time_ns": self.system_ns()}
