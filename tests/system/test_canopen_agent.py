@@ -3,8 +3,8 @@ configuration as separate processes exchanging CAN frames (python-can udp_multic
 namespace of their own (only ``lo``: no frame leaves it). ``drivectl`` runs in the namespace over
 TCP; the test's own supervisor (``Fleet``) and fault injection reach in over UNIX sockets.
 
-Covered: the three PDO policies (drive, explicit, default) each carry a drive to Operation
-enabled; the SYNC counter (0x1019 = 5) seen by a plain python-can listener and checked by every
+Covered: the three PDO policies (drive, explicit without the mode objects, default) each carry a
+drive to Operation enabled; the SYNC counter (0x1019 = 5) seen by a plain python-can listener and checked by every
 node; NMT stop/pre-operational/start/reset communication/reset node as frames on COB-ID
 0x000 seen by a plain python-can listener; a node's heartbeat lost and back (lost, the group
 reacts; back to operational, never re-enabled); an EMCY to fault with its error text.
@@ -29,9 +29,10 @@ from tests.system.canbed import CHANNEL, CanBed
 
 pytestmark = [pytest.mark.root, pytest.mark.slow]
 
-# node 2: its own layout, PDO 1 and 2 regrouped (written by the agent at start-up and after a reset)
-EXPLICIT_RPDO = [[me(0x6040, 0, 16), me(0x6060, 0, 8)], [me(0x607A, 0, 32), me(0x60FF, 0, 32)]]
-EXPLICIT_TPDO = [[me(0x6041, 0, 16), me(0x6061, 0, 8), me(0x603F, 0, 16)], [me(0x6064, 0, 32), me(0x606C, 0, 32)]]
+# node 2: its own layout, PDO 1 and 2 regrouped (written by the agent at start-up and after a reset),
+# without the mode (0x6060/0x6061): the cycle serves it by SDO, as for an EtherCAT drive
+EXPLICIT_RPDO = [[me(0x6040, 0, 16)], [me(0x607A, 0, 32), me(0x60FF, 0, 32)]]
+EXPLICIT_TPDO = [[me(0x6041, 0, 16), me(0x603F, 0, 16)], [me(0x6064, 0, 32), me(0x606C, 0, 32)]]
 SYNC_COUNTER = 5
 AXES = ("c2/axis0", "c2/axis1", "c2/axis2")
 
@@ -101,13 +102,15 @@ def test_pdo_policies_and_drivectl_enable_disable(bed: Bed) -> None:
     text = agent.output(300)
     assert ("node 1: configured, PDO policy drive: RxPDO 0x1600@0x201 [6040 607A 6060] 0x1601@0x301 [60FF 6071], "
             "TxPDO 0x1A00@0x181 [6041 6064 6061] 0x1A01@0x281 [606C 6077 603F]") in text
-    assert ("node 2: configured, PDO policy explicit: RxPDO 0x1600@0x202 [6040 6060] 0x1601@0x302 [607A 60FF], "
-            "TxPDO 0x1A00@0x182 [6041 6061 603F] 0x1A01@0x282 [6064 606C]") in text
+    assert ("node 2: configured, PDO policy explicit: RxPDO 0x1600@0x202 [6040] 0x1601@0x302 [607A 60FF], "
+            "TxPDO 0x1A00@0x182 [6041 603F] 0x1A01@0x282 [6064 606C]") in text
+    assert "axis axis1 (slave 1): not mapped, served by SDO: 0x6060, 0x6061" in text
     assert "node 3: configured, PDO policy default" in text
     assert all(bed.row(a).state == "switch_on_disabled" for a in AXES)   # nobody asked: nothing enabled
     rc, out = bed.can.drivectl(bed.tcp, "enable", "c2/*")
     assert rc == 0, out
     assert all(bed.row(a).state == "operation_enabled" and bed.row(a).al_state == "op" for a in AXES)
+    assert all(bed.row(a).mode_display == 8 for a in AXES)          # node 2's by SDO (0x6061)
     rc, out = bed.can.drivectl(bed.tcp, "disable", "c2/*")
     assert rc == 0, out
     assert all(bed.row(a).state == "switch_on_disabled" for a in AXES)
