@@ -168,6 +168,23 @@ class AxisMotion(DriveRunsMixin):
             out.append(counts)
         return Limits(*out)
 
+    def _jog_velocity(self, args: Mapping[str, Any]) -> tuple[float, Limits, list[str]]:
+        """A jog's signed velocity in counts/s (within the axis limit: clamped or rejected), its
+        acceleration/jerk limits and the clamp notes. Raises Rejected."""
+        v = _num(args, "velocity")
+        if v is None:
+            raise Rejected("jog needs a velocity")
+        notes: list[str] = []
+        lim = self._limits({k: args[k] for k in ("accel", "jerk") if k in args}, notes)
+        speed = abs(v * self.scale)
+        if speed > self.limits.velocity * (1 + 1e-9):
+            if self.cfg.limit_policy != "clamp":
+                raise Rejected(f"velocity {v:g} {self.user.unit}/s exceeds the axis velocity limit "
+                               f"{self.limits.velocity / abs(self.scale):g}")
+            notes.append(f"velocity {v:g} clamped to the axis velocity limit {self.limits.velocity / abs(self.scale):g}")
+            speed = self.limits.velocity
+        return math.copysign(speed, v * self.scale), lim, notes
+
     def _check_target(self, target: float) -> None:
         c = self.cfg
         if c.min_position is not None and target < c.min_position - 1e-9:
@@ -239,19 +256,8 @@ class AxisMotion(DriveRunsMixin):
         if self.mode not in (MODE_CSP, MODE_CSV):
             raise Rejected(f"jog needs cyclic synchronous position or velocity (0x6061 = 8 or 9); "
                            f"the drive is in mode {self.mode}")
-        v = _num(args, "velocity")
-        if v is None:
-            raise Rejected("jog needs a velocity")
-        notes: list[str] = []
-        lim = self._limits({k: args[k] for k in ("accel", "jerk") if k in args}, notes)
-        speed = abs(v * self.scale)
-        if speed > self.limits.velocity * (1 + 1e-9):
-            if self.cfg.limit_policy != "clamp":
-                raise Rejected(f"velocity {v:g} {self.user.unit}/s exceeds the axis velocity limit "
-                               f"{self.limits.velocity / abs(self.scale):g}")
-            notes.append(f"velocity {v:g} clamped to the axis velocity limit {self.limits.velocity / abs(self.scale):g}")
-            speed = self.limits.velocity
-        velocity = math.copysign(speed, v * self.scale)
+        velocity, lim, notes = self._jog_velocity(args)
+        speed = abs(velocity)
         start = self._current(now_s)
         c = self.cfg
         limit = c.max_position if velocity > 0 else c.min_position

@@ -5,7 +5,6 @@ instead of sampling a ruckig plan. Pure (no clock, no I/O), cycle-safe."""
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING, Any, Mapping
 
 from bus_agent.motion.config import HOMING_METHODS, MotionConfig
@@ -63,6 +62,8 @@ class DriveRunsMixin:
                   outcome: str = "aborted") -> list[Finished]: ...
 
         def _csv_limit_ahead(self, velocity: float, lim: Limits | None = None) -> str: ...
+
+        def _jog_velocity(self, args: Mapping[str, Any]) -> tuple[float, Limits, list[str]]: ...
 
     def start_home(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float, deadline_s: float,
                    previous_mode: int) -> list[Finished]:
@@ -127,19 +128,8 @@ class DriveRunsMixin:
     def _pv_jog(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float,
                 deadline_s: float) -> list[Finished]:
         self.check("jog")
-        v = _num(args, "velocity")
-        if v is None:
-            raise Rejected("jog needs a velocity")
-        notes: list[str] = []
-        lim = self._limits({k: args[k] for k in ("velocity", "accel") if k in args and k != "velocity"}, notes)
-        speed = abs(v * self.scale)
-        if speed > self.limits.velocity * (1 + 1e-9):
-            if self.cfg.limit_policy != "clamp":
-                raise Rejected(f"velocity {v:g} {self.user.unit}/s exceeds the axis velocity limit "
-                               f"{self.limits.velocity / abs(self.scale):g}")
-            notes.append(f"velocity {v:g} clamped to the axis velocity limit {self.limits.velocity / abs(self.scale):g}")
-            speed = self.limits.velocity
-        velocity = math.copysign(speed, v * self.scale)
+        velocity, lim, notes = self._jog_velocity(args)
+        speed = abs(velocity)
         if self._csv_limit_ahead(velocity, lim):
             raise Rejected(f"too close to the software limit {'max' if velocity > 0 else 'min'}_position to jog "
                            "that way: jog the other way")
