@@ -24,7 +24,10 @@ agent with its own Zenoh session, all through one router process):
 Results go to ``bench/results/bench_supervisor.json`` and are printed. Flags: ``--sizes``,
 ``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 20000 so
 that 1024 simulated drives fit on a 2-core machine), ``--sm-watchdog-s`` (default 5 s, so a
-starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``.
+starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``,
+``--pin`` (the agents' processes on the last half of the CPUs, the supervisor, router, echo
+and watcher on the first: the bare get is then measured away from the agents' load; on 2 CPUs
+the agents of 4x16 at 1 kHz do not fit in one core, so it is not the default).
 """
 
 from __future__ import annotations
@@ -202,11 +205,20 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
     out: dict[str, Any] = {"transport": "tls+acl" if pki else "tcp", "agents": n_agents, "drives_per_agent": n_drives, "drives": total, "cycle_us": cycle_us,
                            "agents_per_process": args.per_process, "sm_watchdog_s": args.sm_watchdog_s,
                            "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
+    pin = cpu_split(args.pin)
     try:
         t0 = time.monotonic()
-        for i in range(0, n_agents, args.per_process):
-            procs.append(start_agents(hosts[i:i + args.per_process], n_drives, ep, cycle_us=cycle_us,
-                                      sm_watchdog_s=args.sm_watchdog_s, ready_timeout_s=180, pki=pki))
+        if pin:  # the agents (and their gateway processes) inherit the agents' CPUs
+            os.sched_setaffinity(0, pin[1])
+        try:
+            for i in range(0, n_agents, args.per_process):
+                procs.append(start_agents(hosts[i:i + args.per_process], n_drives, ep, cycle_us=cycle_us,
+                                          sm_watchdog_s=args.sm_watchdog_s, ready_timeout_s=180, pki=pki))
+        finally:
+            if pin:  # this process (the supervisor), the router, the echo and the watcher share the rest
+                os.sched_setaffinity(0, pin[0])
+                pin_process(router.pid, pin[0])
+        out["cpus_supervisor_agents"] = [sorted(c) for c in pin] if pin else None
         with Fleet(connect=[ep], name="bench-sup", pki=pki, identity="bench-sup" if pki else None) as fleet:
             assert fleet.wait_for_agents(n_agents, 60, drives=total), (len(fleet.hosts()), len(fleet.roster()))
             out["startup_s"] = round(time.monotonic() - t0, 2)
@@ -245,6 +257,26 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
             p.stop(timeout_s=60)
         router.stop()
     return out
+
+
+def cpu_split(pin: bool) -> tuple[set[int], set[int]] | None:
+    """(supervisor's CPUs, agents' CPUs) when pinning and there are at least two CPUs: the last
+    half to the agents, so that their cycles do not starve the supervisor and Zenoh being
+    measured (nor the other way round)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if not pin or len(cpus) < 2:
+        return None
+    half = len(cpus) // 2
+    return set(cpus[:half]), set(cpus[half:])
+
+
+def pin_process(pid: int, cpus: set[int]) -> None:
+    """Every thread of ``pid`` onto ``cpus`` (``sched_setaffinity`` on a pid moves one thread)."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            os.sched_setaffinity(int(tid), cpus)
+        except (ProcessLookupError, PermissionError):
+            pass
 
 
 def run_departure(fleet: Fleet, proc: Proc, hosts: list[str], timeout_s: float = 10.0) -> dict[str, Any]:
@@ -299,6 +331,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="simulated slaves' SM watchdog (default 5 s: a starved 2-core box must not drop slaves)")
     p.add_argument("--gets", type=int, default=200, help="bare get round trips to time (default 200)")
     p.add_argument("--no-fanin", action="store_true", help="skip the status fan-in watcher")
+    p.add_argument("--pin", action="store_true",
+                   help="split the CPUs: agents on the last half, supervisor/router/echo/watcher on the first")
     p.add_argument("--out", "--output", dest="output", default=str(RESULTS), help="JSON file")
     args = p.parse_args(argv)
     sizes = []
@@ -307,12 +341,14 @@ def main(argv: list[str] | None = None) -> int:
         sizes.append((int(a), int(d)))
     largest = max(sizes, key=lambda s: s[0] * s[1])
     result: dict[str, Any] = {"bench": "supervisor", "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                              "cpus": os.cpu_count(), "python": sys.version.split()[0], "sizes": []}
+                              "cpus": os.cpu_count(), "python": sys.version.split()[0], "pin": args.pin,
+                              "loadavg_start": [round(x, 2) for x in os.getloadavg()], "sizes": []}
     for a, d in sizes:
         print(f"== {a} agents x {d} drives", flush=True)
         r = run_size(a, d, args, fanin=not args.no_fanin and (a, d) == largest)
         result["sizes"].append(r)
         print(json.dumps({k: v for k, v in r.items() if k != "rounds"}, indent=1), flush=True)
+    result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(json.dumps(result, indent=1) + "\n")
     print(f"written {args.output}")

@@ -152,12 +152,8 @@ def agent_headline(r: Mapping[str, Any]) -> str:
         "startup_fault_resets", 0)
     if resets:
         text += f"; {resets} drive faults from start-up stalls reset by the benchmark"
-    en = r.get("enable_latency") or {}
-    lat, beyond, bare = en.get("latency") or {}, en.get("beyond_cycles") or {}, en.get("bare_get") or {}
-    if lat:
-        text += (f"; enable of {r.get('drives')} drives p50/p99 {lat.get('p50_ms')}/{lat.get('p99_ms')} ms, beyond "
-                 f"the transition cycles {beyond.get('p50_ms')}/{beyond.get('p99_ms')} ms, bare get "
-                 f"{bare.get('p50_ms')}/{bare.get('p99_ms')} ms ({en.get('n_failures')} failures)")
+    if (r.get("enable_latency") or {}).get("latency"):
+        text += "; " + enable_headline(r)
     return text
 
 

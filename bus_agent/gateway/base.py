@@ -79,6 +79,9 @@ class GatewaySettings:
     check_host: bool = True         # refuse to start while another agent holds the host name
     has_connect: bool = False       # the session has connect endpoints (wait for a link first)
     secure: bool = False  # --pki: serve only authenticated command keys (requester from the key)
+    #: SCHED_FIFO of gw-publish and gw-command (0: off). Set only for the gateway process (its own
+    #: GIL); threads of the cycle process keep ``realtime.helper_priority``.
+    rt_priority: int = 0
 
 
 @dataclass

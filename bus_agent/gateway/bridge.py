@@ -72,6 +72,10 @@ class GatewayProcess:
         #: SCHED_FIFO of the bridge threads: they take the GIL, so one below a real-time cycle.
         self.rt_priority = rt_priority
         self.settings = dict(settings)
+        # The gateway process's reader, publish and command threads: one level below the bridge
+        # threads here, so the reflex's and the replies' way through it is not left waiting for
+        # a scheduler slice on a busy machine (its own GIL: no inversion with the cycle).
+        self.settings.setdefault("rt_priority", max(0, rt_priority - 1) if rt_priority else 0)
         self.zenoh = zenoh
         self.host = self.settings["host"]
         self.sim_handlers = dict(sim_handlers or {})

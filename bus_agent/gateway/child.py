@@ -19,6 +19,7 @@ from multiprocessing.connection import Connection
 from typing import Any, Callable, Sequence
 
 from bus_agent import runtime as rt
+from bus_agent.cycle.realtime import set_thread_fifo
 from bus_agent.gateway.wire import (RECORD_MARGIN_S, SUBMIT_TIMEOUT_S, Msg, decode_event, decode_outcome, decode_snapshot,
                                     dumps, encode_command, loads)
 
@@ -200,6 +201,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     gws: list[Any] = []   # the gateway, once declared
 
     def reader() -> None:
+        set_thread_fifo(settings.get("rt_priority", 0), f"bridge-reader of {host}")
         while True:
             try:
                 msg = loads(conn.recv_bytes())

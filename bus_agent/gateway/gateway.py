@@ -31,6 +31,7 @@ from typing import Any, Iterable, Sequence
 import zenoh
 
 from bus_agent import runtime as rt
+from bus_agent.cycle.realtime import set_thread_fifo
 from bus_agent.gateway.base import (AGENT_SUPERVISOR, BAD_STATES, CHANGE_FIELDS, CONFLICT_REFUSED_OPS, DEDUP_SIZE,
                                     DEDUP_TTL_S, LEASE_REACTION_OPS, MOTION_FIELDS, CycleLike,
                                     GatewaySettings)
@@ -172,6 +173,7 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
     # ---- command thread ---------------------------------------------------------------------
 
     def _command_loop(self) -> None:
+        set_thread_fifo(self.s.rt_priority, f"gw-command of {self.host}")
         while True:
             timeout = self._next_timer_s() - time.monotonic()
             try:

@@ -13,6 +13,7 @@ import logging
 import time
 
 from bus_agent import runtime as rt
+from bus_agent.cycle.realtime import set_thread_fifo
 from bus_agent.gateway.base import BAD_STATES, CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
 from schemas import messages as m
 from schemas.error_codes import describe
@@ -24,6 +25,7 @@ class PublisherMixin(GatewayBase):
     """Snapshots and events of the cycle turned into puts."""
 
     def _publish_loop(self) -> None:
+        set_thread_fifo(self.s.rt_priority, f"gw-publish of {self.host}")
         while not self._stop.is_set():
             now = time.monotonic()
             wait = max(0.0, min(self._next_heartbeat_s, self._next_agent_s) - now)
