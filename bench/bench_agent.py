@@ -48,10 +48,9 @@ import sys
 import threading
 import time
 from array import array
-from typing import Callable
 
 from bench.common import (ROOT, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
-                          pysoem_to_op, quantiles, segment, self_cpu_s, stop_process, summary_ms)
+                          pysoem_to_op, quantiles, read_period_logs, segment, self_cpu_s, stop_process, summary_ms)
 
 ECHO_KEY = "bench/echo"
 
@@ -299,48 +298,11 @@ def encoding_figures(drives: int, n: int = 2000) -> dict:
 
 
 def codec_figures(drives: int, n: int = 3000) -> dict:
-    """CPU of one cycle's decode + encode of every drive: the fixed 13/15-byte structs (before
-    per-drive codecs) vs ``DriveCodec`` for the default layout and for the Omron-like predefined
-    0x1701/0x1B01 (in-process, best of 5 runs of ``n`` cycles)."""
-    from bus_agent.bus.codec import DriveCodec
-    from bus_agent.bus.mapping import DEFAULT_MAPPING, mapping_of
-    from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT, DriveInputs, DriveOutputs
-    from bus_agent.sim.ecat.profiles import OMRON_LIKE
+    """CPU of one cycle's decode + encode of every drive, ``DriveCodec`` against the fixed
+    13/15-byte structs (``bench.bench_cycle.codec_figures``, where it is described)."""
+    from bench.bench_cycle import codec_figures as figures
 
-    recs = [DriveInputs() for _ in range(drives)]
-    outs = [DriveOutputs() for _ in range(drives)]
-    tx_raw = bytes(TX_STRUCT.size)
-
-    def fixed() -> None:
-        for rec, o in zip(recs, outs):
-            (rec.statusword, rec.position_actual, rec.velocity_actual, rec.torque_actual,
-             rec.modes_of_operation_display, rec.error_code) = TX_STRUCT.unpack_from(tx_raw)
-            RX_STRUCT.pack(o.controlword, o.target_position, o.target_velocity, o.target_torque, o.modes_of_operation)
-
-    def with_codec(codec: DriveCodec) -> "Callable[[], None]":
-        raw = bytes(codec.in_size)
-
-        def run() -> None:
-            for rec, o in zip(recs, outs):
-                codec.decode_into(rec, raw)
-                codec.encode(o)
-        return run
-
-    omron = mapping_of([(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C12]],
-                       [(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C13]])
-
-    def best_us(fn) -> float:
-        best = float("inf")
-        for _ in range(5):
-            t0 = time.perf_counter_ns()
-            for _ in range(n):
-                fn()
-            best = min(best, (time.perf_counter_ns() - t0) / n / 1000)
-        return round(best, 2)
-
-    f, d, o = best_us(fixed), best_us(with_codec(DriveCodec(DEFAULT_MAPPING))), best_us(with_codec(DriveCodec(omron)))
-    return {"drives": drives, "fixed_struct_us_per_cycle": f, "codec_default_us_per_cycle": d,
-            "codec_predefined_us_per_cycle": o, "ratio_default": round(d / f, 2), "ratio_predefined": round(o / f, 2)}
+    return figures(drives, n)
 
 
 def phase_load(args) -> dict:
@@ -576,18 +538,8 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, time
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def _read_logs(paths: list[str]) -> list[int]:
-    out: list[int] = []
-    for path in paths:
-        a = array("q")
-        with open(path, "rb") as f:
-            a.frombytes(f.read())
-        out.extend(a)
-    return out
-
-
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
-    periods = _read_logs(logs)
+    periods = read_period_logs(logs)
     seconds = sum(p["seconds"] for p in parts)
     cpu = sum(p["cpu_s"] for p in parts)
     out = {"rounds": len(parts), "cycles": sum(p["cycles"] for p in parts), "seconds": round(seconds, 2),
@@ -598,7 +550,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
            "jitter_p99_us_per_round": [p["jitter_us"]["p99"] for p in parts], **period_figures(periods, cycle_ns)}
     dc_logs = [p + ".dc" for p in logs if os.path.exists(p + ".dc")]
     if dc_logs:  # frame-to-SYNC0 offset: where in the SYNC0 period the frames passed the reference
-        offs = sorted(_read_logs(dc_logs))
+        offs = sorted(read_period_logs(dc_logs))
         out["dc_offset_us"] = {**quantiles(offs, ("p1", "p50", "p99"), 1e-3), "samples": len(offs)}
     if any("dc_pi_held_cycles" in p for p in parts):  # cycles late enough to hold the PI (a loaded host)
         out["dc_pi_held_cycles"] = sum(p.get("dc_pi_held_cycles", 0) for p in parts)

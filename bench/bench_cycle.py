@@ -34,7 +34,7 @@ import sys
 import time
 from typing import Callable
 
-from bench.common import ROOT, bench_parser, main_result, period_figures, segment, task_cpu_ns
+from bench.common import bench_parser, main_result, period_figures, read_period_logs, run_json, segment, task_cpu_ns
 
 
 
@@ -142,26 +142,13 @@ def codec_figures(drives: int, cycles: int) -> dict:
 
 
 def _run_phase(name: str, ifname: str, drives: int, args, seconds: float, log_file: str) -> dict:
-    import subprocess
-
-    cmd = [sys.executable, "-m", "bench.bench_cycle", "--phase", name, "--ifname", ifname, "--drives", str(drives),
-           "--seconds", str(seconds), "--cycle-us", str(args.cycle_us), "--rt-priority", str(args.rt_priority),
-           "--receive-timeout-us", str(args.receive_timeout_us), "--log-file", log_file]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds * 4 + 120)
-    if p.returncode != 0:
-        raise RuntimeError(f"phase {name} ({drives} drives) failed ({p.returncode}): {p.stderr[-3000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    return run_json([sys.executable, "-m", "bench.bench_cycle", "--phase", name, "--ifname", ifname, "--drives",
+                     str(drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us), "--rt-priority",
+                     str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us), "--log-file",
+                     log_file], f"phase {name} ({drives} drives)", seconds * 4 + 120)
 
 
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
-    from array import array
-
-    periods: list[int] = []
-    for path in logs:
-        a = array("q")
-        with open(path, "rb") as f:
-            a.frombytes(f.read())
-        periods.extend(a)
     cycles = sum(p["cycles"] for p in parts)
     seconds = sum(p["seconds"] for p in parts)
     ns = sum(p["cpu_us_per_cycle"] * 1e3 * p["cycles"] for p in parts if p["cpu_us_per_cycle"] is not None)
@@ -169,7 +156,7 @@ def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
             "overruns": sum(p["overruns"] for p in parts), "wkc_errors": sum(p["wkc_errors"] for p in parts),
             "startup_fault_resets": sum(p.get("startup_fault_resets", 0) for p in parts),
             "cycle_cpu_pct_per_round": [p["cycle_cpu_pct"] for p in parts],
-            **_cpu(int(ns), seconds, cycles, cycle_ns // 1000), **period_figures(periods, cycle_ns)}
+            **_cpu(int(ns), seconds, cycles, cycle_ns // 1000), **period_figures(read_period_logs(logs), cycle_ns)}
 
 
 def run(args) -> dict:

@@ -10,8 +10,8 @@ and what the cycle's spin before each deadline costs, fixed against adaptive.
    the agent names its cycle and management threads), and the agent's own cycle statistics
    (agent status over Zenoh: period p99/max, overruns).
 2. ``spin_fixed`` / ``spin_auto``: ``Cycle`` over ``SimBus(N)`` at 1 kHz in a process of its own,
-   with the spin before each deadline fixed at 150 us (before issue 13) or adaptive (the default:
-   the sleep's recent overshoot plus a margin, 30..150 us); they alternate in ``--rounds`` rounds.
+   with the spin before each deadline fixed at 150 us (the default) or adaptive (``spin_ns =
+   None``: the sleep's recent overshoot plus a margin, 30..150 us); they alternate in ``--rounds`` rounds.
    ``--rt-priority`` puts their cycle thread under SCHED_FIFO (root), as a real agent would run.
    Reported: the cycle thread's CPU (% of a core) and the period jitter |period - cycle|
    p99/p99.9/max of each, and their ratios (auto over fixed).
@@ -33,8 +33,8 @@ import time
 from array import array
 from pathlib import Path
 
-from bench.common import (ROOT, bench_parser, free_port, main_result, period_figures, proc_cpu_s, stop_process,
-                          task_cpu_ns, thread_cpu_ns)
+from bench.common import (ROOT, bench_parser, free_port, main_result, period_figures, proc_cpu_s, read_period_logs,
+                          run_json, stop_process, task_cpu_ns, thread_cpu_ns)
 
 
 
@@ -144,16 +144,11 @@ def _spin_rounds(args) -> dict:
                 print(f"bench_idle: round {r + 1}/{args.rounds} {name} ({args.seconds:g} s)...", file=sys.stderr,
                       flush=True)
                 log_file = os.path.join(tmp, f"{name}-{r}")
-                p = subprocess.run([sys.executable, "-m", "bench.bench_idle", "--phase", name, "--drives",
-                                    str(args.drives), "--seconds", str(args.seconds), "--log-file", log_file,
-                                    "--rt-priority", str(args.rt_priority)],
-                                   cwd=ROOT, capture_output=True, text=True, timeout=args.seconds * 4 + 60)
-                if p.returncode != 0:
-                    raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
-                parts[name].append(json.loads(p.stdout.strip().splitlines()[-1]))
-                a = array("q")
-                a.frombytes(Path(log_file).read_bytes())
-                periods[name].extend(a)
+                parts[name].append(run_json(
+                    [sys.executable, "-m", "bench.bench_idle", "--phase", name, "--drives", str(args.drives),
+                     "--seconds", str(args.seconds), "--log-file", log_file, "--rt-priority", str(args.rt_priority)],
+                    f"phase {name}", args.seconds * 4 + 60))
+                periods[name] += read_period_logs([log_file])
     out: dict = {}
     for name in phases:
         el = sum(x["seconds"] for x in parts[name])

@@ -214,6 +214,26 @@ def task_cpu_ns(tid: int, pid: int | None = None) -> int:
         return 0
 
 
+def read_period_logs(paths: Sequence[str]) -> list[int]:
+    """The periods (ns, int64) of every file in ``paths``, in order: what phases wrote."""
+    out: list[int] = []
+    for path in paths:
+        a = array("q")
+        with open(path, "rb") as f:
+            a.frombytes(f.read())
+        out.extend(a)
+    return out
+
+
+def run_json(cmd: Sequence[str], what: str, timeout_s: float) -> dict:
+    """Run a phase process in the repository root; the JSON of its last line of output.
+    Raises RuntimeError naming ``what`` with the end of its stderr when it fails."""
+    p = subprocess.run(list(cmd), cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
+    if p.returncode != 0:
+        raise RuntimeError(f"{what} failed ({p.returncode}): {p.stderr[-3000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
 def self_cpu_s() -> float:
     """User + system CPU time of this process in seconds (getrusage)."""
     r = resource.getrusage(resource.RUSAGE_SELF)

@@ -32,7 +32,7 @@ import threading
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
 from bus_agent.cia402.states import decode_statusword
-from bus_agent.cycle.base import INBOX_MAX, STATS_EVERY, STATS_WINDOW
+from bus_agent.cycle.base import INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, STATS_EVERY, STATS_WINDOW
 from bus_agent.cycle.commands import CommandsMixin
 from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
@@ -49,16 +49,6 @@ __all__ = ["Cycle", "IdentityMismatch", "decode_supported_modes", "INBOX_MAX", "
 
 log = logging.getLogger(__name__)
 
-#: Spin (busy-wait) at most this long before a deadline; sleep before that. time.sleep overshoots
-#: by ~50-100 us on Linux with the default 50 us timer slack, so the spin absorbs it.
-SPIN_NS = 150_000
-#: The adaptive spin (``Cycle.spin_ns = None``, the default): the largest overshoot of the sleep
-#: over the last STATS_WINDOW cycles plus SPIN_MARGIN_NS, at least SPIN_MIN_NS and at most SPIN_NS,
-#: recomputed every STATS_EVERY cycles. The cycle thread runs with 1 ns timer slack, so on a quiet
-#: host the sleep wakes within a few tens of us and most of the 150 us of spinning (15 % of a core
-#: at 1 kHz) is saved; under load the overshoots grow and the spin grows with them.
-SPIN_MIN_NS = 30_000
-SPIN_MARGIN_NS = 30_000
 
 
 class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):

@@ -36,8 +36,10 @@ __all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMot
            "MODE_CSV"]
 
 _Active = Active
-#: A step this many periods after the previous one is a stall: the profile pauses (see step()).
-STALL_PERIODS = 3
+#: A cycle may catch up at most this many periods of its profile (see step()): a longer gap
+#: pauses the profile for the rest. 5 periods at the velocity limit are far inside any following
+#: error window, and short stalls (a loaded host) keep cross-host synchronized moves in time.
+STALL_PERIODS = 5
 
 
 
@@ -348,13 +350,14 @@ class AxisMotion(DriveRunsMixin):
     def step(self, now_s: float) -> list[Finished]:
         """Sample the plan for this cycle's targets and decide outcomes. Call after :meth:`observe`.
 
-        A stalled cycle (more than :data:`STALL_PERIODS` periods since the last step) pauses the
-        profile instead of jumping ahead on it: the drive held the last target meanwhile (no
-        frames), so a target sampled at the wall-clock time would jump by velocity x stall and
-        trip the drive's following error (0x8611). The profile then ends later by the stall."""
+        A stalled cycle (more than :data:`STALL_PERIODS` periods since the last step) catches up
+        at most that many periods and pauses the profile for the rest: the drive held the last
+        target meanwhile (no frames), so a target sampled at the wall-clock time would jump by
+        velocity x stall and trip the drive's following error (0x8611). The profile then ends
+        later by the stall beyond those periods."""
         last, self._last_step_s = self._last_step_s, now_s
         if last is not None and self.plan is not None and now_s - last > STALL_PERIODS * self.lead_s:
-            self.plan_t0 += now_s - last - self.lead_s
+            self.plan_t0 += now_s - last - STALL_PERIODS * self.lead_s
             self.stalls += 1
         if self.homing is not None:
             return self._step_homing(self.homing, now_s)

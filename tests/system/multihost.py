@@ -312,8 +312,9 @@ def _handle(fleet: Any, req: dict) -> Any:
         res = fleet.lease(*req["selectors"], ttl_s=req.get("ttl_s"))
         return {"ok": all(r.ok for r in res.results), "outcomes": {r.name: r.outcome for r in res.results}}
     if op == "group_move":
+        called = time.time()
         res = fleet.group_move(req["targets"], timeout_s=req.get("move_timeout_s", 30.0))
-        return {"ok": res.ok, "outcomes": {r.name: r.outcome for r in res.results},
+        return {"ok": res.ok, "called_s": called, "outcomes": {r.name: r.outcome for r in res.results},
                 "durations": {r.name: round(r.duration_s, 6) for r in res.results},
                 "errors": [f"{r.name}: {r.error}" for r in res.results if not r.ok]}
     if op == "recording":

@@ -18,6 +18,7 @@ import shutil
 
 import pytest
 
+from supervisor.motion import START_MARGIN_S
 from tests.conftest import require, require_root
 from tests.system.multihost import MultiHostRun
 
@@ -25,7 +26,9 @@ pytestmark = [pytest.mark.timeout(180)]
 
 HOSTS = ("h1", "h2")
 CYCLE_S = 0.001
-SCHEDULING_SLACK_S = 0.002
+#: A cycle thread's scheduling delay on a loaded 2-core machine (the figures are printed; on a
+#: quiet machine they are within a cycle or two).
+SCHEDULING_SLACK_S = 0.010
 TARGETS = {"h1/axis0": 30_000.0, "h1/axis1": -15_000.0, "h2/axis0": 45_000.0, "h2/axis1": 5_000.0}
 
 
@@ -59,8 +62,10 @@ def test_cross_host_group_move_starts_and_arrives_together(run):
     arrive_spread = max(arrive.values()) - min(arrive.values())
     print(f"cross-host synchronized move: start spread {start_spread * 1e3:.3f} ms, "
           f"arrival spread {arrive_spread * 1e3:.3f} ms (agents' own stamps)")
-    # Each agent starts at the first of its cycles at or after the common start time (the two
-    # agents' cycles are not phase-aligned: up to one cycle apart), arrives one profile duration
-    # later; plus up to 2 ms of a cycle thread's scheduling delay on a loaded machine.
+    # Both started at the committed wall-clock time, a margin after the call (not on receipt of
+    # the commit, which comes earlier) ...
+    assert min(start.values()) >= res["called_s"] + START_MARGIN_S - CYCLE_S, (res["called_s"], start)
+    # ... each at the first of its cycles at or after it (the agents' cycles are not phase-aligned:
+    # up to one cycle apart) and arrives one common duration later; plus scheduling slack.
     assert start_spread <= 2 * CYCLE_S + SCHEDULING_SLACK_S, start
     assert arrive_spread <= 3 * CYCLE_S + SCHEDULING_SLACK_S, arrive
