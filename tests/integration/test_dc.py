@@ -5,6 +5,7 @@ when DC is off on a drive that requires it. Also the simulated ESC's DC unit wit
 from __future__ import annotations
 
 import struct
+import threading
 import time
 
 import pytest
@@ -41,6 +42,13 @@ def test_dc_auto_starts_sync0_and_keeps_the_cycle_in_step(ecat_segment):
         agent.cycle.stop()
 
 
+def _enable_both(agent: Agent) -> None:
+    _wait(lambda: agent.cycle.latest is not None and all(d.mode_display == 8 for d in agent.cycle.latest.drives),
+          20, "both drives in OP, mode 8 echoed")
+    outs = agent.cmd("enable", "axis0", "axis1")
+    assert all(o.outcome == "done" for o in outs), outs
+
+
 def _sync0_phase_ns(slave: dict) -> int:
     dc = slave["dc"]
     return dc["sync0_start_ns"] % dc["sync0_cycle_ns"]
@@ -57,10 +65,7 @@ def test_a_recovered_dc_slave_gets_its_sdos_dc_time_and_sync0_back(ecat_segment,
     agent = Agent(ifname, drives=drives, dc=DcConfig(before_safeop=before_safeop))
     agent.cycle.start()
     try:
-        _wait(lambda: agent.cycle.latest is not None and all(d.mode_display == 8 for d in agent.cycle.latest.drives),
-              20, "both drives in OP, mode 8 echoed")
-        outs = agent.cmd("enable", "axis0", "axis1")
-        assert all(o.outcome == "done" for o in outs), outs
+        _enable_both(agent)
         before = _slaves(control)
         assert _sync0_phase_ns(before[0]) == _sync0_phase_ns(before[1])
         assert control.request("unplug", slave=1)["ok"]
@@ -78,6 +83,45 @@ def test_a_recovered_dc_slave_gets_its_sdos_dc_time_and_sync0_back(ecat_segment,
         assert agent.drive("axis0").state == "operation_enabled"
         assert agent.drive("axis1").state == "switch_on_disabled"  # never re-enabled by itself
         assert after[1]["drive_state"] == "switch_on_disabled"
+    finally:
+        agent.cycle.stop()
+
+
+def test_a_stalled_cycle_is_a_sync_error_the_agent_reports(ecat_segment):
+    """The agent's cycle stalls in its exchange (no frame for 50+ SYNC0 periods): the
+    DC-required drive raises a sync error (AL 0x001A) before the SM watchdog (100 ms) of either
+    drive; the agent marks that drive lost with the code and its hint, the group reacts (quick
+    stop of the other member, which stays in OP), and the slave returns to OP, not enabled."""
+    ifname, control = ecat_segment(2, "omron1s:dc,omron1s:dc-required")
+    agent = Agent(ifname, groups={"arm": ("h1/axis0", "h1/axis1")})
+    agent.cycle.start()
+    try:
+        _enable_both(agent)
+        stall, stalled_s = threading.Event(), []
+        exchange = agent.bus.exchange
+
+        def stalling_exchange() -> int:
+            if stall.is_set():  # the cycle thread stalls until the drive says sync error (at most 95 ms)
+                stall.clear()
+                t0 = time.monotonic()
+                while time.monotonic() - t0 < 0.095 and _slaves(control)[1]["al_status_code"] != 0x001A:
+                    time.sleep(0.002)
+                stalled_s.append(time.monotonic() - t0)
+            return exchange()
+
+        agent.bus.exchange = stalling_exchange  # type: ignore[method-assign]
+        stall.set()
+        _wait(lambda: any(e.kind == "lost" and e.axis == "axis1" for e in list(agent.events)), 10, "axis1 lost")
+        lost = next(e for e in list(agent.events) if e.kind == "lost" and e.axis == "axis1")
+        assert lost.error_code == 0x001A and "synchronization error" in lost.detail, lost
+        assert stalled_s and stalled_s[0] < 0.095, stalled_s  # the sync error came within the stall
+        _wait(lambda: any(e.kind == "reflex" and e.axis == "axis0" for e in list(agent.events)), 5, "group reflex")
+        _wait(lambda: _slaves(control)[0]["drive_state"] in ("quick_stop_active", "switch_on_disabled"), 5,
+              "axis0 stopped by the group reflex")
+        assert not agent.drive("axis0").lost  # its watchdog did not fire: only the sync error
+        _wait(lambda: not agent.drive("axis1").lost and agent.drive("axis1").al_state == "op", 20, "axis1 back in OP")
+        assert agent.drive("axis1").state != "operation_enabled" and agent.cycle.state == "running"
+        assert _slaves(control)[1]["drive_state"] != "operation_enabled"
     finally:
         agent.cycle.stop()
 
@@ -120,9 +164,30 @@ def test_esc_dc_unit_sync0_and_sync_error():
     _reg(esc, 0x0990, struct.pack("<Q", now + 2_000_000))
     _reg(esc, 0x0981, b"\x03")
     _wait(esc.dc.sync0_running, 2, "SYNC0 running after its start time")
-    # in OP with SYNC0 but no outputs for 100 SYNC0 cycles: sync error, SAFE-OP
+    # in OP with SYNC0, DC time stepped by the test (no scheduling in the way)
     esc.al_state = ALState.OP
     esc.model.write(0x6060, 0, 8)
-    esc.out_time = time.monotonic() - 0.3
-    esc.check_sync(time.monotonic())
+    t = [esc.dc.clock_ns() + 3_000_000]
+    esc.dc.clock_ns = lambda: t[0]
+
+    def periods(n: int, outputs_every: int = 1) -> int:
+        """n SYNC0 periods, outputs mid-period every ``outputs_every`` (0: none); the periods
+        run until the sync error, or n."""
+        for k in range(n):
+            t[0] += 500_000
+            esc.check_sync(0.0)
+            if outputs_every and k % outputs_every == 0:
+                esc.out_count += 1
+            t[0] += 500_000
+            esc.check_sync(0.0)
+            if esc.al_state != ALState.OP:
+                return k + 1
+        return n
+
+    assert periods(40) == 40 and esc.sync_error_counter == 0  # in step
+    # a 40-period stall: +3 for each but the first (one output may be due in the running period)
+    assert periods(40, 0) == 40 and esc.sync_error_counter == 3 * 39
+    assert periods(150) == 150 and esc.sync_error_counter == 0  # -1 per period in step again
+    n = periods(400, 2)  # a master at half the SYNC0 rate: +3 -1 per two periods
+    assert 140 <= n <= 160, n
     assert esc.al_state == ALState.SAFEOP and esc.al_error and esc.al_code == 0x001A

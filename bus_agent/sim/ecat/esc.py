@@ -74,9 +74,13 @@ class AlStatusCode:
     INVALID_DC_SYNC = 0x0030
 
 
-#: dc-required: outputs missing for this many SYNC0 cycles in OP is a sync error (0x001A)
-#: (as long as the SM watchdog at 1 kHz: a start-up gap is not a sync error).
-SYNC_ERROR_CYCLES = 100
+#: dc-required sync error (0x001A), counted as drives count missed SM events against SYNC0
+#: (ETG.6010 0x10F1:02, sync error counter limit): +3 for a SYNC0 period without new outputs,
+#: -1 for a period with, a sync error above the limit. So 51 periods in a row without outputs
+#: (51 ms at 1 kHz: before the 100 ms SM watchdog), or a master at half the SYNC0 rate for about
+#: 150 periods; a late frame now and then is not one. Counted in OP only (from entering it).
+SYNC_ERROR_MISSED = 3
+SYNC_ERROR_LIMIT = 150
 EEP_STATUS_R64 = 0x0040  # 8-byte reads supported
 EEP_CMD_READ, EEP_CMD_WRITE, EEP_CMD_RELOAD = 0x01, 0x02, 0x04
 SM_STATUS_MBX_FULL = 0x08
@@ -176,6 +180,11 @@ class Esc:
         self.mbx_in_full = False
         self.fmmus: list[tuple[int, int, int, int]] = []  # (logical start, length, physical, type)
         self.out_time = 0.0
+        self.out_count = 0  # process-data writes of outputs (the segment counts them)
+        self.sync_error_counter = 0
+        self._sync_seen: tuple[int, int] | None = None  # (SYNC0 events, out_count) at the start of counting
+        self._sync_events = 0  # SYNC0 events at the last count
+        self._lag_ref = 0
         self.last_step = 0.0  # when the segment last stepped this slave's drive model
         self.outputs_fresh = False
         # (struct, field map) of a remapped PDO; None for the default mapping
@@ -416,6 +425,7 @@ class Esc:
             self.model.communication_lost()
         if target == ALState.OP:
             self.out_time = time.monotonic()
+            self.sync_error_counter, self._sync_seen = 0, None
             self._set8(Reg.WD_STATUS_PD, 1)
         if target == ALState.INIT:
             self.mailbox.reset()
@@ -447,15 +457,39 @@ class Esc:
         return int(self.model.read(0x6061, 0)) in (8, 9, 10) and not self.dc.sync0_running()
 
     def check_sync(self, now: float) -> None:
-        """In OP: a dc-required drive in mode 8/9/10 without SYNC0 -> SAFE-OP + 0x0030; outputs
-        not in step with SYNC0 for :data:`SYNC_ERROR_CYCLES` pulses -> SAFE-OP + 0x001A."""
+        """In OP: a dc-required drive in mode 8/9/10 without SYNC0 -> SAFE-OP + 0x0030; the sync
+        error counter over the SYNC0 periods since the last call above :data:`SYNC_ERROR_LIMIT`
+        -> SAFE-OP + 0x001A. Called often (the segment's loop)."""
         dc = self.dc
         if dc is None or not self.ecat_profile.dc_required or self.al_state != ALState.OP:
             return
         if self._needs_sync0():
             self._fail(ALState.SAFEOP, AlStatusCode.INVALID_DC_SYNC)
-        elif dc.sync0 is not None and now - self.out_time > SYNC_ERROR_CYCLES * dc.sync0[1] / 1e9:
-            log.warning("slave %d: sync error: no outputs for %d SYNC0 cycles", self.position, SYNC_ERROR_CYCLES)
+            return
+        # lag = SYNC0 periods - outputs since OP: in step it stays within one of its lowest
+        # (an output is due in every period); each rise beyond that is a period missed
+        events = dc.sync0_events()
+        if self._sync_seen is None:
+            if events:
+                self._sync_seen = (events, self.out_count)
+                self._sync_events, self._lag_ref = events, 0
+            return
+        events0, outs0 = self._sync_seen
+        lag = (events - events0) - (self.out_count - outs0)
+        periods, self._sync_events = events - self._sync_events, events
+        if periods <= 0:
+            self._lag_ref = min(self._lag_ref, lag)
+            return
+        if lag > self._lag_ref + 1:
+            missed = lag - self._lag_ref - 1
+            self._lag_ref = lag - 1
+            self.sync_error_counter += SYNC_ERROR_MISSED * missed
+        else:
+            self.sync_error_counter = max(0, self.sync_error_counter - periods)
+            self._lag_ref = min(self._lag_ref, lag)
+        if self.sync_error_counter > SYNC_ERROR_LIMIT:
+            log.warning("slave %d: sync error: outputs not in step with SYNC0 (counter %d > %d)", self.position,
+                        self.sync_error_counter, SYNC_ERROR_LIMIT)
             self._fail(ALState.SAFEOP, AlStatusCode.SYNC_ERROR)
 
     def watchdog_expired(self) -> None:

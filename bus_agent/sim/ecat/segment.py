@@ -152,6 +152,7 @@ class Segment:
                     dst[:] = src
                 for esc in written:
                     esc.out_time = now
+                    esc.out_count += 1
             else:
                 wkc = self._register_datagram(cmd, adp, ado, buf, data_off, length)
                 if cmd in _AUTO_INC:
@@ -301,4 +302,4 @@ class Segment:
                  "drive_state": e.model.state.value, "statusword": e.model.statusword,
                  "controlword": e.model.read(0x6040, 0), "mode_display": e.model.read(0x6061, 0),
                  "error_code": e.model.error_code, "wkc_fault": e.wkc_fault,
-                 "dc": e.dc.status() if e.dc is not None else None} for e in self.escs]
+                 "dc": None if e.dc is None else {**e.dc.status(), "sync_error_counter": e.sync_error_counter}} for e in self.escs]
