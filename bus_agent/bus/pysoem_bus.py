@@ -168,27 +168,15 @@ class PysoemBus(PysoemDc):
         who = f"slave {position} ({s.name!r})"
 
         def read(index: int, sub: int, size: int) -> bytes:
-            try:
-                return bytes(s.sdo_read(index, sub, size, release_gil=True))
-            except self._pysoem.SdoError as e:
-                code = e.abort_code & 0xFFFFFFFF
-                raise BusError(f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X} aborted "
-                               f"0x{code:08X} ({e.desc})") from None
-            except Exception as e:
-                raise BusError(f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X} failed: {e}") from None
+            return bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True),
+                                   f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}"))
 
         current = read_mapping(read)
         policy = setup.policy
         steps = plan_writes(policy, current)
         for step in steps:
-            try:
-                s.sdo_write(step.index, step.subindex, step.data, release_gil=True)
-            except self._pysoem.SdoError as e:
-                code = e.abort_code & 0xFFFFFFFF
-                raise BusError(f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X} "
-                               f"aborted 0x{code:08X} ({e.desc}): {abort_hint(code)}") from None
-            except Exception as e:
-                raise BusError(f"{who}: mapping policy {policy.policy!r}: SDO write {step} failed: {e}") from None
+            self._sdo(lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
+                      f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X}", hint=True)
         if steps:
             current = read_mapping(read)
             log.info("%s: mapping policy %s written (%d SDO downloads): %s", who, policy.policy, len(steps),
@@ -200,13 +188,7 @@ class PysoemBus(PysoemDc):
             raise BusError(f"{who}: its PDO mapping cannot run the cycle: {'; '.join(problems)} "
                            f"(mapping policy {policy.policy!r}: {describe(current)}); {hint}")
         for sdo in setup.sdos:
-            try:
-                s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True)
-            except self._pysoem.SdoError as e:
-                code = e.abort_code & 0xFFFFFFFF
-                raise BusError(f"{who}: start-up SDO {sdo} aborted 0x{code:08X} ({e.desc})") from None
-            except Exception as e:
-                raise BusError(f"{who}: start-up SDO {sdo} failed: {e}") from None
+            self._sdo(lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True), f"{who}: start-up SDO {sdo}")
         if setup.sdos:
             log.info("%s: %d start-up SDO(s) applied", who, len(setup.sdos))
         if position < len(self._codecs) and self._codecs[position].mapping != current:
@@ -218,6 +200,17 @@ class PysoemBus(PysoemDc):
         except BusError as e:
             self._preop_values[(position, 0x6502)] = e
         return current
+
+    def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False) -> Any:
+        """One SDO transfer; its failure as a BusError naming ``what``, the abort code and its
+        meaning (with ``hint``: what to do instead)."""
+        try:
+            return transfer()
+        except self._pysoem.SdoError as e:
+            code = e.abort_code & 0xFFFFFFFF
+            raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})" + (f": {abort_hint(code)}" if hint else "")) from None
+        except Exception as e:
+            raise BusError(f"{what} failed: {e}") from None
 
     def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
@@ -551,24 +544,14 @@ class PysoemBus(PysoemDc):
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """CoE SDO upload. Raises BusError with the abort code. Not cycle-safe (mailbox round trips)."""
         s = self._slaves[position]
-        try:
-            return bytes(s.sdo_read(index, subindex, size, release_gil=True))
-        except self._pysoem.SdoError as e:
-            raise BusError(f"slave {position}: SDO upload 0x{index:04X}:{subindex} aborted "
-                           f"0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
-        except Exception as e:
-            raise BusError(f"slave {position}: SDO upload 0x{index:04X}:{subindex} failed: {e}") from None
+        return bytes(self._sdo(lambda: s.sdo_read(index, subindex, size, release_gil=True),
+                               f"slave {position}: SDO upload 0x{index:04X}:{subindex}"))
 
     def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
         """CoE SDO download. Raises BusError with the abort code."""
         s = self._slaves[position]
-        try:
-            s.sdo_write(index, subindex, bytes(data), release_gil=True)
-        except self._pysoem.SdoError as e:
-            raise BusError(f"slave {position}: SDO download 0x{index:04X}:{subindex} aborted "
-                           f"0x{e.abort_code & 0xFFFFFFFF:08X} {e.desc}") from None
-        except Exception as e:
-            raise BusError(f"slave {position}: SDO download 0x{index:04X}:{subindex} failed: {e}") from None
+        self._sdo(lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
+                  f"slave {position}: SDO download 0x{index:04X}:{subindex}")
 
     def close(self) -> None:
         """All slaves to INIT (briefly checked), then release the NIC. Idempotent."""
