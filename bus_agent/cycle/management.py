@@ -236,7 +236,9 @@ class Management:
         except Exception as e:  # BusError with the abort code: the cycle answers the command with it
             what = job.kind if job.kind == "error_code" else ("mode_write" if "0x6060" in str(e) else "mode_display")
             job.attempts += 1
-            if what != "mode_write" and job.attempts < SDO_ATTEMPTS and now_ns < job.deadline_ns:
+            if what == "mode_write" and "aborted" not in str(e):
+                job.written = False  # no answer (a mailbox timeout under load): write again; an abort is final
+            if (what != "mode_write" or not job.written) and job.attempts < SDO_ATTEMPTS and now_ns < job.deadline_ns:
                 # an emergency in the mailbox (the fault's own EMCY) fails SOEM's upload: read again
                 return True
             self.reports.append(("sdo", job.slave, what, None, str(e)))

@@ -1,0 +1,52 @@
+"""The management thread's SDO jobs for a mode the drive does not map (0x6060 by SDO): a
+download that gets no answer (a mailbox timeout) is written again; a refusal (abort) is final."""
+
+from __future__ import annotations
+
+import struct
+
+from bus_agent.bus.base import BusError
+from bus_agent.cycle.management import Management, SdoJob
+
+
+class MailboxBus:
+    """0x6060/0x6061 by SDO; the first ``timeouts`` downloads get no answer, or every one is refused."""
+
+    def __init__(self, timeouts: int = 0, refuse: bool = False) -> None:
+        self.timeouts, self.refuse, self.mode, self.writes = timeouts, refuse, 0, 0
+
+    def sdo_write(self, slave: int, index: int, subindex: int, data: bytes) -> None:
+        self.writes += 1
+        if self.refuse:
+            raise BusError(f"slave {slave}: SDO download 0x{index:04X}:{subindex} aborted 0x06090030 (value range)")
+        if self.timeouts:
+            self.timeouts -= 1
+            raise BusError(f"slave {slave}: SDO download 0x{index:04X}:{subindex} failed: ")
+        self.mode = struct.unpack("<b", data)[0]
+
+    def sdo_read(self, slave: int, index: int, subindex: int, size: int) -> bytes:
+        return struct.pack("<b", self.mode)
+
+
+def _run(bus: MailboxBus) -> list:
+    m = Management(bus, lambda: 0, 1_000_000, "h1")  # type: ignore[arg-type]
+    job = SdoJob(0, "mode", 8, deadline_ns=10**9)
+    steps = 0
+    while m._sdo_step(job, 0) and steps < 20:
+        steps += 1
+    return list(m.reports)
+
+
+def test_a_mode_download_without_answer_is_written_again_until_echoed():
+    bus = MailboxBus(timeouts=2)
+    reports = _run(bus)
+    assert bus.writes == 3 and bus.mode == 8
+    assert reports[-1] == ("sdo", 0, "mode_display", 8, "")
+    assert not any(r[2] == "mode_write" for r in reports)
+
+
+def test_a_refused_mode_download_is_reported_once_and_not_retried():
+    bus = MailboxBus(refuse=True)
+    reports = _run(bus)
+    assert bus.writes == 1
+    assert [r[2] for r in reports] == ["mode_write"] and "aborted 0x06090030" in reports[0][4]
