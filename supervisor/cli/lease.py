@@ -32,7 +32,9 @@ def _selectors(args: argparse.Namespace) -> list[str]:
 def _lease(args: argparse.Namespace, console: Console) -> int:
     stop = threading.Event()
     lost: list[Any] = []
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # Both handled explicitly: a SIGINT that the starting shell ignored (a job started with '&'
+    # from a script inherits SIGINT ignored) must still end the lease, as Ctrl-C does.
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         with open_fleet(args) as fleet:
             sels = known_targets(fleet, _selectors(args))
@@ -50,17 +52,15 @@ def _lease(args: argparse.Namespace, console: Console) -> int:
             else:
                 console.print(f"lease held by {fleet.name} on {len(held)} drive(s): {', '.join(held)}; "
                               "Ctrl-C releases it")
-            try:
-                stop.wait(args.duration)
-            except KeyboardInterrupt:
-                pass
+            stop.wait(args.duration)
             for r in lost:
                 msg = f"lease on {r.name} lost: {r.outcome}, held by {r.lease_holder or '?'}"
                 print(json.dumps({"event": "lease_lost", "drive": r.name, "holder": r.lease_holder})
                       if args.json else msg, flush=True)
             return EXIT_FAILED if lost else EXIT_OK
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _release(args: argparse.Namespace, console: Console) -> int:
