@@ -49,7 +49,7 @@ import threading
 import time
 from array import array
 
-from bench.common import (ROOT, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
+from bench.common import (ROOT, alternate_phases, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
                           pysoem_to_op, quantiles, read_period_logs, segment, self_cpu_s, stop_process, summary_ms)
 
 ECHO_KEY = "bench/echo"
@@ -573,16 +573,8 @@ def run(args) -> dict:
         phases = ["bare", "agent"] + ([] if args.no_gateway else [f"gateway_{m}" for m in args.gateway_modes])
         # Phases alternate in rounds, so a burst of load from other work on the host lands on
         # all of them alike rather than on whichever phase happened to run then.
-        per_round = args.seconds / args.rounds
-        parts: dict[str, list[dict]] = {p: [] for p in phases}
-        logs: dict[str, list[str]] = {p: [] for p in phases}
-        for r in range(args.rounds):
-            for name in phases:
-                print(f"bench_agent: round {r + 1}/{args.rounds} phase {name} ({per_round:g} s)...",
-                      file=sys.stderr, flush=True)
-                log_file = os.path.join(seg.workdir, f"{name}-{r}.periods")
-                parts[name].append(_run_phase(name, seg.master_if, args, per_round, log_file))
-                logs[name].append(log_file)
+        parts, logs = alternate_phases("bench_agent", phases, args.rounds, args.seconds, seg.workdir,
+                                       lambda name, s, log: _run_phase(name, seg.master_if, args, s, log))
         results = {name: _merge(parts[name], logs[name], args.cycle_us * 1000) for name in phases}
         ratios = jitter_ratios(results)
         enable = None

@@ -42,12 +42,11 @@ import subprocess
 import sys
 import threading
 import time
-from array import array
 from collections import deque
 
 from bench.bench_agent import _enable_all, _measure, jitter_ratios, phase_bare
-from bench.common import (ROOT, bench_parser, loadavg, main_result, percentile, period_figures, run_stamp, segment,
-                          summary_ms)
+from bench.common import (ROOT, alternate_phases, bench_parser, loadavg, main_result, percentile, period_figures, run_stamp, segment,
+                          read_period_logs, summary_ms)
 
 #: Back-and-forth targets of the motion phase (counts): well within the default limits.
 SWING = 40_000
@@ -263,12 +262,7 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str) -> d
 
 
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
-    periods: list[int] = []
-    for path in logs:
-        a = array("q")
-        with open(path, "rb") as f:
-            a.frombytes(f.read())
-        periods.extend(a)
+    periods = read_period_logs(logs)
     seconds = sum(p["seconds"] for p in parts)
     cpu = sum(p["cpu_s"] for p in parts)
     cycles = sum(p["cycles"] for p in parts)
@@ -287,16 +281,8 @@ def run(args) -> dict:
     load0 = loadavg()
     with segment("bmo", args.drives, args.sim_rt_priority) as seg:
         phases = ["bare", "idle", "motion"]
-        per_round = args.seconds / args.rounds
-        parts: dict[str, list[dict]] = {p: [] for p in phases}
-        logs: dict[str, list[str]] = {p: [] for p in phases}
-        for r in range(args.rounds):
-            for name in phases:
-                print(f"bench_motion: round {r + 1}/{args.rounds} phase {name} ({per_round:g} s)...",
-                      file=sys.stderr, flush=True)
-                log_file = os.path.join(seg.workdir, f"{name}-{r}.periods")
-                parts[name].append(_run_phase(name, seg.master_if, args, per_round, log_file))
-                logs[name].append(log_file)
+        parts, logs = alternate_phases("bench_motion", phases, args.rounds, args.seconds, seg.workdir,
+                                       lambda name, s, log: _run_phase(name, seg.master_if, args, s, log))
         results = {name: _merge(parts[name], logs[name], args.cycle_us * 1000) for name in phases}
         print("bench_motion: phase latency...", file=sys.stderr, flush=True)
         latency = _run_phase("latency", seg.master_if, args, 0, os.path.join(seg.workdir, "latency"))

@@ -225,6 +225,23 @@ def read_period_logs(paths: Sequence[str]) -> list[int]:
     return out
 
 
+def alternate_phases(tag: str, phases: Sequence[str], rounds: int, seconds: float, workdir: str,
+                     run_phase: Callable[[str, float, str], dict]) -> tuple[dict[str, list[dict]], dict[str, list[str]]]:
+    """Run ``phases`` in ``rounds`` alternating rounds of ``seconds / rounds`` each, so that a burst
+    of load from other work lands on every phase alike. ``run_phase(name, seconds, period_log)``
+    runs one; returns each phase's results and period log files, in round order."""
+    per_round = seconds / rounds
+    parts: dict[str, list[dict]] = {p: [] for p in phases}
+    logs: dict[str, list[str]] = {p: [] for p in phases}
+    for r in range(rounds):
+        for name in phases:
+            print(f"{tag}: round {r + 1}/{rounds} phase {name} ({per_round:g} s)...", file=sys.stderr, flush=True)
+            log_file = os.path.join(workdir, f"{name}-{r}.periods")
+            parts[name].append(run_phase(name, per_round, log_file))
+            logs[name].append(log_file)
+    return parts, logs
+
+
 def run_json(cmd: Sequence[str], what: str, timeout_s: float) -> dict:
     """Run a phase process in the repository root; the JSON of its last line of output.
     Raises RuntimeError naming ``what`` with the end of its stderr when it fails."""
