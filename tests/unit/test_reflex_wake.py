@@ -184,3 +184,26 @@ def test_the_cycle_thread_wakes_for_a_trigger_and_the_member_leaves_operation_en
         cyc.stop()
     assert cyc._wake_fd == -1
     cyc.trigger_group("arm", "after stop")  # the closed wake is not written
+
+
+def test_ecat_sim_steps_its_drives_after_every_frame_of_a_1ms_cycle() -> None:
+    """ecat-sim's frame loop calls step_some right after answering each frame; with frames every
+    1 ms (a few us of jitter either way) every frame is followed by one round of model steps, so
+    a drive answers a new controlword in the next frame (it was about 60 % of the frames)."""
+    from bus_agent.sim.ecat.segment import Segment
+
+    import time
+
+    seg = Segment(2)
+    t0 = time.monotonic() + 1.0
+    rounds = 0
+    for k in range(1000):
+        now = t0 + k * 1e-3 + 30e-6 + (8e-6 if k % 3 == 0 else -8e-6)
+        before = seg.escs[0].last_step
+        assert not seg.step_some(now, 1e-3, 8)   # one call steps both (budget 8)
+        rounds += seg.escs[0].last_step != before
+    assert rounds >= 999
+    # far behind (an idle segment at 10 ms, then 1 ms frames): no burst of catch-up rounds
+    later = t0 + 5.0
+    steps = [seg.step_some(later + i * 1e-4, 1e-3, 8) or seg.escs[0].last_step for i in range(5)]
+    assert len(set(steps)) == 1
