@@ -207,3 +207,44 @@ def test_ecat_sim_steps_its_drives_after_every_frame_of_a_1ms_cycle() -> None:
     later = t0 + 5.0
     steps = [seg.step_some(later + i * 1e-4, 1e-3, 8) or seg.escs[0].last_step for i in range(5)]
     assert len(set(steps)) == 1
+
+
+def test_the_gateway_publishes_a_new_fault_at_once_on_the_callers_thread() -> None:
+    """``publish_bad_now`` (the gateway process's bridge reader calls it per snapshot): the
+    status of a drive newly in fault goes out from the caller's thread, without the publish
+    thread (its heartbeat an hour away, never woken here); once per change."""
+    import time
+
+    import zenoh
+
+    from bus_agent import runtime as rt
+    from bus_agent.gateway.zenoh_config import make_zenoh_config
+    from schemas import keys
+    from schemas import messages as m
+    from tests.unit.test_gateway import HOST, FakeCycle, free_port, make_gateway, wait_for
+
+    port = free_port()
+    agent_s = zenoh.open(make_zenoh_config("peer", [f"tcp/127.0.0.1:{port}"], []))
+    client = zenoh.open(make_zenoh_config("peer", [], [f"tcp/127.0.0.1:{port}"]))
+    cycle = FakeCycle()
+    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0)
+    got: list = []
+    sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
+    try:
+        wait_for(lambda: gateway._status_pubs["x2"].matching_status.matching, what="the subscriber matched")
+
+        def snap() -> rt.CycleSnapshot:
+            return rt.CycleSnapshot(cycle.cycle, time.time_ns(), tuple(cycle.drives.values()), (), rt.CycleStats())
+
+        gateway.publish_bad_now(snap())                  # nothing bad: nothing published
+        n = len(got)
+        cycle.set("x2", state="fault", error_code=0x7305)
+        gateway.publish_bad_now(snap())
+        gateway.publish_bad_now(snap())                  # unchanged: not again
+        wait_for(lambda: any(s.state == "fault" for s in got[n:]), what="the fault status")
+        assert [(s.axis, s.state, s.error_code) for s in got[n:]] == [("x2", "fault", 0x7305)]
+    finally:
+        sub.undeclare()
+        gateway.close()
+        client.close()
+        agent_s.close()
