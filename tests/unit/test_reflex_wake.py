@@ -308,3 +308,11 @@ def test_bridge_out_is_woken_only_when_there_is_something_to_forward() -> None:
     assert woken(snap(gp._latest.drives))           # type: ignore[union-attr]
     gp._outcomes.clear()
     assert woken(snap(gp._latest.drives, state="stopping"))  # type: ignore[union-attr]
+
+
+def test_the_spin_adapts_by_default_unless_the_cycle_thread_is_real_time() -> None:
+    from bus_agent.cycle.cycle import SPIN_NS
+
+    cfg = AgentConfig(host="h1", sim_drives=1)
+    assert Cycle(SimBus(1), cfg).spin_ns is None                      # the demo, a laptop: CPU first
+    assert Cycle(SimBus(1), cfg, rt_priority=10).spin_ns == SPIN_NS   # SCHED_FIFO: jitter first
