@@ -124,6 +124,7 @@ class CycleBase:
         self._mgmt = Management(bus, clock_ns, self.period_ns, config.host)
         self._dc: DcSync | None = None
         self._dc_time: Callable[[], int] = lambda: 0
+        self._dc_ref: Drive | None = None  # the drive whose slave is the reference clock, if any
         self._dc_adjust_ns = 0
         #: How late the running cycle started after its deadline (ns; 0 for tick()).
         self._late_ns = 0

@@ -346,7 +346,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         dcs = self._dc
         if dcs is not None and wkc > 0:
             # keep the cycle in step with SYNC0: PI on the frame's phase (bus_agent.bus.dc)
-            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns)
+            ref = self._dc_ref
+            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns, ref is not None and ref.lost)
             self._dc_offsets[cycle % STATS_WINDOW] = dcs.offset_ns
             if self.dc_log is not None and 0 < self.period_log_len <= len(self.dc_log):
                 self.dc_log[self.period_log_len - 1] = dcs.offset_ns
