@@ -26,14 +26,18 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
+import select
 import sys
 import threading
+import time
 from typing import Sequence
 
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
 from bus_agent.cia402.states import State, decode_statusword
-from bus_agent.cycle.base import INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, STATS_EVERY, STATS_WINDOW
+from bus_agent.cycle.base import (INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, SPIN_QUANTILE, STATS_EVERY,
+                                  STATS_WINDOW)
 from bus_agent.cycle.commands import CommandsMixin
 from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS, Drive
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
@@ -76,6 +80,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         except BaseException:
             self._restore_process()
             raise
+        if self._sleep is time.sleep and self.express_reflex:
+            # the sleep before each deadline waits on this, so a remote trigger wakes the cycle
+            self._wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._mgmt.rt_priority = helper_priority(self.rt_priority)
         self._mgmt.start()
         if self.recorder is not None:
@@ -134,6 +141,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         if self._closed:
             return
         self._closed = True
+        fd, self._wake_fd = self._wake_fd, -1
+        if fd >= 0:
+            os.close(fd)
         self._mgmt.stop()
         if self.recorder is not None:
             self.recorder.stop()
@@ -159,9 +169,16 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         return True
 
     def trigger_group(self, group: str, reason: str) -> None:
-        """A member of ``group`` faulted or was lost on another host: local members react at the
-        next cycle (the configured reflex). Thread-safe."""
+        """A member of ``group`` faulted or was lost on another host: local members react with
+        the configured reflex, at once when the loop is asleep before a deadline (an express
+        exchange, :meth:`_express`), else in the running or next cycle. Thread-safe."""
         self._triggers.append((group, reason))
+        fd = self._wake_fd
+        if fd >= 0:
+            try:
+                os.eventfd_write(fd, 1)
+            except OSError:  # closed meanwhile: the agent is stopping
+                pass
 
     def stats(self) -> CycleStats:
         return self._stats
@@ -211,8 +228,13 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             while True:
                 deadline = t0 + k * period + self._dc_adjust_ns
                 now = self.clock_ns()
-                if now < deadline:
-                    self._wait_until(deadline)
+                while now < deadline:
+                    if not self._wait_until(deadline):
+                        now = self.clock_ns()
+                        break
+                    # woken before the deadline by a remote group trigger: apply it now
+                    if self._triggers:
+                        self._express(self.clock_ns())
                     now = self.clock_ns()
                 self._late_ns = now - deadline
                 if now - deadline > period:
@@ -238,19 +260,44 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         finally:
             self._restore_process()
 
-    def _wait_until(self, deadline_ns: int) -> None:
+    def _wait_until(self, deadline_ns: int) -> bool:
+        """Sleep until the spin before ``deadline_ns``, then spin to it. True (at once, without
+        spinning) when a remote trigger woke the sleep; a trigger during the spin waits for the
+        cycle (at most the spin away)."""
         spin = self.spin_ns if self.spin_ns is not None else self._spin_auto_ns
         wake = deadline_ns - spin
         remaining = wake - self.clock_ns()
         if remaining > 0:
-            self._sleep(remaining / 1e9)
-            self._oversleep[self.cycles % STATS_WINDOW] = self.clock_ns() - wake
+            if self._doze(remaining / 1e9):
+                return True
+            over = self._oversleep[self.cycles % STATS_WINDOW] = self.clock_ns() - wake
+            if over > self._spin_auto_ns:  # late past the spin: more spin from the next cycle on
+                self._spin_auto_ns = min(SPIN_NS, over + SPIN_MARGIN_NS)
         while self.clock_ns() < deadline_ns:
             pass
+        return False
+
+    def _doze(self, seconds: float) -> bool:
+        """Sleep ``seconds``, or until ``trigger_group`` writes the wake eventfd (True). select's
+        timeout has microsecond resolution, and the thread's 1 ns timer slack holds as for a sleep."""
+        fd = self._wake_fd
+        if fd < 0:
+            self._sleep(seconds)
+            # an injected sleep (tests, tools): a trigger queued meanwhile counts as a wake
+            return self.express_reflex and bool(self._triggers)
+        if not select.select((fd,), (), (), seconds)[0]:
+            return False
+        try:
+            os.eventfd_read(fd)
+        except OSError:  # BlockingIOError: read by a wake before; EBADF: closed while stopping
+            pass
+        return True
 
     def _adapt_spin(self) -> None:
         """The adaptive spin (see SPIN_MIN_NS) from the overshoots of the last sleeps."""
-        self._spin_auto_ns = min(SPIN_NS, max(SPIN_MIN_NS, max(self._oversleep) + SPIN_MARGIN_NS))
+        over = sorted(self._oversleep)
+        q = over[min(len(over) - 1, int(len(over) * SPIN_QUANTILE))]
+        self._spin_auto_ns = min(SPIN_NS, max(SPIN_MIN_NS, q + SPIN_MARGIN_NS))
 
     def tick(self) -> CycleSnapshot:
         """Run one cycle now (tests and tools; never while the thread runs). Returns its snapshot."""
@@ -300,7 +347,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         dcs = self._dc
         if dcs is not None and wkc > 0:
             # keep the cycle in step with SYNC0: PI on the frame's phase (bus_agent.bus.dc)
-            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns)
+            ref = self._dc_ref
+            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns, ref is not None and ref.lost)
             self._dc_offsets[cycle % STATS_WINDOW] = dcs.offset_ns
             if self.dc_log is not None and 0 < self.period_log_len <= len(self.dc_log):
                 self.dc_log[self.period_log_len - 1] = dcs.offset_ns
@@ -330,8 +378,11 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         drives = self.drives
         changed = self._inputs_changed() if self._inputs_changed is not None and self.fast_paths else None
         work: Sequence[Drive] = drives
+        # (an express reflex since the last cycle changed goals, and its exchange inputs)
+        expressed = bool(self._express_events) or self.express_exchanges != self._express_seen
+        self._express_seen = self.express_exchanges
         if (changed is not None and not reports and self.state == "running" and self._nmt is None
-                and not self._lost_origins):
+                and not self._lost_origins and not expressed):
             work = self._work(changed)
         for d in work:
             i = d.inputs = bus.inputs(d.slave)
@@ -445,8 +496,13 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             self._update_recover_set()
 
         rec = self.recorder
+        express = self._express_events
+        if express:
+            self._express_events = []
         if rec is not None:
-            rec.record(cycle, now_ns, period_ns, wkc, drives, events, None if work is drives else work)
+            # express reflexes since the last cycle (already published) trigger windows too
+            rec.record(cycle, now_ns, period_ns, wkc, drives, express + events if express else events,
+                       None if work is drives else work)
         if cycle % STATS_EVERY == 0:
             self._update_stats()
             self._adapt_spin()
@@ -493,15 +549,16 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
 
     # ---- output --------------------------------------------------------------------------------------
 
-    def _drive_snapshots(self, work: Sequence[Drive]) -> tuple[DriveSnapshot, ...]:
+    def _drive_snapshots(self, work: Sequence[Drive] | None = None) -> tuple[DriveSnapshot, ...]:
         """Every drive's snapshot. A drive whose published values did not change since the last
         cycle keeps its DriveSnapshot (the same immutable object), and when no drive changed the
         tuple of the last cycle is returned as it was: building 26-field records for drives at rest
         was the largest share of the cycle's CPU per drive. Only the drives stepped this cycle
-        (``work``) are looked at: the others' values are those of the last cycle. Cycle thread only."""
+        (``work``; None: all) are looked at: the others' values are those of the last cycle.
+        Cycle thread only."""
         changed = False
         texts = self._error_texts
-        for d in work:
+        for d in self.drives if work is None else work:
             i = d.inputs
             c = d.ctrl
             m = d.motion

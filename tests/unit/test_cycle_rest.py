@@ -4,7 +4,7 @@ Two cycles over two identical SimBus segments with the same injected clock, one 
 ``Cycle.fast_paths`` (drives whose inputs did not change and that are at rest are skipped), one
 stepping every drive every cycle, get the same random sequences of commands (state machine,
 halt, motion, modes), faults, lost and returned slaves, working counter errors and remote group
-triggers. Every cycle both must publish the same snapshot (drives, events, statistics), answer
+triggers (in the next cycle, or at once in an express exchange). Every cycle both must publish the same snapshot (drives, events, statistics), answer
 the same outcomes, and write the same outputs to the drives; at the end their flight recordings
 are the same. And the fast path must have skipped work, or it tests nothing.
 """
@@ -43,6 +43,7 @@ _action = st.one_of(
     st.tuples(st.just("plug"), st.integers(0, N - 1)),
     st.tuples(st.just("wkc"), st.integers(0, N - 1), st.booleans()),
     st.tuples(st.just("trigger"),),
+    st.tuples(st.just("express"),),
 )
 
 
@@ -80,9 +81,11 @@ def test_skipping_drives_at_rest_equals_stepping_every_drive(actions):
                 op, axes, args = a[1]
                 got[f"{op}{len(got)}"] = (fast.send(op, axes, args, timeout_s=0.5), full.send(op, axes, args, timeout_s=0.5))
                 tick()
-            elif a[0] == "trigger":
+            elif a[0] in ("trigger", "express"):
                 for r in (fast, full):
                     r.cycle.trigger_group("line", "h2/far fault 0x2310")
+                    if a[0] == "express":  # applied between two cycles, with its own exchange
+                        r.cycle._express(r.clock.ns + 300_000)
                 tick()
             else:
                 for r in (fast, full):
