@@ -11,7 +11,10 @@ faults h1's slave 0 (error 0x7305), and the figures come from the agents' own ev
 - ``fault_to_reflex``: h1/axis0's ``fault`` event -> h2/axis0's ``reflex`` event (the cycle on
   h2 applied the group's reflex: h1's status through both routers, h2's gateway, the bridge);
 - ``fault_to_leave``: -> h2/axis0's transition out of ``operation_enabled`` (the drive obeyed:
-  the target, p50 <= 2 ms and p99 <= 3 ms);
+  the target, p50 <= 2 ms and p99 <= 3 ms): the cycle on h2 that read a statusword other than
+  operation enabled, stamped as that cycle's snapshot;
+- ``reflex_to_leave``: h2's share after the reflex (the express frame carrying the quick stop,
+  the drive's own step in ecat-sim, the next frame reading its statusword);
 - ``fault_to_status_in_sup``: -> h1/axis0's fault status arriving in sup through h1's router
   (the origin's share: h1's cycle, bridge, gateway and one router hop).
 
@@ -113,8 +116,8 @@ def child_reflex(connect: str, control: str, rounds: int, drives: int) -> int:
 
     events: "queue.SimpleQueue[m.Event]" = queue.SimpleQueue()
     ctl = PathControlClient(control)
-    out: dict[str, list] = {"fault_to_reflex_ns": [], "fault_to_leave_ns": [], "fault_to_status_here_ns": [],
-                            "failures": []}
+    out: dict[str, list] = {"fault_to_reflex_ns": [], "fault_to_leave_ns": [], "reflex_to_leave_ns": [],
+                            "fault_to_status_here_ns": [], "failures": []}
     with Fleet(connect=[connect], name="bench-reflex", mode="client", connect_timeout_s=10.0) as fleet:
         def on_event(sample: Any) -> None:
             try:
@@ -168,6 +171,7 @@ def child_reflex(connect: str, control: str, rounds: int, drives: int) -> int:
             elif i >= 0:
                 out["fault_to_reflex_ns"].append(reflex_ns - fault_ns)
                 out["fault_to_leave_ns"].append(leave_ns - fault_ns)
+                out["reflex_to_leave_ns"].append(leave_ns - reflex_ns)
                 if not seen.empty():
                     out["fault_to_status_here_ns"].append(seen.get_nowait() - fault_ns)
             fleet.fault_reset("h1/axis0")
@@ -219,6 +223,7 @@ def run(args: Any) -> dict:
                            "rt_priority": args.rt_priority,
                            "fault_to_reflex": _ms(res["fault_to_reflex_ns"]),
                            "fault_to_leave": _ms(res["fault_to_leave_ns"]),
+                           "reflex_to_leave": _ms(res["reflex_to_leave_ns"]),
                            "fault_to_status_in_sup": _ms(res["fault_to_status_here_ns"]),
                            "bare_put": _ms(bare), "failures": res["failures"][:10],
                            "n_failures": len(res["failures"])}

@@ -63,17 +63,30 @@ class DcSync:
         self.error_ns = 0    # last phase error (wrapped to +-cycle/2)
         #: A cycle that starts later than this after its deadline does not move the PI.
         self.hold_late_ns = cycle_ns // 4
+        #: The reference clock's time must advance by more than 0 and at most this much from one
+        #: frame to the next; otherwise it is not the slaves' time (see :meth:`step`).
+        self.max_advance_ns = 100 * cycle_ns
         self.held = 0        # cycles that held the PI
+        self._last_time: int | None = None
 
-    def step(self, dc_time_ns: int, late_ns: int = 0) -> int:
+    def step(self, dc_time_ns: int, late_ns: int = 0, hold: bool = False) -> int:
         """One cycle's correction of the next wake-up (positive: wake later).
 
         ``late_ns``: how late this cycle started after its deadline. The PI steers the schedule,
         so it sees the phase the frame would have had on time; a cycle more than
         :attr:`hold_late_ns` late (an overrun, a stall) holds the PI (correction 0), so a loaded
-        host cannot wind it up. :attr:`offset_ns` is always the frame's actual phase."""
+        host cannot wind it up. So does a time that did not advance, went back, or jumped more
+        than :attr:`max_advance_ns`: the reference clock (the first DC slave) did not answer the
+        frame's FRMW (its time stands still in the frame), came back from a power cycle with its
+        time restarted at 0, or got its time back. ``hold``: the caller knows the time is not the
+        slaves' (the reference clock's slave is lost, or not yet back with its time restored).
+        :attr:`offset_ns` is always the frame's actual phase."""
         c = self.cycle_ns
         self.offset_ns = phase_ns(dc_time_ns, c, self.shift_ns)
+        last, self._last_time = self._last_time, dc_time_ns
+        if hold or (last is not None and not 0 < dc_time_ns - last <= self.max_advance_ns):
+            self.held += 1
+            return 0
         if late_ns > self.hold_late_ns:
             self.held += 1
             return 0

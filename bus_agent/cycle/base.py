@@ -75,6 +75,15 @@ class CycleBase:
         self._inbox: collections.deque[DriveCommand | AgentCommand] = collections.deque()
         self._inbox_lock = threading.Lock()
         self._triggers: collections.deque[tuple[str, str]] = collections.deque(maxlen=INBOX_MAX)
+        #: Apply a remote group trigger at once in an express exchange (see ``Cycle._express``)
+        #: rather than at the next deadline; False: the next cycle applies it, as before.
+        self.express_reflex = True
+        #: eventfd the cycle thread's sleep waits on; ``trigger_group`` writes it (-1: plain sleep,
+        #: e.g. with an injected clock, or before ``start``).
+        self._wake_fd = -1
+        #: Events of express reflexes since the last cycle, for the flight recorder's triggers.
+        self._express_events: list[CycleEvent] = []
+        self.express_exchanges = 0
         self._events: list[CycleEvent] = []
         # Optional bus hooks (the CANopen backend): EMCY frames as (slave, error code, register,
         # text), and the text of the last emergency per slave as {slave: (error code, text)}.
@@ -113,6 +122,7 @@ class CycleBase:
         self._mgmt = Management(bus, clock_ns, self.period_ns, config.host)
         self._dc: DcSync | None = None
         self._dc_time: Callable[[], int] = lambda: 0
+        self._dc_ref: Drive | None = None  # the drive whose slave is the reference clock, if any
         self._dc_adjust_ns = 0
         #: How late the running cycle started after its deadline (ns; 0 for tick()).
         self._late_ns = 0
@@ -158,5 +168,7 @@ class CycleBase:
         def _finish_nmt(self, outcome: str, reason: str, now_ns: int) -> None: ...
 
         def _close_bus(self) -> None: ...
+
+        def _drive_snapshots(self) -> tuple[DriveSnapshot, ...]: ...
 
         def _apply_agent(self, cmd: AgentCommand, now_ns: int) -> None: ...

@@ -18,7 +18,7 @@ from bus_agent.cia402.states import Mode, State, decode_statusword
 from bus_agent.cycle.base import CycleBase
 from bus_agent.cycle.drive import FAULT_STATES, UPWARD_GOALS, VALID_MODES, Drive, Pending
 from bus_agent.motion.axis import MOTION_OPS
-from bus_agent.runtime import AgentCommand, CycleEvent, DriveCommand, Outcome
+from bus_agent.runtime import AgentCommand, CycleEvent, CycleSnapshot, DriveCommand, Outcome
 
 log = logging.getLogger("bus_agent.cycle.cycle")
 
@@ -252,6 +252,50 @@ class CommandsMixin(CycleBase):
             self._motion_abort(d, f"group {group} reflex: {reason}", now_ns)
             d.ctrl.set_goal(goal, now_ns / 1e9)
             self._event(axis, "reflex", f"group {group}: {goal.value} ({reason})", from_state=d.state.value)
+
+    def _express(self, now_ns: int) -> None:
+        """Remote group triggers that arrived between two cycles, applied at once (the loop
+        wakes for them): each reacting drive's controller is stepped on its last inputs with the
+        reflex's goal, and one extra exchange hands the new controlwords to the bus now, rather
+        than with the frame after the next deadline (about one period later).
+
+        Only controlwords change in the express frame: every other output, and every other
+        drive's outputs, go out as they went in the last cycle (no mid-period trajectory sample;
+        no target jump). It is not a cycle: no period, statistics, DC step (the PI sees only the
+        scheduled frames; docs/agent-cycle.md, Timing) or management work. Its events go out at
+        once in a snapshot stamped before the exchange, numbered as the last cycle. Cycle thread."""
+        events = self._events = []
+        reacting: dict[str, None] = {}
+        while self._triggers:
+            g, reason = self._triggers.popleft()
+            self._reflex(g, None, f"remote: {reason}", now_ns)
+            reacting.update(dict.fromkeys(self.groups.reacting(g)))
+        now_s = now_ns / 1e9
+        bus = self.bus
+        changed = False
+        for axis in reacting:
+            d = self._by_axis[axis]
+            if d.lost:
+                continue
+            out = d.ctrl.step(d.inputs.statusword, d.inputs.modes_of_operation_display, now_s)
+            if out.events:
+                self._controller_events(d, out.events, d.state, now_ns)
+            cw = out.controlword | d.motion.controlword_bits
+            if cw != d.controlword:
+                o = d.out
+                o.controlword = d.controlword = cw
+                bus.set_outputs(d.slave, o)
+                changed = True
+        snap = CycleSnapshot(cycle=self.cycles, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
+                             events=tuple(events), stats=self._stats, agent_state=self.state)
+        if changed:
+            bus.exchange()
+            self.express_exchanges += 1
+        self._express_events += events
+        self.latest = snap
+        sink = self.snapshot_sink
+        if sink is not None:
+            sink(snap)
 
     def _event(self, axis: str, kind: str, detail: str = "", *, from_state: str = "unknown",
                to_state: str = "unknown", error_code: int = 0, request_id: str = "") -> None:

@@ -26,8 +26,11 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
+import select
 import sys
 import threading
+import time
 
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
@@ -75,6 +78,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         except BaseException:
             self._restore_process()
             raise
+        if self._sleep is time.sleep and self.express_reflex:
+            # the sleep before each deadline waits on this, so a remote trigger wakes the cycle
+            self._wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._mgmt.rt_priority = helper_priority(self.rt_priority)
         self._mgmt.start()
         if self.recorder is not None:
@@ -133,6 +139,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         if self._closed:
             return
         self._closed = True
+        fd, self._wake_fd = self._wake_fd, -1
+        if fd >= 0:
+            os.close(fd)
         self._mgmt.stop()
         if self.recorder is not None:
             self.recorder.stop()
@@ -158,9 +167,16 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         return True
 
     def trigger_group(self, group: str, reason: str) -> None:
-        """A member of ``group`` faulted or was lost on another host: local members react at the
-        next cycle (the configured reflex). Thread-safe."""
+        """A member of ``group`` faulted or was lost on another host: local members react with
+        the configured reflex, at once when the loop is asleep before a deadline (an express
+        exchange, :meth:`_express`), else in the running or next cycle. Thread-safe."""
         self._triggers.append((group, reason))
+        fd = self._wake_fd
+        if fd >= 0:
+            try:
+                os.eventfd_write(fd, 1)
+            except OSError:  # closed meanwhile: the agent is stopping
+                pass
 
     def stats(self) -> CycleStats:
         return self._stats
@@ -210,8 +226,13 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             while True:
                 deadline = t0 + k * period + self._dc_adjust_ns
                 now = self.clock_ns()
-                if now < deadline:
-                    self._wait_until(deadline)
+                while now < deadline:
+                    if not self._wait_until(deadline):
+                        now = self.clock_ns()
+                        break
+                    # woken before the deadline by a remote group trigger: apply it now
+                    if self._triggers:
+                        self._express(self.clock_ns())
                     now = self.clock_ns()
                 self._late_ns = now - deadline
                 if now - deadline > period:
@@ -237,15 +258,36 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         finally:
             self._restore_process()
 
-    def _wait_until(self, deadline_ns: int) -> None:
+    def _wait_until(self, deadline_ns: int) -> bool:
+        """Sleep until the spin before ``deadline_ns``, then spin to it. True (at once, without
+        spinning) when a remote trigger woke the sleep; a trigger during the spin waits for the
+        cycle (at most the spin away)."""
         spin = self.spin_ns if self.spin_ns is not None else self._spin_auto_ns
         wake = deadline_ns - spin
         remaining = wake - self.clock_ns()
         if remaining > 0:
-            self._sleep(remaining / 1e9)
+            if self._doze(remaining / 1e9):
+                return True
             self._oversleep[self.cycles % STATS_WINDOW] = self.clock_ns() - wake
         while self.clock_ns() < deadline_ns:
             pass
+        return False
+
+    def _doze(self, seconds: float) -> bool:
+        """Sleep ``seconds``, or until ``trigger_group`` writes the wake eventfd (True). select's
+        timeout has microsecond resolution, and the thread's 1 ns timer slack holds as for a sleep."""
+        fd = self._wake_fd
+        if fd < 0:
+            self._sleep(seconds)
+            # an injected sleep (tests, tools): a trigger queued meanwhile counts as a wake
+            return self.express_reflex and bool(self._triggers)
+        if not select.select((fd,), (), (), seconds)[0]:
+            return False
+        try:
+            os.eventfd_read(fd)
+        except OSError:  # BlockingIOError: read by a wake before; EBADF: closed while stopping
+            pass
+        return True
 
     def _adapt_spin(self) -> None:
         """The adaptive spin (see SPIN_MIN_NS) from the overshoots of the last sleeps."""
@@ -299,7 +341,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         dcs = self._dc
         if dcs is not None and wkc > 0:
             # keep the cycle in step with SYNC0: PI on the frame's phase (bus_agent.bus.dc)
-            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns)
+            ref = self._dc_ref
+            self._dc_adjust_ns += dcs.step(self._dc_time(), self._late_ns, ref is not None and ref.lost)
             self._dc_offsets[cycle % STATS_WINDOW] = dcs.offset_ns
             if self.dc_log is not None and 0 < self.period_log_len <= len(self.dc_log):
                 self.dc_log[self.period_log_len - 1] = dcs.offset_ns
@@ -417,8 +460,12 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             self._update_recover_set()
 
         rec = self.recorder
+        express = self._express_events
+        if express:
+            self._express_events = []
         if rec is not None:
-            rec.record(cycle, now_ns, period_ns, wkc, self.drives, events)
+            # express reflexes since the last cycle (already published) trigger windows too
+            rec.record(cycle, now_ns, period_ns, wkc, self.drives, express + events if express else events)
         if cycle % STATS_EVERY == 0:
             self._update_stats()
             self._adapt_spin()

@@ -127,6 +127,10 @@ class StartupMixin(CycleBase):
             dcc = self.config.dc
             self._dc = DcSync(dcc.sync0_cycle_ns or self.period_ns, dcc.sync0_shift_ns, dcc.target_fraction)
             self._dc_time = self.bus.dc_time_ns  # type: ignore[attr-defined]
+            # SOEM's reference clock: the first DC-capable slave; while its drive is lost the
+            # time in the frames is not the slaves' (DcSync.step holds)
+            ref = next((pos for pos, s in enumerate(st) if s != "none"), None)
+            self._dc_ref = next((d for d in self.drives if d.slave == ref), None)
 
     def _unmapped_objects(self, d: Drive) -> None:
         """From the drive's codec: which objects are served by SDO and which are absent."""

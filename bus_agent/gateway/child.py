@@ -231,6 +231,9 @@ def child_main(argv: Sequence[str] | None = None) -> int:
                 continue
             try:
                 proxy.dispatch(msg)
+                if msg[0] is Msg.UPDATE and msg[1] is not None and proxy.latest is not None:
+                    for gw in gws:
+                        gw.publish_bad_now(proxy.latest)  # a fault or loss out first, from here
             except Exception:
                 log.exception("gateway %s: bridge message %s failed", host, msg[0].name)
         done.set()

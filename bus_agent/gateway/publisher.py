@@ -104,6 +104,23 @@ class PublisherMixin(GatewayBase):
                     self._agent_seq += 1
                     self._agent_pub.put(m.encode(self._agent_status(self._agent_seq)))
 
+    def publish_bad_now(self, snap: rt.CycleSnapshot) -> None:
+        """The status of every drive in ``snap`` that is in fault or lost, published now on the
+        caller's thread when it changed: the bridge reader of the gateway process calls this for
+        each forwarded snapshot, so a fault reaches the group members on other hosts without
+        waiting for the publish thread's wake-up and GIL turn. Never the cycle thread. Skipped
+        while the publish thread is in a pass (it publishes such drives first anyway)."""
+        bad = [d for d in snap.drives if d.lost or d.state in BAD_STATES]
+        if not bad or not self._pub_lock.acquire(blocking=False):
+            return
+        try:
+            now = time.monotonic()
+            holders = self._lease_holders
+            for d in bad:
+                self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, False)
+        finally:
+            self._pub_lock.release()
+
     def _maybe_publish_status(self, snap: rt.CycleSnapshot, d: rt.DriveSnapshot, holder: str, now: float,
                               heartbeat: bool) -> None:
         axis = d.axis

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 import struct
 from dataclasses import dataclass
 from typing import Mapping
@@ -339,6 +340,17 @@ class DriveModel:
                 self._request_mode(mode)
             elif mode != 0:
                 log.debug("drive model serial=%d: PDO mode %d not supported, ignored", self.serial, mode)
+
+    def reader(self, keys: list[tuple[int, int]]):
+        """A function returning the current values of the entries ``keys`` (a TxPDO layout) as a
+        tuple, in order: one itemgetter over the object values, so a mapped layout costs the ESC
+        no per-object Python work per step. The entries are readable, integer objects (the PDO
+        configuration only maps those)."""
+        get = operator.itemgetter(*keys)
+        values = self._values
+        if len(keys) == 1:
+            return lambda: (get(values),)
+        return lambda: get(values)
 
     def inputs(self) -> DriveInputs:
         """TxPDO: 0x6041, 0x6064, 0x606C, 0x6077, 0x6061, 0x603F."""

@@ -191,3 +191,38 @@ def test_esc_dc_unit_sync0_and_sync_error():
     n = periods(400, 2)  # a master at half the SYNC0 rate: +3 -1 per two periods
     assert 140 <= n <= 160, n
     assert esc.al_state == ALState.SAFEOP and esc.al_error and esc.al_code == 0x001A
+
+
+def test_a_power_cycled_reference_clock_holds_the_pi_and_comes_back_in_phase(ecat_segment):
+    """The first DC slave is the reference clock: every frame's FRMW reads its system time. While
+    it is gone the time in the frames stands still, and after a power cycle it restarts from 0:
+    the PI holds on both instead of steering the cycle after a time that is not the slaves'. The
+    recovered reference gets its system time back from another DC slave (not 0), SYNC0 in phase,
+    and the cycle ends up where it was in the SYNC0 period; the other drive stays enabled."""
+    ifname, control = ecat_segment(2, "omron1s:dc-required")
+    agent = Agent(ifname)
+    agent.cycle.start()
+    try:
+        _enable_both(agent)
+        dcs = agent.cycle._dc
+        assert dcs is not None
+        _wait(lambda: abs(dcs.error_ns) < 50_000, 20, "the PI settled")
+        held0 = dcs.held
+        assert control.request("unplug", slave=0)["ok"]
+        _wait(lambda: agent.drive("axis0").lost, 10, "axis0 (the reference clock) lost")
+        time.sleep(0.5)
+        assert dcs.held - held0 >= 300, "the PI steered on a time that stood still"
+        assert abs(dcs.integral) * dcs.ki < dcs.max_step_ns  # not wound up
+        assert control.request("plug", slave=0)["ok"]
+        _wait(lambda: not agent.drive("axis0").lost and agent.drive("axis0").al_state == "op", 30, "axis0 back in OP")
+        after = _slaves(control)
+        assert abs(after[0]["dc"]["system_time_ns"] - after[1]["dc"]["system_time_ns"]) < 2_000_000
+        assert abs(_sync0_phase_ns(after[0]) - _sync0_phase_ns(after[1])) < 100_000
+        held1 = dcs.held
+        _wait(lambda: dcs.held == held1 and 400_000 <= dcs.offset_ns <= 600_000, 20,
+              "the PI steering again, frames mid-period after SYNC0 as before")
+        assert agent.drive("axis1").state == "operation_enabled"
+        assert agent.drive("axis0").state == "switch_on_disabled"  # never re-enabled by itself
+        assert agent.cycle.state == "running"
+    finally:
+        agent.cycle.stop()

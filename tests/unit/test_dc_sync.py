@@ -14,12 +14,18 @@ CYCLE = 1_000_000
 
 
 def _run(pi: DcSync, cycles: int, start_ns: int = 123_456, latency=lambda k: 40_000, late=lambda k: 0,
-         drift_ppm: float = 0.0) -> tuple[list[int], list[int]]:
+         drift_ppm: float = 0.0, stepped: list[int] | None = None) -> tuple[list[int], list[int]]:
     """The cycle's schedule t0 + k * cycle + adjust, as Cycle._run keeps it. Returns the frame
     phases and the corrections."""
     adjust, phases, steps = 0, [], []
+    last_wake = None
     for k in range(cycles):
         wake = start_ns + k * CYCLE + adjust + late(k)
+        if last_wake is not None and wake <= last_wake:
+            continue  # a slot already passed during a stall: the loop skips it
+        last_wake = wake
+        if stepped is not None:
+            stepped.append(k)
         dc_time = int((wake + latency(k)) * (1 + drift_ppm * 1e-6))
         step = pi.step(dc_time, late(k))
         phases.append(pi.offset_ns)
@@ -57,8 +63,10 @@ def test_late_cycles_do_not_wind_the_pi_up():
     def late(k: int) -> int:
         return 3 * CYCLE if k % 97 == 0 else (600_000 if k % 2 else 20_000)
     pi = DcSync(CYCLE)
-    _, steps = _run(pi, 10000, late=late)
-    assert pi.held == len([k for k in range(10000) if late(k) > CYCLE // 4])
+    ks: list[int] = []
+    _, steps = _run(pi, 10000, late=late, stepped=ks)
+    assert len(ks) < 10000  # slots passed during the 3-cycle stalls were skipped
+    assert pi.held == len([k for k in ks if late(k) > CYCLE // 4])
     assert abs(sum(steps)) < CYCLE  # without holding, this sum grew by milliseconds
     on_time = phase_ns(123_456 + sum(steps) + 40_000, CYCLE)  # the schedule, without lateness
     assert abs(on_time - CYCLE // 2) < 5_000
@@ -74,3 +82,19 @@ def test_shift_moves_the_phase_reference():
 def test_cycle_must_be_positive():
     with pytest.raises(ValueError, match="cycle_ns"):
         DcSync(0)
+
+
+def test_a_time_that_is_not_the_slaves_holds_the_pi():
+    """The reference clock gone (its time stands still in the frames), back from a power cycle
+    (restarted near 0), its time restored (a jump forward), or the caller's hold: each holds the
+    PI and leaves the integral alone; a time advancing by about one cycle steers again."""
+    pi = DcSync(CYCLE)
+    t = 10**12 + 123_456
+    assert pi.step(t) != 0 or pi.held == 0
+    integral = pi.integral
+    for dc_time in (t, t, 5_000, 1_005_000, t + 10**10, t + 10**10 + CYCLE):
+        pi.step(dc_time)
+    assert pi.held == 4  # t twice (stood still), 5_000 (back), t + 10 s (jump); the rest steered
+    assert pi.step(t + 10**10 + 2 * CYCLE, hold=True) == 0 and pi.held == 5
+    assert pi.step(t + 10**10 + 3 * CYCLE) != 0 and pi.held == 5
+    assert abs(pi.integral - integral) < 3 * CYCLE  # only the steered cycles added to it

@@ -95,16 +95,25 @@ class DcClock:
                 self.sync0 = None
                 self.sync0_late = False
 
+    def time_control(self, src: memoryview) -> None:
+        """The write of the reference's time to 0x0910 (8 bytes) that every process-data frame
+        carries (FRMW): what :meth:`written` does for it, without the general register path."""
+        now = self.system_ns()
+        diff = U64.unpack_from(src)[0] - now
+        U32.pack_into(self.mem, REG_SYS_DIFF, min(abs(diff), 0x7FFFFFFF) | (0x80000000 if diff < 0 else 0))
+        U64.pack_into(self.mem, REG_SYS_TIME, now)
+
     def sync0_running(self) -> bool:
         """SYNC0 pulses are being generated (activated, start time reached, not activated late)."""
         return self.sync0 is not None and not self.sync0_late and self.system_ns() >= self.sync0[0]
 
     def sync0_events(self) -> int:
         """SYNC0 pulses since the start time (0 while not running)."""
-        if not self.sync0_running():
+        s = self.sync0
+        if s is None or self.sync0_late:
             return 0
-        start, cycle = self.sync0  # type: ignore[misc]
-        return (self.system_ns() - start) // cycle + 1
+        now = self.system_ns()  # once: this runs for every slave in every round
+        return (now - s[0]) // s[1] + 1 if now >= s[0] else 0
 
     def sync_mode(self) -> int:
         """0x1C32:01 / 0x1C33:01: 0 free run, 1 SM event, 2 DC SYNC0."""

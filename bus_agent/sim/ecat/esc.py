@@ -190,6 +190,7 @@ class Esc:
         # (struct, field map) of a remapped PDO; None for the default mapping
         self.rx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
         self.tx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
+        self._tx_values: Callable[[], tuple] = tuple
         self.out_size = 0
         self.in_size = 0
         self.last_out = bytearray()
@@ -239,6 +240,9 @@ class Esc:
 
     def write(self, ado: int, src: memoryview) -> bool:
         """Apply a write of ``src`` at ``ado``. False (no WKC) for a refused mailbox write."""
+        if ado == REG_SYS_TIME and len(src) == 8 and self.dc is not None:
+            self.dc.time_control(src)  # every frame's FRMW: the hot path
+            return True
         end = min(ado + len(src), MEM_SIZE)
         if ado >= MEM_SIZE:
             return True
@@ -463,12 +467,12 @@ class Esc:
         dc = self.dc
         if dc is None or not self.ecat_profile.dc_required or self.al_state != ALState.OP:
             return
-        if self._needs_sync0():
+        events = dc.sync0_events()  # 0 while SYNC0 does not run
+        if not events and int(self.model.read(0x6061, 0)) in (8, 9, 10):  # as _needs_sync0
             self._fail(ALState.SAFEOP, AlStatusCode.INVALID_DC_SYNC)
             return
         # lag = SYNC0 periods - outputs since OP: in step it stays within one of its lowest
         # (an output is due in every period); each rise beyond that is a period missed
-        events = dc.sync0_events()
         if self._sync_seen is None:
             if events:
                 self._sync_seen = (events, self.out_count)
@@ -531,6 +535,8 @@ class Esc:
         default_tx = [(i, s, b) for i, s, b, _c, _n in TXPDO_DEFAULT]
         self.rx_codec = None if rx_layout == default_rx else pdo.struct_for(0x1C12)
         self.tx_codec = None if tx_layout == default_tx else pdo.struct_for(0x1C13)
+        if self.tx_codec is not None:
+            self._tx_values = self.model.reader(self.tx_codec[1])
         self.out_view = self.mv[PD_OUT_START:PD_OUT_START + self.out_size]
         self.last_out = bytearray(self.out_size)
 
@@ -559,15 +565,9 @@ class Esc:
         """Drive model -> SM3 buffer."""
         if self.in_size == 0:
             return
-        i = self.model.inputs()
         if self.tx_codec is None:
+            i = self.model.inputs()
             TX_STRUCT.pack_into(self.mem, PD_IN_START, i.statusword, i.position_actual, i.velocity_actual,
                                 i.torque_actual, i.modes_of_operation_display, i.error_code)
             return
-        st, keys = self.tx_codec
-        values = []
-        known = {(idx, sub): name for idx, sub, _b, _c, name in TXPDO_DEFAULT}
-        for index, sub in keys:
-            name = known.get((index, sub))
-            values.append(getattr(i, name) if name else int(self.model.read(index, sub)))
-        st.pack_into(self.mem, PD_IN_START, *values)
+        self.tx_codec[0].pack_into(self.mem, PD_IN_START, *self._tx_values())

@@ -71,7 +71,6 @@ class Segment:
         self.frames = 0
         self._cursor = 0
         self._round_due = 0.0
-        self._round_start = 0.0
         start = time.monotonic()
         for esc in self.escs:
             esc.last_step = start
@@ -274,7 +273,6 @@ class Segment:
         if self._cursor == 0:
             if now < self._round_due:
                 return False
-            self._round_start = now
         end = min(self._cursor + budget, len(self.escs))
         for esc in self.escs[self._cursor:end]:
             dt = now - esc.last_step
@@ -282,7 +280,12 @@ class Segment:
             self._step_one(esc, dt if dt < 0.1 else 0.1)
         if end >= len(self.escs):
             self._cursor = 0
-            self._round_due = max(self._round_start + period, now)
+            # On a grid: one period after this round was *due*. Due one period after it started,
+            # the next round fell a few us after the next frame, which wakes the loop, and then
+            # waited for the frame after: the models stepped after about 60 % of 1 ms frames
+            # only, so a drive answered a new controlword up to 2 ms late.
+            due = self._round_due + period
+            self._round_due = due if due > now - period else now + period  # far behind (idle, stalled): restart
             return False
         self._cursor = end
         return True
