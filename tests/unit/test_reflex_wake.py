@@ -35,7 +35,7 @@ class CountingDc:
         self.steps: list[int] = []   # the lateness each step was given
         self.offset_ns = 0
 
-    def step(self, dc_time_ns: int, late_ns: int = 0) -> int:
+    def step(self, dc_time_ns: int, late_ns: int = 0, hold: bool = False) -> int:
         self.steps.append(late_ns)
         return 0
 
