@@ -63,31 +63,28 @@ def test_zenoh_threads_are_put_under_sched_fifo():
         from bus_agent.gateway.child import ZENOH_THREADS, zenoh_threads_fifo
         from bus_agent.gateway.zenoh_config import make_zenoh_config
         s = zenoh.open(make_zenoh_config("peer"))
-        seen, n = set(), 0
-        deadline = time.monotonic() + 10
-        # zenoh names its threads after they start: scanned again until every one is named and done
-        while time.monotonic() < deadline:
-            n += zenoh_threads_fifo(3, seen)
-            names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
-            if sum(name.startswith(ZENOH_THREADS) for name in names) >= 2 and len(seen) == n:
+        seen, deadline = set(), time.monotonic() + 10
+        # zenoh names its threads after they start: scanned again until those named are all done
+        while True:
+            zenoh_threads_fifo(3, seen)
+            rows = []
+            for tid in os.listdir("/proc/self/task"):
+                name = open(f"/proc/self/task/{tid}/comm").read().strip()
+                fifo = os.sched_getscheduler(int(tid)) == os.SCHED_FIFO
+                rows.append((name, fifo, os.sched_getparam(int(tid)).sched_priority if fifo else 0))
+            named = [r for r in rows if r[0].startswith(ZENOH_THREADS)]
+            if (len(named) >= 2 and all(r[1] for r in named)) or time.monotonic() > deadline:
                 break
             time.sleep(0.05)
-        again = zenoh_threads_fifo(3, seen)   # the same threads are not done twice
-        for tid in os.listdir("/proc/self/task"):
-            name = open(f"/proc/self/task/{tid}/comm").read().strip()
-            fifo = os.sched_getscheduler(int(tid)) == os.SCHED_FIFO
-            print(name, fifo, os.sched_getparam(int(tid)).sched_priority if fifo else 0)
-        print("counts", n, again)
+        for row in rows:
+            print(*row)
         s.close()
     """)
     assert out.returncode == 0, out.stderr
-    lines = [line.split() for line in out.stdout.splitlines()]
-    threads = [ln for ln in lines if ln[0] != "counts"]
+    threads = [line.split() for line in out.stdout.splitlines()]
     zenoh_threads = [ln for ln in threads if ln[0].startswith(("app-", "acc-", "tx-", "rx-", "net-"))]
-    assert zenoh_threads and all(ln[1:] == ["True", "3"] for ln in zenoh_threads), threads
+    assert len(zenoh_threads) >= 2 and all(ln[1:] == ["True", "3"] for ln in zenoh_threads), threads
     assert all(ln[1] == "False" for ln in threads if ln not in zenoh_threads), threads  # Python's own: untouched
-    counts = next(ln for ln in lines if ln[0] == "counts")
-    assert counts == ["counts", str(len(zenoh_threads)), "0"]
 
 
 def test_publish_pass_runs_under_normal_scheduling_and_waits_under_sched_fifo():
