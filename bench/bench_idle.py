@@ -36,6 +36,9 @@ from pathlib import Path
 from bench.common import (ROOT, bench_parser, free_port, main_result, period_figures, proc_cpu_s, read_period_logs,
                           run_json, stop_process, task_cpu_ns, thread_cpu_ns)
 
+#: The spin before each deadline: fixed 150 us, adaptive (the default), none.
+SPIN_PHASES = ("spin_fixed", "spin_auto", "spin_none")
+
 
 
 def _children(pid: int) -> list[int]:
@@ -113,7 +116,7 @@ def phase_spin(args) -> dict:
     cfg = AgentConfig(host="idle", sim_drives=args.drives, cycle_us=1000)
     n = int(args.seconds * 1000)
     cyc = Cycle(SimBus(args.drives), cfg, record_periods=n + 2000, rt_priority=args.rt_priority)
-    cyc.spin_ns = SPIN_NS if args.phase == "spin_fixed" else None
+    cyc.spin_ns = {"spin_fixed": SPIN_NS, "spin_auto": None, "spin_none": 0}[args.phase]
     cyc.start()
     try:
         time.sleep(1.0)  # warm-up: the adaptive spin has measured its first sleeps
@@ -135,7 +138,7 @@ def phase_spin(args) -> dict:
 def _spin_rounds(args) -> dict:
     import tempfile
 
-    phases = ("spin_fixed", "spin_auto")
+    phases = SPIN_PHASES
     parts: dict[str, list[dict]] = {p: [] for p in phases}
     periods: dict[str, list[int]] = {p: [] for p in phases}
     with tempfile.TemporaryDirectory(prefix="bench-idle-") as tmp:
@@ -156,11 +159,14 @@ def _spin_rounds(args) -> dict:
                      "cycle_cpu_pct": round(100 * sum(x["cpu_ns"] for x in parts[name]) / 1e9 / el, 1),
                      "spin_us_at_end": [x["spin_us_at_end"] for x in parts[name]],
                      **period_figures(periods[name], 1_000_000)}
-    fixed, auto = out["spin_fixed"], out["spin_auto"]
-    out["ratios"] = {"cpu_auto_over_fixed": round(auto["cycle_cpu_pct"] / fixed["cycle_cpu_pct"], 2),
-                     **{f"jitter_{q}_auto_over_fixed": (round(auto["jitter_us"][q] / fixed["jitter_us"][q], 2)
-                                                        if fixed["jitter_us"][q] else None)
-                        for q in ("p99", "p999", "max")}}
+    fixed = out["spin_fixed"]
+    out["ratios"] = {}
+    for name in ("auto", "none"):
+        other = out[f"spin_{name}"]
+        out["ratios"].update({f"cpu_{name}_over_fixed": round(other["cycle_cpu_pct"] / fixed["cycle_cpu_pct"], 2),
+                              **{f"jitter_{q}_{name}_over_fixed": (round(other["jitter_us"][q] / fixed["jitter_us"][q], 2)
+                                                                   if fixed["jitter_us"][q] else None)
+                                 for q in ("p99", "p999", "max")}})
     return out
 
 
@@ -182,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=2, help="spin phases alternate in this many rounds (default 2)")
     p.add_argument("--rt-priority", type=int, default=0,
                    help="SCHED_FIFO priority of the cycle thread in the spin phases (default 0, as the demo)")
-    p.add_argument("--phase", choices=("spin_fixed", "spin_auto"), help=argparse.SUPPRESS)
+    p.add_argument("--phase", choices=SPIN_PHASES, help=argparse.SUPPRESS)
     p.add_argument("--log-file", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.phase:

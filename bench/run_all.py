@@ -79,7 +79,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               ("--drives", "16,64", "--seconds", "4", "--rounds", "1", "--rt-priority", "10"), True,
               s.cycle_figures, s.cycle_headline, s.cycle_targets),
     Benchmark("idle", "the idle demo (bus-agent --sim 4): CPU per process and thread; the cycle's spin fixed "
-              "against adaptive", "bench.bench_idle", ("--seconds", "20", "--rounds", "2"),
+              "against adaptive and none", "bench.bench_idle", ("--seconds", "20", "--rounds", "2"),
               ("--seconds", "4", "--rounds", "1"), False, s.idle_figures, s.idle_headline, s.idle_targets),
     Benchmark("supervisor", "two-phase enable/disable of 4x16 and 32x32 drives; status fan-in", "bench.bench_supervisor",
               (), ("--sizes", "4x16", "--rounds", "1", "--gets", "50"), False,

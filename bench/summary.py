@@ -389,14 +389,16 @@ def enable_targets(r: Mapping[str, Any]) -> list[Target]:
 
 
 def reflex_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "fault_to_status_in_sup",
-                                  "bare_put", "ratios", "n_failures")}
+    return {k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                  "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")}
 
 
 def reflex_headline(r: Mapping[str, Any]) -> str:
     lv, rf, b = r.get("fault_to_leave") or {}, r.get("fault_to_reflex") or {}, r.get("bare_put") or {}
+    rl = r.get("reflex_to_leave") or {}
     return (f"fault on h1 -> h2's member leaves operation_enabled p50/p99 {lv.get('p50_ms')}/{lv.get('p99_ms')} ms "
-            f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms), bare put h1 -> h2 across the routers "
+            f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms, then {rl.get('p50_ms')}/{rl.get('p99_ms')} ms "
+            f"to the drive seen leaving), bare put h1 -> h2 across the routers "
             f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)")
 
 
@@ -491,11 +493,12 @@ def idle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
 
 def idle_headline(r: Mapping[str, Any]) -> str:
     d, sp = r.get("demo") or {}, r.get("spin") or {}
-    f, a = sp.get("spin_fixed") or {}, sp.get("spin_auto") or {}
+    f, a, n = sp.get("spin_fixed") or {}, sp.get("spin_auto") or {}, sp.get("spin_none") or {}
     return (f"bus-agent --sim {r.get('drives')} idle: {d.get('total_cpu_pct')} % of a core (agent "
             f"{d.get('agent_cpu_pct')} %, gateway {d.get('gateway_cpu_pct')} %); cycle thread with the fixed 150 us "
-            f"spin {f.get('cycle_cpu_pct')} %, adaptive {a.get('cycle_cpu_pct')} %, jitter p99.9 "
-            f"{(f.get('jitter_us') or {}).get('p999')} / {(a.get('jitter_us') or {}).get('p999')} us")
+            f"spin {f.get('cycle_cpu_pct')} %, adaptive {a.get('cycle_cpu_pct')} % (ending at {a.get('spin_us_at_end')} us), "
+            f"none {n.get('cycle_cpu_pct')} %, jitter p99.9 {(f.get('jitter_us') or {}).get('p999')} / "
+            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us")
 
 
 def idle_targets(r: Mapping[str, Any]) -> list[Target]:

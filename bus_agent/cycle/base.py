@@ -34,14 +34,16 @@ INBOX_MAX = 256
 #: Spin (busy-wait) at most this long before a deadline; sleep before that. time.sleep overshoots
 #: by ~50-100 us on Linux with the default 50 us timer slack, so the spin absorbs it.
 SPIN_NS = 150_000
-#: The adaptive spin (``Cycle.spin_ns = None``; opt-in): the largest overshoot of the sleep over
-#: the last STATS_WINDOW cycles plus SPIN_MARGIN_NS, at least SPIN_MIN_NS and at most SPIN_NS,
-#: recomputed every STATS_EVERY cycles. With the cycle thread's 1 ns timer slack a quiet host wakes
-#: it within tens of us and most of the 150 us of spinning (15 % of a core at 1 kHz) is saved; but
-#: a late wake-up after a quiet window lands in the cycle (measured on a loaded host: p99.9 jitter
-#: 2.9 x the fixed spin's), so the default stays the fixed SPIN_NS (docs/agent-cycle.md, Timing).
-SPIN_MIN_NS = 30_000
-SPIN_MARGIN_NS = 30_000
+#: The adaptive spin (``Cycle.spin_ns = None``): the SPIN_QUANTILE of the sleep's overshoot over
+#: the last STATS_WINDOW sleeps plus SPIN_MARGIN_NS, at least SPIN_MIN_NS and at most SPIN_NS,
+#: recomputed every STATS_EVERY cycles, and raised at once past a sleep that overshot it. The
+#: quantile is that of the jitter figure kept (p99.9): about one cycle in a thousand may start
+#: late, as with a fixed spin that the overshoot's tail exceeds. A quiet host wakes the thread
+#: (1 ns timer slack) within tens of us, so part of the 150 us of spinning (15 % of a core at
+#: 1 kHz) is saved; a loaded one keeps it at SPIN_NS. docs/agent-cycle.md, Timing.
+SPIN_MIN_NS = 10_000
+SPIN_MARGIN_NS = 10_000
+SPIN_QUANTILE = 0.999
 
 
 class CycleBase:
@@ -128,9 +130,11 @@ class CycleBase:
         self._late_ns = 0
         self._dc_offsets = array("q", bytes(8 * STATS_WINDOW))
         self.dc_states: tuple[str, ...] = ()
-        #: Spin before each deadline (ns): fixed (default SPIN_NS), or None to adapt it to the
-        #: sleep's overshoot (SPIN_MIN_NS .. SPIN_NS); bench/bench_idle.py compares both.
-        self.spin_ns: int | None = SPIN_NS
+        #: Spin before each deadline (ns): None adapts it to the sleep's overshoot (SPIN_MIN_NS ..
+        #: SPIN_NS), a number fixes it (0: none). Default: a real-time cycle thread (rt_priority)
+        #: spins the fixed SPIN_NS (jitter first), a normal one adapts (CPU first: the demo, a
+        #: laptop); bench/bench_idle.py compares them (docs/agent-cycle.md, Timing).
+        self.spin_ns: int | None = SPIN_NS if rt_priority else None
         self._spin_auto_ns = SPIN_NS       # until the first sleeps are measured
         self._oversleep = array("q", bytes(8 * STATS_WINDOW))
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.

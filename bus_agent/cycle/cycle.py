@@ -35,7 +35,8 @@ import time
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
 from bus_agent.cia402.states import decode_statusword
-from bus_agent.cycle.base import INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, STATS_EVERY, STATS_WINDOW
+from bus_agent.cycle.base import (INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, SPIN_QUANTILE, STATS_EVERY,
+                                  STATS_WINDOW)
 from bus_agent.cycle.commands import CommandsMixin
 from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
@@ -268,7 +269,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         if remaining > 0:
             if self._doze(remaining / 1e9):
                 return True
-            self._oversleep[self.cycles % STATS_WINDOW] = self.clock_ns() - wake
+            over = self._oversleep[self.cycles % STATS_WINDOW] = self.clock_ns() - wake
+            if over > self._spin_auto_ns:  # late past the spin: more spin from the next cycle on
+                self._spin_auto_ns = min(SPIN_NS, over + SPIN_MARGIN_NS)
         while self.clock_ns() < deadline_ns:
             pass
         return False
@@ -291,7 +294,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
 
     def _adapt_spin(self) -> None:
         """The adaptive spin (see SPIN_MIN_NS) from the overshoots of the last sleeps."""
-        self._spin_auto_ns = min(SPIN_NS, max(SPIN_MIN_NS, max(self._oversleep) + SPIN_MARGIN_NS))
+        over = sorted(self._oversleep)
+        q = over[min(len(over) - 1, int(len(over) * SPIN_QUANTILE))]
+        self._spin_auto_ns = min(SPIN_NS, max(SPIN_MIN_NS, q + SPIN_MARGIN_NS))
 
     def tick(self) -> CycleSnapshot:
         """Run one cycle now (tests and tools; never while the thread runs). Returns its snapshot."""

@@ -178,6 +178,10 @@ class DriveModel:
     Controlword writes (SDO or :meth:`apply_outputs`) are evaluated at the next :meth:`step`.
     """
 
+    #: The short path of a step in a state without torque (see ``_motion``); False: the general
+    #: path (tests compare both).
+    rest_fast_path = True
+
     objects: Mapping[tuple[int, int], ObjectEntry] = OBJECTS
 
     def __init__(self, profile: DriveProfile = PROFILES["generic"], serial: int = 0) -> None:
@@ -538,8 +542,17 @@ class DriveModel:
             self._target_reached = self._velocity == 0.0
         elif s is State.FAULT_REACTION_ACTIVE:
             self._stop(int(v[(0x605E, 0)]), dt)
+        elif self.rest_fast_path:
+            # no torque (modelled without load inertia): at rest, the actual values exactly as
+            # the general path below computes them for velocity and torque 0 (a test compares)
+            self._velocity = 0.0
+            p = self._position = max(min(self._position, 0x7FFFFFFF), -0x80000000)
+            v[(0x6064, 0)] = int(round(p))
+            v[(0x60FD, 0)] = (int(v[(0x60FD, 0)]) & ~HOME_SWITCH_BIT) | (HOME_SWITCH_BIT if self._switch_active() else 0)
+            v[(0x60F4, 0)] = v[(0x606C, 0)] = v[(0x6077, 0)] = 0
+            return
         else:
-            self._velocity = 0.0  # no torque: modelled without load inertia
+            self._velocity = 0.0
         self._position += self._velocity * dt
         self._position = max(min(self._position, 0x7FFFFFFF), -0x80000000)
         if (s is State.OPERATION_ENABLED and int(v[(0x6061, 0)]) == Mode.CYCLIC_SYNC_POSITION

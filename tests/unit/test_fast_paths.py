@@ -236,8 +236,7 @@ def test_the_spin_adapts_to_how_late_the_sleep_wakes():
         cyc._adapt_spin()
         return late
 
-    assert cyc.spin_ns == SPIN_NS                       # fixed by default
-    cyc.spin_ns = None                                  # adaptive
+    assert cyc.spin_ns is None                          # adaptive by default
     assert cyc._spin_auto_ns == SPIN_NS                 # until sleeps were measured
     clock.over = 20_000
     assert max(wait(50)) < 5_000                        # woken 20 us late, spun 150 us: on time

@@ -248,3 +248,71 @@ def test_the_gateway_publishes_a_new_fault_at_once_on_the_callers_thread() -> No
         gateway.close()
         client.close()
         agent_s.close()
+
+
+def test_the_drive_models_rest_path_equals_the_general_path() -> None:
+    """DriveModel.rest_fast_path (the idle demo's sim cost): random controlwords, modes, targets,
+    faults and resets; every object and the state equal to a model on the general path."""
+    import random
+
+    from bus_agent.bus.pdo import DriveOutputs
+    from bus_agent.sim.drive_model import DriveModel
+
+    rng = random.Random(13)
+    fast, full = DriveModel(serial=1), DriveModel(serial=1)
+    full.rest_fast_path = False
+    fast.home_switch_position = full.home_switch_position = 500
+    words = (0x0000, 0x0002, 0x0006, 0x0007, 0x000F, 0x010F, 0x0080, 0x000B)
+    for step in range(6000):
+        if step % 40 == 0:
+            out = DriveOutputs(controlword=rng.choice(words), target_position=rng.randint(-2000, 2000),
+                               target_velocity=rng.randint(-5000, 5000), target_torque=rng.randint(-100, 100),
+                               modes_of_operation=rng.choice((8, 9, 10, 1, 3)))
+            fast.apply_outputs(out)
+            full.apply_outputs(out)
+        if step % 997 == 500:
+            fast.inject_fault(0x7305)
+            full.inject_fault(0x7305)
+        dt = rng.choice((0.001, 0.0005, 0.002))
+        fast.step(dt)
+        full.step(dt)
+        assert fast.state == full.state and fast._values == full._values, step
+        assert (fast.position, fast.velocity) == (full.position, full.velocity), step
+
+
+def test_bridge_out_is_woken_only_when_there_is_something_to_forward() -> None:
+    """GatewayProcess.on_snapshot: a cycle at rest hands on the very tuple of drive snapshots;
+    then nothing wakes bridge-out (its periodic wake-up forwards the statistics). A changed
+    drive, an event, an outcome or a new agent state wakes it."""
+    from bus_agent import runtime as rt
+    from bus_agent.gateway.bridge import GatewayProcess
+
+    gp = GatewayProcess(object(), {"host": "h1"}, None)
+    drives = (rt.DriveSnapshot("x", 0, "switch_on_disabled", 0x0250, 0, "disabled", False, 8, 8, 0, 0, 0, 0, "",
+                               "op", False),)
+
+    def snap(drives: tuple, events: tuple = (), state: str = "running") -> rt.CycleSnapshot:
+        return rt.CycleSnapshot(1, 0, drives, events, rt.CycleStats(), agent_state=state)
+
+    def woken(s: rt.CycleSnapshot) -> bool:
+        gp._wake.clear()
+        gp.on_snapshot(s)
+        return gp._wake.is_set()
+
+    assert woken(snap(drives))                      # the first
+    assert not woken(snap(drives))                  # at rest: the same tuple
+    assert woken(snap((drives[0],)))                # a new tuple: something changed
+    assert not woken(snap(gp._latest.drives))  # type: ignore[union-attr]
+    assert woken(snap(gp._latest.drives, events=(rt.CycleEvent("x", "fault"),)))  # type: ignore[union-attr]
+    gp._on_outcome(1, rt.Outcome("x", "done"))
+    assert woken(snap(gp._latest.drives))           # type: ignore[union-attr]
+    gp._outcomes.clear()
+    assert woken(snap(gp._latest.drives, state="stopping"))  # type: ignore[union-attr]
+
+
+def test_the_spin_adapts_by_default_unless_the_cycle_thread_is_real_time() -> None:
+    from bus_agent.cycle.cycle import SPIN_NS
+
+    cfg = AgentConfig(host="h1", sim_drives=1)
+    assert Cycle(SimBus(1), cfg).spin_ns is None                      # the demo, a laptop: CPU first
+    assert Cycle(SimBus(1), cfg, rt_priority=10).spin_ns == SPIN_NS   # SCHED_FIFO: jitter first
