@@ -50,7 +50,7 @@ import time
 from array import array
 
 from bench.common import (ROOT, alternate_phases, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
-                          pysoem_to_op, quantiles, read_period_logs, segment, self_cpu_s, stop_process, summary_ms)
+                          pysoem_to_op, quantiles, read_period_logs, run_json, segment, self_cpu_s, stop_process, summary_ms)
 
 ECHO_KEY = "bench/echo"
 
@@ -532,10 +532,7 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, time
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
            "--rate", str(args.query_rate), "--log-file", log_file, "--enable-rounds", str(args.enable_rounds),
            "--gets-per-round", str(args.gets_per_round), "--profile", args.profile, "--dc", args.dc]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s or seconds * 4 + 120)
-    if p.returncode != 0:
-        raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    return run_json(cmd, f"phase {name}", timeout_s or seconds * 4 + 120)
 
 
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:

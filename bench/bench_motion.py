@@ -38,15 +38,14 @@ import argparse
 import json
 import os
 import random
-import subprocess
 import sys
 import threading
 import time
 from collections import deque
 
 from bench.bench_agent import _enable_all, _measure, jitter_ratios, phase_bare
-from bench.common import (ROOT, alternate_phases, bench_parser, loadavg, main_result, percentile, period_figures, run_stamp, segment,
-                          read_period_logs, summary_ms)
+from bench.common import (alternate_phases, bench_parser, loadavg, main_result, percentile, period_figures, run_stamp, segment,
+                          read_period_logs, run_json, summary_ms)
 
 #: Back-and-forth targets of the motion phase (counts): well within the default limits.
 SWING = 40_000
@@ -255,10 +254,7 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str) -> d
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
            "--latency-moves", str(args.latency_moves), "--sync-moves", str(args.sync_moves), "--dc", args.dc,
            "--log-file", log_file]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds * 4 + 300)
-    if p.returncode != 0:
-        raise RuntimeError(f"phase {name} failed ({p.returncode}): {p.stderr[-3000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    return run_json(cmd, f"phase {name}", seconds * 4 + 300)
 
 
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:

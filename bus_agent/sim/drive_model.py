@@ -29,7 +29,6 @@ import logging
 import math
 import operator
 import struct
-from dataclasses import dataclass
 from typing import Mapping
 
 from bus_agent.cia402.states import (
@@ -41,6 +40,7 @@ from bus_agent.cia402.states import (
     StatuswordBit,
 )
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX, DriveInputs, DriveOutputs
+from bus_agent.sim.drive_profiles import PROFILES, DriveProfile, Emcy, _Cmd, decode_command
 from bus_agent.sim.homing_model import HOME_SWITCH_BIT, HOMING_BITS_MASK, SimHoming
 # The object dictionary, abort and error codes live in bus_agent.sim.objects; re-exported here
 # for the simulators and tests that import them from the drive model.
@@ -75,96 +75,6 @@ __all__ = ["ABORT_DEVICE_STATE", "ABORT_LENGTH_MISMATCH", "ABORT_NO_OBJECT", "AB
            "error_register_for", "Emcy", "DriveProfile", "PROFILES", "DriveModel", "decode_command"]
 
 log = logging.getLogger(__name__)
-
-
-# --------------------------------------------------------------------------------------------
-# Emergency and profiles
-
-
-@dataclass(frozen=True)
-class Emcy:
-    """CoE emergency (service 1): error code u16, error register u8 (0x1001), 5 manufacturer bytes."""
-
-    error_code: int
-    error_register: int
-    data: bytes = b"\0" * 5
-
-
-def _modes_bitmap(*modes: Mode) -> int:
-    bits = 0
-    for m in modes:
-        bits |= 1 << m.supported_bit
-    return bits
-
-
-_COMMON_MODES = _modes_bitmap(Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY, Mode.PROFILE_TORQUE, Mode.HOMING,
-                              Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE)
-
-
-@dataclass(frozen=True)
-class DriveProfile:
-    """What makes one simulated drive type differ from another."""
-
-    name: str               # "generic" | "indy7"
-    vendor_id: int
-    product_code: int
-    revision: int
-    device_name: str
-    supported_modes: int    # 0x6502 bitmap
-    statusword_extra: int   # bits OR-ed into the statusword (indy7: 0x0200 remote bit)
-    not_ready_on_power_up: bool  # indy7: sits in not_ready_to_switch_on (0x0220), accepts Shutdown there
-    self_test_steps: int = 2     # generic: steps in not_ready_to_switch_on before transition 1
-    mode_echo_delay_steps: int = 0  # extra steps before 0x6061 echoes 0x6060
-    torque_accel: float = 10_000.0  # increments/s^2 per per-mille of torque (PT/CST kinematics)
-    power_on_position: int = 0   # absolute encoder: position at power-on = this * serial
-    power_on_mode: int = 0       # 0x6060/0x6061 at power-on (a drive's stored default mode)
-    home_switch_position: int | None = 5_000  # 0x60FD bit 2 active at and above (None: no switch)
-
-
-PROFILES: dict[str, DriveProfile] = {
-    "generic": DriveProfile(
-        name="generic", vendor_id=0x00000ABC, product_code=0x00402001, revision=0x00010000,
-        device_name="SimDrive402", supported_modes=_COMMON_MODES, statusword_extra=0x0200,
-        not_ready_on_power_up=False,
-    ),
-    # Neuromeka Indy7 joint as seed 004 reports it: 0x0220 -> 0x0221 -> 0x0233 -> 0x0237.
-    # Identity values are the simulator's own, not the real drive's.
-    "indy7": DriveProfile(
-        name="indy7", vendor_id=0x00000ABC, product_code=0x00402007, revision=0x00010000,
-        device_name="SimIndy7Joint", supported_modes=_COMMON_MODES, statusword_extra=0x0200,
-        not_ready_on_power_up=True,
-    ),
-}
-
-
-# --------------------------------------------------------------------------------------------
-# Controlword decoding (CiA 402 Table "command coding", bits 7,3,2,1,0)
-
-
-class _Cmd:
-    SHUTDOWN = "shutdown"
-    SWITCH_ON = "switch_on"
-    ENABLE_OPERATION = "enable_operation"
-    DISABLE_VOLTAGE = "disable_voltage"
-    QUICK_STOP = "quick_stop"
-
-
-def decode_command(controlword: int) -> str:
-    """The device command of a controlword's bits 3,2,1,0 (bit 7 is handled as an edge).
-
-    Disable voltage (bit 1 = 0) wins over quick stop (bit 2 = 0), as in the standard's table.
-    """
-    b0 = controlword & 0x1
-    b1 = controlword & 0x2
-    b2 = controlword & 0x4
-    b3 = controlword & 0x8
-    if not b1:
-        return _Cmd.DISABLE_VOLTAGE
-    if not b2:
-        return _Cmd.QUICK_STOP
-    if not b0:
-        return _Cmd.SHUTDOWN
-    return _Cmd.ENABLE_OPERATION if b3 else _Cmd.SWITCH_ON
 
 
 _POWERED = frozenset({State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
