@@ -363,15 +363,18 @@ def enable_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     en = r.get("enable_latency") or {}
     return {"drives": r.get("drives"), **{k: en.get(k) for k in (
         "rounds", "timed", "n_failures", "latency", "beyond_cycles", "beyond_elapsed", "bare_get",
-        "transition_cycles", "ratios", "cpu_ms_per_round_beyond_idle")}}
+        "transition_cycles", "ratios", "cpu_ms_per_round_beyond_idle", "cycle_time", "beyond_cycle_time",
+        "beyond_cycle_time_p50_over_bare_get_p50", "hops")}}
 
 
 def enable_headline(r: Mapping[str, Any]) -> str:
     en = r.get("enable_latency") or {}
     lat, beyond, bare = en.get("latency") or {}, en.get("beyond_cycles") or {}, en.get("bare_get") or {}
+    ct = en.get("beyond_cycle_time") or {}
     return (f"enable of {r.get('drives')} drives p50/p99 {lat.get('p50_ms')}/{lat.get('p99_ms')} ms, beyond the "
-            f"transition cycles {beyond.get('p50_ms')}/{beyond.get('p99_ms')} ms, bare get "
-            f"{bare.get('p50_ms')}/{bare.get('p99_ms')} ms ({en.get('n_failures')} failures)")
+            f"transition cycles {beyond.get('p50_ms')}/{beyond.get('p99_ms')} ms"
+            + (f" (beyond the time in the cycle {ct.get('p50_ms')}/{ct.get('p99_ms')} ms)" if ct else "")
+            + f", bare get {bare.get('p50_ms')}/{bare.get('p99_ms')} ms ({en.get('n_failures')} failures)")
 
 
 def enable_targets(r: Mapping[str, Any]) -> list[Target]:

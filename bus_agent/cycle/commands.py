@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from typing import Sequence
 
+from bus_agent import hops
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import DISABLED_IN_FAULT, ControllerEvent, EventKind, Goal
 from bus_agent.cia402.states import Mode, State, decode_statusword
@@ -86,6 +87,7 @@ class CommandsMixin(CycleBase):
         return ""
 
     def _apply_drive(self, cmd: DriveCommand, now_ns: int) -> None:
+        hops.stamp("cy.apply")
         now_s = now_ns / 1e9
         start_ns = cmd.received_ns or now_ns
         deadline = start_ns + int(cmd.timeout_s * 1e9)
@@ -172,6 +174,7 @@ class CommandsMixin(CycleBase):
         self._event(d.axis, "outcome", f"{cmd.op} {outcome}" + (f": {reason}" if reason else ""),
                     to_state=d.state.value, error_code=d.inputs.error_code, request_id=cmd.request_id)
         self._outcome(cmd, o)
+        hops.stamp("cy.outcome")
 
     def _resolve(self, d: Drive, outcome: str, reason: str, now_ns: int) -> None:
         p = d.pending
