@@ -488,17 +488,19 @@ def idle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
             "spin": {k: {"cycle_cpu_pct": v["cycle_cpu_pct"], "jitter_us": v["jitter_us"],
                          "spin_us_at_end": v["spin_us_at_end"]}
                      for k, v in sp.items() if k != "ratios"},
-            "spin_ratios": sp.get("ratios")}
+            "spin_ratios": sp.get("ratios"), "work": r.get("work")}
 
 
 def idle_headline(r: Mapping[str, Any]) -> str:
     d, sp = r.get("demo") or {}, r.get("spin") or {}
     f, a, n = sp.get("spin_fixed") or {}, sp.get("spin_auto") or {}, sp.get("spin_none") or {}
+    w = r.get("work") or {}
     return (f"bus-agent --sim {r.get('drives')} idle: {d.get('total_cpu_pct')} % of a core (agent "
             f"{d.get('agent_cpu_pct')} %, gateway {d.get('gateway_cpu_pct')} %); cycle thread with the fixed 150 us "
             f"spin {f.get('cycle_cpu_pct')} %, adaptive {a.get('cycle_cpu_pct')} % (ending at {a.get('spin_us_at_end')} us), "
             f"none {n.get('cycle_cpu_pct')} %, jitter p99.9 {(f.get('jitter_us') or {}).get('p999')} / "
-            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us")
+            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us; one idle cycle "
+            f"without waiting {w.get('tick_us')} us (simulated drives {w.get('sim_exchange_us')} us)")
 
 
 def idle_targets(r: Mapping[str, Any]) -> list[Target]:

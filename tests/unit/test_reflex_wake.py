@@ -13,19 +13,9 @@ from bus_agent.config import AgentConfig
 from bus_agent.cycle.cycle import Cycle
 from bus_agent.runtime import CycleSnapshot, DriveCommand
 
-PERIOD_NS = 1_000_000
+from tests.unit.test_cycle import PERIOD_NS, Clock
+
 GROUPS = {"arm": ("h1/axis0", "h2/axis0")}
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.ns = 1_000_000_000
-
-    def __call__(self) -> int:
-        return self.ns
-
-    def s(self) -> float:
-        return self.ns / 1e9
 
 
 class CountingDc:
