@@ -389,17 +389,22 @@ def enable_targets(r: Mapping[str, Any]) -> list[Target]:
 
 
 def reflex_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
-                                  "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")}
+    nxt = r.get("next_cycle") or {}
+    return {**{k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                     "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")},
+            "next_cycle": {k: nxt.get(k) for k in ("fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                                   "n_failures")} if nxt else None}
 
 
 def reflex_headline(r: Mapping[str, Any]) -> str:
     lv, rf, b = r.get("fault_to_leave") or {}, r.get("fault_to_reflex") or {}, r.get("bare_put") or {}
     rl = r.get("reflex_to_leave") or {}
+    nl = (r.get("next_cycle") or {}).get("fault_to_leave") or {}
     return (f"fault on h1 -> h2's member leaves operation_enabled p50/p99 {lv.get('p50_ms')}/{lv.get('p99_ms')} ms "
             f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms, then {rl.get('p50_ms')}/{rl.get('p99_ms')} ms "
             f"to the drive seen leaving), bare put h1 -> h2 across the routers "
-            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)")
+            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)"
+            + (f"; without the express exchange {nl.get('p50_ms')}/{nl.get('p99_ms')} ms" if nl else ""))
 
 
 def reflex_targets(r: Mapping[str, Any]) -> list[Target]:

@@ -306,3 +306,14 @@ def test_the_spin_adapts_by_default_unless_the_cycle_thread_is_real_time() -> No
     cfg = AgentConfig(host="h1", sim_drives=1)
     assert Cycle(SimBus(1), cfg).spin_ns is None                      # the demo, a laptop: CPU first
     assert Cycle(SimBus(1), cfg, rt_priority=10).spin_ns == SPIN_NS   # SCHED_FIFO: jitter first
+
+
+def test_express_reflex_is_a_cycle_setting_on_by_default() -> None:
+    import pytest
+
+    from bus_agent.config import ConfigError, config_from_dict
+
+    assert config_from_dict({"host": "h1", "sim_drives": 1}).express_reflex is True
+    assert config_from_dict({"host": "h1", "sim_drives": 1, "cycle": {"express_reflex": False}}).express_reflex is False
+    with pytest.raises(ConfigError, match="express_reflex"):
+        config_from_dict({"host": "h1", "sim_drives": 1, "cycle": {"express_reflex": "yes"}})
