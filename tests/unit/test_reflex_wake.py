@@ -317,3 +317,30 @@ def test_express_reflex_is_a_cycle_setting_on_by_default() -> None:
     assert config_from_dict({"host": "h1", "sim_drives": 1, "cycle": {"express_reflex": False}}).express_reflex is False
     with pytest.raises(ConfigError, match="express_reflex"):
         config_from_dict({"host": "h1", "sim_drives": 1, "cycle": {"express_reflex": "yes"}})
+
+
+def test_no_express_frame_while_another_drive_follows_a_trajectory() -> None:
+    """The express frame would hand a moving drive its next target a period early (then again):
+    while any non-reacting drive has a plan, the reflex is applied at once but goes out with the
+    next frame."""
+    cyc, bus, clock, snaps, exchanges = _enabled_cycle()
+    moved: list = []
+    assert cyc.submit(DriveCommand(request_id="m", op="move", axes=("axis1",), args={"by": 200_000},
+                                   on_outcome=moved.append))
+    for _ in range(20):
+        clock.ns += PERIOD_NS
+        cyc.tick()
+    d1 = cyc._by_axis["axis1"]
+    assert d1.motion.plan is not None and not moved          # axis1 is moving
+    n = len(exchanges)
+    clock.ns += PERIOD_NS // 2
+    cyc.trigger_group("arm", "h2/axis0 fault 0x7305")
+    cyc._express(clock.ns)
+    assert cyc.express_exchanges == 0 and len(exchanges) == n   # no extra frame
+    assert snaps[-1].drives[0].goal == "quick_stop"             # but the reflex is applied now
+    assert any(e.kind == "reflex" for e in snaps[-1].events)
+    clock.ns += PERIOD_NS // 2
+    cyc.tick()                                                  # and goes out with the next frame
+    clock.ns += PERIOD_NS
+    snap = cyc.tick()
+    assert snap.drives[0].state == "quick_stop_active" and snap.drives[1].state == "operation_enabled"
