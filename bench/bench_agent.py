@@ -18,15 +18,10 @@ the periods of all rounds of a phase are merged:
    a separate process sends 200 queries/s (gets on drive status keys) and subscribes to all
    status. The process phase also reports the gateway process's CPU and the bridge's rate.
 
-After the rounds, ``enable_latency`` (``--enable-rounds`` rounds, 0: skip): the real agent with
-its gateway process and every drive disabled; a client process sends a ``CommandRequest`` enable
-to ``drives/@v1/bench/drive/*/cmd/enable`` (QueryTarget.ALL, ConsolidationMode.NONE) and times
-query sent -> last drive's reply, then disables every drive (not timed). Each ``CommandReply``
-carries ``cycles`` (agent cycles from receipt to outcome) and ``elapsed_s``; reported: p50/p99 of
-the latency, of latency - max(cycles) * cycle (the time beyond the drives' own transition
-cycles) and of latency - max(elapsed_s), next to a bare zenoh get round trip measured in the same
-rounds (``--gets-per-round`` per round) to a trivial queryable in its own process, reached the
-same way (one direct peer link over loopback TCP), and their ratios.
+After the rounds, ``enable_latency`` (``--enable-rounds`` rounds, 0: skip; ``bench.enable_latency``,
+where it is described): an enable of every drive through the real agent and its gateway process,
+timed to the last drive's reply, next to a bare zenoh get in the same rounds, with the time split
+by hop (``bus_agent.hops``).
 
 The JSON also holds ``bridge_encoding``: bytes and encode/decode time of one bridge snapshot
 message, pickle vs msgpack, and the cost of the per-cycle forward check.
@@ -42,18 +37,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import select
 import subprocess
 import sys
 import threading
 import time
 from array import array
 
-from bench.common import (ROOT, alternate_phases, bench_parser, free_port, main_result, paced_loop, percentile, period_figures, proc_cpu_s,
-                          pysoem_to_op, quantiles, read_period_logs, run_json, segment, self_cpu_s, stop_process, summary_ms)
-
-ECHO_KEY = "bench/echo"
-
+from bench.common import (ROOT, alternate_phases, bench_parser, free_port, main_result, paced_loop, period_figures, proc_cpu_s,
+                          pysoem_to_op, quantiles, read_period_logs, run_json, segment, self_cpu_s)
+from bus_agent import hops
 
 def jitter_ratios(results: dict) -> dict:
     """``<phase>_<q>_jitter_over_bare`` for q in p99, p999, max: the phase's period jitter over the
@@ -348,191 +340,21 @@ def phase_load(args) -> dict:
             "status_samples_received": received[0]}
 
 
-def _echo_config(ep: str, listen: bool):
-    from bus_agent.gateway.zenoh_config import make_zenoh_config
-
-    return make_zenoh_config("peer", listen=[ep] if listen else [], connect=[] if listen else [ep])
-
-
-def phase_echo(args) -> dict:
-    """A trivial queryable in its own process (the bare get's far end): replies b"pong"."""
-    import signal
-
-    import zenoh
-
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-
-    def on_query(q):
-        with q:
-            q.reply(q.key_expr, b"pong")
-
-    with zenoh.open(_echo_config(args.listen, listen=True)) as s:
-        qb = s.declare_queryable(ECHO_KEY, on_query)
-        print("echo ready", flush=True)
-        stop.wait()
-        qb.undeclare()
-    return {}
-
-
-def _fanout(session, key: str, req, expected: int, timeout_s: float) -> tuple[float | None, list]:
-    """One command query to every drive (QueryTarget.ALL, ConsolidationMode.NONE): seconds from
-    the query sent to the ``expected``-th reply (None if fewer came), and the decoded replies."""
-    import zenoh
-
-    from schemas.messages import CommandReply, decode, encode
-
-    payload = encode(req)
-    replies, last = [], None
-    t0 = time.perf_counter()
-    for r in session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                         payload=payload, timeout=timeout_s):
-        if r.ok is None:
-            continue
-        replies.append(decode(r.ok.payload.to_bytes(), CommandReply))
-        if len(replies) == expected:
-            last = time.perf_counter() - t0  # the rest of the loop only waits for the query's end
-    return last, replies
-
-
-def phase_enable_client(args) -> dict:
-    """The commanding side: ``--enable-rounds`` rounds of [bare gets to the echo queryable,
-    enable of every drive timed to the last reply, disable (not timed)]."""
-    import zenoh
-
-    from bus_agent.gateway.zenoh_config import make_zenoh_config
-    from schemas import keys
-    from schemas.messages import CommandRequest
-
-    session = zenoh.open(make_zenoh_config("peer", connect=[args.connect, args.echo]))
-    cycle_s = args.cycle_us / 1e6
-    en_key, dis_key = keys.drive_cmd(args.host, "*", "enable"), keys.drive_cmd(args.host, "*", "disable")
-    status_key = keys.drive_status(args.host, "*")
-    deadline = time.monotonic() + 30
-    while True:  # routes in place: every drive's status queryable and the echo answer
-        n = sum(1 for r in session.get(status_key, target=zenoh.QueryTarget.ALL,
-                                       consolidation=zenoh.ConsolidationMode.NONE, timeout=2.0) if r.ok is not None)
-        echo = [r for r in session.get(ECHO_KEY, timeout=2.0) if r.ok is not None]
-        if n >= args.drives and echo:
-            break
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"agent or echo not reachable ({n} drive status, echo {bool(echo)})")
-        time.sleep(0.2)
-    latency, beyond, beyond_elapsed, cycles, bare, failures = [], [], [], [], [], []
-    cpu0 = time.process_time()
-    for i in range(-1, args.enable_rounds):  # round -1: warm-up, not counted
-        for _ in range(args.gets_per_round):
-            t0 = time.perf_counter()
-            ok = [r for r in session.get(ECHO_KEY, timeout=2.0) if r.ok is not None]
-            if ok and i >= 0:
-                bare.append(time.perf_counter() - t0)
-        rid = f"bench-{os.getpid()}-{i}"
-        lat, replies = _fanout(session, en_key, CommandRequest(request_id=f"{rid}-en", op="enable", timeout_s=5.0),
-                               args.drives, 10.0)
-        bad = [f"{r.axis}:{r.outcome}:{r.reason}" for r in replies if r.outcome != "done"]
-        if lat is None or bad:
-            failures.append({"round": i, "replies": len(replies), "not_done": bad[:4]})
-        elif i >= 0:
-            c = max(r.cycles for r in replies)
-            latency.append(lat)
-            cycles.append(c)
-            beyond.append(lat - c * cycle_s)
-            beyond_elapsed.append(lat - max(r.elapsed_s for r in replies))
-        _, replies = _fanout(session, dis_key, CommandRequest(request_id=f"{rid}-dis", op="disable", timeout_s=5.0),
-                             args.drives, 10.0)
-        if len(replies) < args.drives or any(r.outcome != "done" for r in replies):
-            failures.append({"round": i, "op": "disable", "replies": len(replies)})
-        time.sleep(0.02)  # let the disable's status publications pass before the next round
-    session.close()
-    out = {"rounds": args.enable_rounds, "drives": args.drives, "timed": len(latency), "failures": failures[:10],
-           "client_cpu_s": time.process_time() - cpu0,
-           "n_failures": len(failures),
-           "latency": summary_ms(latency), "beyond_cycles": summary_ms(beyond),
-           "beyond_elapsed": summary_ms(beyond_elapsed), "bare_get": summary_ms(bare),
-           "transition_cycles": {"p50": percentile(sorted(cycles), 0.5), "max": max(cycles)} if cycles else {}}
-    b = out["bare_get"]
-    if b and latency:
-        out["ratios"] = {"latency_p50_over_bare_get_p50": round(out["latency"]["p50_ms"] / b["p50_ms"], 2),
-                         "beyond_cycles_p50_over_bare_get_p50": round(out["beyond_cycles"]["p50_ms"] / b["p50_ms"], 2),
-                         "beyond_cycles_p99_over_bare_get_p99": round(out["beyond_cycles"]["p99_ms"] / b["p99_ms"], 2)}
-    return out
-
-
-def phase_enable_latency(args) -> dict:
-    """The real agent (gateway process) with every drive disabled; the client and the echo
-    queryable in their own processes, each a direct peer link over loopback TCP."""
-    from bus_agent.agent import Agent
-    from bus_agent.bus.pysoem_bus import PysoemBus
-    from bus_agent.config import AgentConfig, ZenohConfig
-
-    ep, echo_ep = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
-    cfg = AgentConfig(host="bench", ifname=args.ifname, cycle_us=args.cycle_us, gateway="process",
-                      rt_priority=args.rt_priority, zenoh=ZenohConfig(mode="peer", listen=(ep,), scouting=False))
-    agent = Agent(cfg, bus=PysoemBus(args.ifname, receive_timeout_us=args.receive_timeout_us))
-    procs: list[subprocess.Popen] = []
-    agent.start()
-    try:
-        echo = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "echo", "--listen", echo_ep],
-                                cwd=ROOT, stdout=subprocess.PIPE, text=True)
-        procs.append(echo)
-        ready, _, _ = select.select([echo.stdout], [], [], 20)
-        if not ready or echo.stdout.readline().strip() != "echo ready":
-            raise RuntimeError("echo queryable did not start")
-        cyc = agent.cycle
-        resets = _ready(cyc)
-        # CPU of the gateway process: idle for a while, then over the client's rounds, so the
-        # rounds' own cost can be told from publishing at rest (CPU time holds up on a loaded
-        # machine where wall-clock latencies do not). Not the cycle process: its spin before each
-        # deadline varies with the load, so its idle rate does not carry over.
-        gw_pid = agent.bridge.pid if agent.bridge is not None else None
-        idle_s, g_idle0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
-        time.sleep(ENABLE_IDLE_S)
-        idle_s = time.monotonic() - idle_s
-        g_idle = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g_idle0
-        ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
-        t0, g0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
-        client = subprocess.Popen(
-            [sys.executable, "-m", "bench.bench_agent", "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
-             "--host", "bench", "--drives", str(args.drives), "--cycle-us", str(args.cycle_us),
-             "--enable-rounds", str(args.enable_rounds), "--gets-per-round", str(args.gets_per_round)],
-            cwd=ROOT, stdout=subprocess.PIPE, text=True)
-        procs.append(client)
-        out, _ = client.communicate(timeout=60 + args.enable_rounds * 25)
-        if client.returncode != 0:
-            raise RuntimeError(f"enable client failed ({client.returncode})")
-        el = time.monotonic() - t0
-        res = json.loads(out.strip().splitlines()[-1])
-        n = args.enable_rounds + 1  # with the warm-up round
-        gateway_s = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g0 - g_idle / idle_s * el
-        res["cpu_ms_per_round_beyond_idle"] = {"gateway_process": round(1e3 * gateway_s / n, 3),
-                                               "client_process": round(1e3 * res.pop("client_cpu_s") / n, 3)}
-        res["cycle"] = {"cycles": cyc.cycles - c0, "overruns": cyc.overruns - ov0, "wkc_errors": cyc.wkc_errors - wk0}
-        res["startup_fault_resets"] = resets
-        return res
-    finally:
-        for p in procs:
-            stop_process(p)
-        agent.stop()
-
-
-#: The enable phase first measures the processes' CPU at rest for this long.
-ENABLE_IDLE_S = 2.0
-
 PHASES = {"bare": phase_bare, "agent": phase_agent, "gateway_thread": phase_gateway_thread,
-          "gateway_process": phase_gateway_process, "load": phase_load, "enable_latency": phase_enable_latency,
-          "enable_client": phase_enable_client, "echo": phase_echo}
+          "gateway_process": phase_gateway_process, "load": phase_load}
 
 
 # ---- orchestration ---------------------------------------------------------------------------
 
 
-def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, timeout_s: float | None = None) -> dict:
-    cmd = [sys.executable, "-m", "bench.bench_agent", "--phase", name, "--ifname", ifname,
+def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, timeout_s: float | None = None,
+               module: str = "bench.bench_agent", env: dict | None = None) -> dict:
+    cmd = [sys.executable, "-m", module, "--phase", name, "--ifname", ifname,
            "--drives", str(args.drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us),
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
            "--rate", str(args.query_rate), "--log-file", log_file, "--enable-rounds", str(args.enable_rounds),
            "--gets-per-round", str(args.gets_per_round), "--profile", args.profile, "--dc", args.dc]
-    return run_json(cmd, f"phase {name}", timeout_s or seconds * 4 + 120)
+    return run_json(cmd, f"phase {name}", timeout_s or seconds * 4 + 120, env=env)
 
 
 def _merge(parts: list[dict], logs: list[str], cycle_ns: int) -> dict:
@@ -578,8 +400,12 @@ def run(args) -> dict:
         if args.enable_rounds > 0:
             print(f"bench_agent: phase enable_latency ({args.enable_rounds} enable/disable rounds)...",
                   file=sys.stderr, flush=True)
+            # Every process of the phase records the hops of each command (bus_agent.hops).
+            hop_dir = os.path.join(seg.workdir, "hops")
+            os.makedirs(hop_dir, exist_ok=True)
             enable = _run_phase("enable_latency", seg.master_if, args, 0, os.path.join(seg.workdir, "enable"),
-                                timeout_s=180 + args.enable_rounds * 30)
+                                timeout_s=180 + args.enable_rounds * 30, module="bench.enable_latency",
+                                env={**os.environ, hops.ENV: hop_dir})
         return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds_per_phase": args.seconds,
                 "rounds": args.rounds, "rt_priority": args.rt_priority, "sim_rt_priority": args.sim_rt_priority,
                 "receive_timeout_us": args.receive_timeout_us, "query_rate": args.query_rate,

@@ -31,7 +31,7 @@ import time
 from array import array
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -242,10 +242,12 @@ def alternate_phases(tag: str, phases: Sequence[str], rounds: int, seconds: floa
     return parts, logs
 
 
-def run_json(cmd: Sequence[str], what: str, timeout_s: float) -> dict:
-    """Run a phase process in the repository root; the JSON of its last line of output.
-    Raises RuntimeError naming ``what`` with the end of its stderr when it fails."""
-    p = subprocess.run(list(cmd), cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
+def run_json(cmd: Sequence[str], what: str, timeout_s: float, env: Mapping[str, str] | None = None) -> dict:
+    """Run a phase process in the repository root (with ``env`` as its environment, if given); the
+    JSON of its last line of output. Raises RuntimeError naming ``what`` with the end of its stderr
+    when it fails."""
+    p = subprocess.run(list(cmd), cwd=ROOT, capture_output=True, text=True, timeout=timeout_s,
+                       env=dict(env) if env is not None else None)
     if p.returncode != 0:
         raise RuntimeError(f"{what} failed ({p.returncode}): {p.stderr[-3000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])

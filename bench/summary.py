@@ -363,15 +363,18 @@ def enable_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     en = r.get("enable_latency") or {}
     return {"drives": r.get("drives"), **{k: en.get(k) for k in (
         "rounds", "timed", "n_failures", "latency", "beyond_cycles", "beyond_elapsed", "bare_get",
-        "transition_cycles", "ratios", "cpu_ms_per_round_beyond_idle")}}
+        "transition_cycles", "ratios", "cpu_ms_per_round_beyond_idle", "cycle_time", "beyond_cycle_time",
+        "beyond_cycle_time_p50_over_bare_get_p50", "hops")}}
 
 
 def enable_headline(r: Mapping[str, Any]) -> str:
     en = r.get("enable_latency") or {}
     lat, beyond, bare = en.get("latency") or {}, en.get("beyond_cycles") or {}, en.get("bare_get") or {}
+    ct = en.get("beyond_cycle_time") or {}
     return (f"enable of {r.get('drives')} drives p50/p99 {lat.get('p50_ms')}/{lat.get('p99_ms')} ms, beyond the "
-            f"transition cycles {beyond.get('p50_ms')}/{beyond.get('p99_ms')} ms, bare get "
-            f"{bare.get('p50_ms')}/{bare.get('p99_ms')} ms ({en.get('n_failures')} failures)")
+            f"transition cycles {beyond.get('p50_ms')}/{beyond.get('p99_ms')} ms"
+            + (f" (beyond the time in the cycle {ct.get('p50_ms')}/{ct.get('p99_ms')} ms)" if ct else "")
+            + f", bare get {bare.get('p50_ms')}/{bare.get('p99_ms')} ms ({en.get('n_failures')} failures)")
 
 
 def enable_targets(r: Mapping[str, Any]) -> list[Target]:
@@ -386,17 +389,22 @@ def enable_targets(r: Mapping[str, Any]) -> list[Target]:
 
 
 def reflex_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
-                                  "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")}
+    nxt = r.get("next_cycle") or {}
+    return {**{k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                     "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")},
+            "next_cycle": {k: nxt.get(k) for k in ("fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                                   "n_failures")} if nxt else None}
 
 
 def reflex_headline(r: Mapping[str, Any]) -> str:
     lv, rf, b = r.get("fault_to_leave") or {}, r.get("fault_to_reflex") or {}, r.get("bare_put") or {}
     rl = r.get("reflex_to_leave") or {}
+    nl = (r.get("next_cycle") or {}).get("fault_to_leave") or {}
     return (f"fault on h1 -> h2's member leaves operation_enabled p50/p99 {lv.get('p50_ms')}/{lv.get('p99_ms')} ms "
             f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms, then {rl.get('p50_ms')}/{rl.get('p99_ms')} ms "
             f"to the drive seen leaving), bare put h1 -> h2 across the routers "
-            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)")
+            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)"
+            + (f"; without the express exchange {nl.get('p50_ms')}/{nl.get('p99_ms')} ms" if nl else ""))
 
 
 def reflex_targets(r: Mapping[str, Any]) -> list[Target]:
@@ -485,17 +493,19 @@ def idle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
             "spin": {k: {"cycle_cpu_pct": v["cycle_cpu_pct"], "jitter_us": v["jitter_us"],
                          "spin_us_at_end": v["spin_us_at_end"]}
                      for k, v in sp.items() if k != "ratios"},
-            "spin_ratios": sp.get("ratios")}
+            "spin_ratios": sp.get("ratios"), "work": r.get("work")}
 
 
 def idle_headline(r: Mapping[str, Any]) -> str:
     d, sp = r.get("demo") or {}, r.get("spin") or {}
     f, a, n = sp.get("spin_fixed") or {}, sp.get("spin_auto") or {}, sp.get("spin_none") or {}
+    w = r.get("work") or {}
     return (f"bus-agent --sim {r.get('drives')} idle: {d.get('total_cpu_pct')} % of a core (agent "
             f"{d.get('agent_cpu_pct')} %, gateway {d.get('gateway_cpu_pct')} %); cycle thread with the fixed 150 us "
             f"spin {f.get('cycle_cpu_pct')} %, adaptive {a.get('cycle_cpu_pct')} % (ending at {a.get('spin_us_at_end')} us), "
             f"none {n.get('cycle_cpu_pct')} %, jitter p99.9 {(f.get('jitter_us') or {}).get('p999')} / "
-            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us")
+            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us; one idle cycle "
+            f"without waiting {w.get('tick_us')} us (simulated drives {w.get('sim_exchange_us')} us)")
 
 
 def idle_targets(r: Mapping[str, Any]) -> list[Target]:

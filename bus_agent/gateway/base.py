@@ -116,6 +116,7 @@ class GatewayBase:
         # command thread state
         self._inbox: queue.SimpleQueue[tuple[Callable[..., None], tuple]] = queue.SimpleQueue()
         self._cycle_outcomes: collections.deque[tuple[Request, rt.Outcome]] = collections.deque()
+        self._drain_queued = False   # a drain of _cycle_outcomes is queued on gw-command
         self._requests: collections.OrderedDict[str, Request] = collections.OrderedDict()
         self._pending: set[Request] = set()
         self.leases = LeaseTable()
@@ -150,6 +151,8 @@ class GatewayBase:
         self._accepting = False
         self._threads: list[threading.Thread] = []
         self._pub_lock = threading.Lock()  # publish_once from close() vs the thread
+        self._publish_fifo = False    # gw-publish waits and starts each pass under SCHED_FIFO
+        self._publish_normal = False  # ... and is under SCHED_OTHER for the rest of this pass
         # Set while the command thread has nothing to do; the publish thread waits for it (bounded).
         self._commands_idle = threading.Event()
         self._commands_idle.set()

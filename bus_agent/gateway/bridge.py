@@ -45,6 +45,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from bus_agent import hops
 from bus_agent import runtime as rt
 from bus_agent.cycle.realtime import set_thread_fifo
 from bus_agent.gateway.wire import (BridgeError, EVENT_BACKLOG, FORWARD_PERIOD_S, ForwardFilter, Msg, READY_TIMEOUT_S, decode_command, dumps, encode_update, loads)
@@ -106,6 +107,8 @@ class GatewayProcess:
     # -- cycle thread: store, extend, set; nothing else
 
     def on_snapshot(self, snap: rt.CycleSnapshot) -> None:
+        if self._outcomes:
+            hops.stamp("cy.sink")
         last, self._latest = self._latest, snap
         if snap.events:
             self._events.extend((ev, snap.cycle, snap.time_ns) for ev in snap.events)
@@ -229,6 +232,8 @@ class GatewayProcess:
             if not closing:
                 self._wake.wait(self.filter.period_s)
                 self._wake.clear()
+            if self._outcomes:
+                hops.stamp("cy.woke")
             try:
                 self._forward(final=closing)
             except Exception:
@@ -254,6 +259,8 @@ class GatewayProcess:
         outs = [outcomes.popleft() for _ in range(len(outcomes))]
         if self._try_send(encode_update(snap, evs, outs)):
             self.forwarded += 1
+            if outs:
+                hops.stamp("cy.forwarded")
 
     def _log_events(self) -> None:
         """Without a gateway nobody sees the drives: the log is the only record of the stop."""
@@ -291,6 +298,7 @@ class GatewayProcess:
     def _handle(self, msg: tuple) -> None:
         kind = msg[0]
         if kind is Msg.SUBMIT:
+            hops.stamp("cy.submit")
             _, cid, fields = msg
             cmd = decode_command(fields, functools.partial(self._on_outcome, cid))
             accepted = self.cycle.submit(cmd)

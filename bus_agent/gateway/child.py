@@ -18,6 +18,7 @@ import threading
 from multiprocessing.connection import Connection
 from typing import Any, Callable, Sequence
 
+from bus_agent import hops
 from bus_agent import runtime as rt
 from bus_agent.cycle.realtime import set_thread_fifo
 from bus_agent.gateway.wire import (RECORD_MARGIN_S, SUBMIT_TIMEOUT_S, Msg, decode_event, decode_outcome, decode_snapshot,
@@ -27,6 +28,10 @@ log = logging.getLogger("bus_agent.gateway.bridge")
 
 #: The gateway process's GIL switch interval (Python's default is 5 ms).
 GIL_SWITCH_INTERVAL_S = 0.0005
+#: Name prefixes of zenoh's runtime threads (its pools: app, acc, tx, rx, net).
+ZENOH_THREADS = ("app-", "acc-", "tx-", "rx-", "net-")
+#: How often the gateway process looks for new zenoh threads to schedule (:func:`zenoh_threads_fifo`).
+ZENOH_SCAN_S = 1.0
 
 # ---- gateway process side ---------------------------------------------------------------------------
 
@@ -83,6 +88,7 @@ class CycleProxy:
         with self._lock:
             self._callbacks[cid] = [cmd.on_outcome, expected]
         answer = self._round_trip(cid, encode_command(cid, cmd), SUBMIT_TIMEOUT_S)
+        hops.stamp("gw.answer")
         if answer is None:
             self.state = "error"  # why submit said no (Gateway._refused reads it)
             accepted = False
@@ -128,12 +134,16 @@ class CycleProxy:
         kind = msg[0]
         if kind is Msg.UPDATE:
             _, snap_t, events_t, outcomes_t = msg
+            if outcomes_t:
+                hops.stamp("gw.update")
             # Outcomes first, before decoding the snapshot (64 drives: a fraction of a millisecond)
             # and before the sinks wake the publish thread, whose pass (a status put per changed
             # drive, an event put per event) would otherwise hold the GIL while the command thread
             # waits to send the replies.
             for cid, o in outcomes_t:
                 self._deliver(cid, decode_outcome(o))
+            if outcomes_t:
+                hops.stamp("gw.delivered")
             events = [decode_event(e) for e in events_t]
             if snap_t is not None:
                 snap = decode_snapshot(snap_t, () if self.event_sink is not None
@@ -254,6 +264,9 @@ def child_main(argv: Sequence[str] | None = None) -> int:
         gw = Gateway(session, proxy, GatewaySettings(**settings))
         gw.start()
         gws.append(gw)
+        if settings.get("rt_priority", 0):
+            threading.Thread(target=_zenoh_threads_loop, args=(settings["rt_priority"], done), name="gw-sched",
+                             daemon=True).start()
         if sim is not None:
             from bus_agent.sim.control import SimControl
 
@@ -282,6 +295,48 @@ def child_main(argv: Sequence[str] | None = None) -> int:
         log.warning("gateway %s: zenoh session close: %s", host, exc)
     log.info("gateway %s: closed", host)
     return 0
+
+
+def zenoh_threads_fifo(priority: int, seen: set[int]) -> int:
+    """Put this process's zenoh runtime threads (:data:`ZENOH_THREADS`) not in ``seen`` under
+    SCHED_FIFO ``priority``; returns how many. Linux only; a refusal is logged once per thread.
+
+    The gateway's own threads run under SCHED_FIFO (``GatewaySettings.rt_priority``); zenoh's
+    threads, which carry every reply and put to the network, did not, so while ``gw-command``
+    answered 16 drives they waited for a free core: the first reply left after the last one
+    was handed over (docs/agent-gateway.md, "Where the time goes")."""
+    n = 0
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return 0
+    for tid in tids:
+        if tid in seen:
+            continue
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                name = f.read().strip()
+        except OSError:
+            continue  # ended meanwhile
+        if not name.startswith(ZENOH_THREADS):
+            continue
+        seen.add(tid)
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            n += 1
+        except OSError as exc:
+            log.warning("zenoh thread %s (%d): SCHED_FIFO %d refused: %s", name, tid, priority, exc)
+    return n
+
+
+def _zenoh_threads_loop(priority: int, done: threading.Event) -> None:
+    """Thread ``gw-sched``: zenoh starts some runtime pools on first use (a peer's first link),
+    so new threads are looked for every :data:`ZENOH_SCAN_S` (a directory listing)."""
+    seen: set[int] = set()
+    while True:
+        zenoh_threads_fifo(priority, seen)
+        if done.wait(ZENOH_SCAN_S):
+            return
 
 
 def _sim_handler(proxy: CycleProxy, action: str, position: int, args: dict) -> str:

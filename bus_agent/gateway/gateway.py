@@ -26,10 +26,11 @@ import logging
 import queue
 import threading
 import time
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import zenoh
 
+from bus_agent import hops
 from bus_agent import runtime as rt
 from bus_agent.cycle.realtime import set_thread_fifo
 from bus_agent.gateway.base import (AGENT_SUPERVISOR, BAD_STATES, CHANGE_FIELDS, CONFLICT_REFUSED_OPS, DEDUP_SIZE,
@@ -122,7 +123,7 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         # Authenticated keys always; the unauthenticated ones (the v1 contract's) only without --pki.
         for principal in ("*",) if self.s.secure else ("*", None):
             self._cmd_queryables.append(s.declare_queryable(
-                keys.drive_cmd(self.host, "*", "*", principal), lambda q: enqueue((self._on_drive_cmd, (q,)))))
+                keys.drive_cmd(self.host, "*", "*", principal), self._drive_cmd_callback))
             self._cmd_queryables.append(s.declare_queryable(
                 keys.agent_cmd(self.host, "*", principal), lambda q: enqueue((self._on_agent_cmd, (q,)))))
         self._token = s.liveliness().declare_token(keys.alive(self.host))
@@ -192,6 +193,8 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
                 log.exception("gateway %s: command thread", self.host)
             if self._inbox.empty():
                 self._commands_idle.set()
+                if not self._inbox.empty():  # queued between the test and the set: still busy
+                    self._commands_idle.clear()
 
     def _next_timer_s(self) -> float:
         t = time.monotonic() + 0.2
@@ -267,7 +270,20 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         query.reply(keys.agent_recording(self.host), m.encode(recording_message(self.host, data)), encoding=MSGPACK)
         finish(query)
 
+    def _drive_cmd_callback(self, query: zenoh.Query) -> None:
+        hops.stamp("gw.query")
+        self._command_work((self._on_drive_cmd, (query,)))
+
+    def _command_work(self, item: tuple[Callable[..., None], tuple]) -> None:
+        """Queue work that answers a querier (a command, a batch of outcomes) on ``gw-command``,
+        marking that thread busy at once: the publish thread, woken by the same bridge message
+        or status change, waits before its next put instead of taking the GIL from the replies
+        while ``gw-command`` is still waking up."""
+        self._commands_idle.clear()
+        self._inbox.put(item)
+
     def _on_drive_cmd(self, query: zenoh.Query) -> None:
+        hops.stamp("gw.command")
         key = str(query.key_expr)
         if not (axes_in_key(key, self.host, self.axes) or axes_in_key(key, self.host, self.axes, principal="*")):
             finish(query)  # a selector for other drives or hosts: not ours to answer
@@ -299,19 +315,23 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         for axis in axes or ("",):
             self._emit(rt.CycleEvent(axis, "command", detail=detail, request_id=rid, requester=requester))
 
+    def _key_axes(self, key: str, agent: bool) -> tuple[str, ...]:
+        """The axes a refused query's key addresses (for its audit event)."""
+        return () if agent else (axes_in_key(key, self.host, self.axes)
+                                 or axes_in_key(key, self.host, self.axes, principal="*"))
+
     def _command(self, query: zenoh.Query, key: str, agent: bool) -> None:
-        key_axes = () if agent else (axes_in_key(key, self.host, self.axes)
-                                     or axes_in_key(key, self.host, self.axes, principal="*"))
         if not self._accepting:
-            self._audit(key, None, key_axes, self._requester(key, None), "refused", "shutting down")
+            self._audit(key, None, self._key_axes(key, agent), self._requester(key, None), "refused", "shutting down")
             reply_err(query, f"agent {self.host} is shutting down: no new commands")
             return
         try:
             parsed = parse_command(query.payload, key, self.host, self.axes, agent=agent, secure=self.s.secure)
         except RequestError as exc:
-            self._audit(key, None, key_axes, self._requester(key, None), "refused", str(exc))
+            self._audit(key, None, self._key_axes(key, agent), self._requester(key, None), "refused", str(exc))
             reply_err(query, f"{self.host}: {exc}")
             return
+        hops.stamp("gw.parsed")
         requester = self._requester(key, parsed.request)
         now = time.monotonic()
         self._forget_old(now)
@@ -369,7 +389,10 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         cmd = rt.DriveCommand(request_id=r.request_id, op=r.op, axes=tuple(free), args=dict(parsed.args),
                               timeout_s=r.timeout_s, supervisor=r.supervisor, received_ns=req.received_ns,
                               on_outcome=on_outcome)
-        if not self.cycle.submit(cmd):
+        hops.stamp("gw.submit")
+        accepted = self.cycle.submit(cmd)
+        hops.stamp("gw.submitted")
+        if not accepted:
             reason = self._refused()
             for axis in free:
                 self._outcome(req, rt.Outcome(axis, "busy", state=self._state(axis), reason=reason))
@@ -391,9 +414,13 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         them, so one cycle's outcomes are answered in one go on ``gw-command``: the publish pass,
         which waits while that thread is busy, cannot slip in between two replies of a batch."""
         self._cycle_outcomes.append((req, outcome))
-        self._inbox.put((self._drain_outcomes, ()))
+        if not self._drain_queued:  # one drain for a batch (a cycle's outcomes), not one per axis
+            self._drain_queued = True
+            self._command_work((self._drain_outcomes, ()))
 
     def _drain_outcomes(self) -> None:
+        hops.stamp("gw.drain")
+        self._drain_queued = False  # before draining: an outcome appended from now on queues a drain
         outcomes = self._cycle_outcomes
         while outcomes:
             req, outcome = outcomes.popleft()

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
 
+from bus_agent import hops
 from bus_agent import runtime as rt
-from bus_agent.cycle.realtime import set_thread_fifo
+from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 from bus_agent.gateway.base import BAD_STATES, CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
 from schemas import messages as m
 from schemas.error_codes import describe
@@ -25,7 +27,8 @@ class PublisherMixin(GatewayBase):
     """Snapshots and events of the cycle turned into puts."""
 
     def _publish_loop(self) -> None:
-        set_thread_fifo(self.s.rt_priority, f"gw-publish of {self.host}")
+        name_thread("gw-publish")
+        self._publish_fifo = set_thread_fifo(self.s.rt_priority, f"gw-publish of {self.host}")
         while not self._stop.is_set():
             now = time.monotonic()
             wait = max(0.0, min(self._next_heartbeat_s, self._next_agent_s) - now)
@@ -34,9 +37,11 @@ class PublisherMixin(GatewayBase):
             if self._stop.is_set():
                 break
             try:
-                self._publish_once()
+                self._publish_once(publish_thread=True)
             except Exception:  # keep publishing; the log says what broke
                 log.exception("gateway %s: publish failed", self.host)
+            finally:
+                self._publish_realtime_again()
 
     def _commands_first(self, until_s: float) -> None:
         """Let the command thread finish what it is doing (replies, a query's validation) before
@@ -47,7 +52,27 @@ class PublisherMixin(GatewayBase):
         if not self._commands_idle.is_set() and not self._stop.is_set():
             self._commands_idle.wait(max(0.0, until_s - time.monotonic()))
 
-    def _publish_once(self, final: bool = False) -> None:
+    def _publish_normal_priority(self) -> None:
+        """The rest of this pass under normal scheduling (SCHED_OTHER); the loop goes back to
+        SCHED_FIFO before it waits, so the next pass wakes, and the status of a drive in fault
+        goes out, at real-time priority. A whole pass of an enable (a put per changed drive and
+        per event, every cycle) under SCHED_FIFO kept every normal thread of the machine off the
+        CPU while it ran: zenoh's own threads, which send the command replies, and any client on
+        the host. The replies reached the client only after the pass (docs/agent-gateway.md,
+        "Where the time goes"). Two system calls per pass."""
+        if self._publish_fifo and not self._publish_normal:
+            try:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+                self._publish_normal = True
+            except OSError as exc:
+                log.debug("gw-publish: SCHED_OTHER refused: %s", exc)
+
+    def _publish_realtime_again(self) -> None:
+        """Back to SCHED_FIFO after :meth:`_publish_normal_priority`, before the thread waits."""
+        if self._publish_normal:
+            self._publish_normal = not set_thread_fifo(self.s.rt_priority, f"gw-publish of {self.host}")
+
+    def _publish_once(self, final: bool = False, publish_thread: bool = False) -> None:
         with self._pub_lock:
             snap = self._latest
             now = time.monotonic()
@@ -62,6 +87,9 @@ class PublisherMixin(GatewayBase):
                 for d in snap.drives:
                     if d.lost or d.state in BAD_STATES:
                         self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, heartbeat)
+            if publish_thread:
+                self._publish_normal_priority()
+            if snap is not None:
                 for d in snap.drives:
                     if not (d.lost or d.state in BAD_STATES):
                         self._commands_first(until_s)
@@ -114,6 +142,7 @@ class PublisherMixin(GatewayBase):
             log.error("drive %s/%s: status not publishable: %s", self.host, axis, exc)
             return
         pub.put(payload)
+        hops.stamp("pub.status")
         self._published[axis] = msg
         self._last_fields[axis] = fields
         self._last_motion[axis] = motion
@@ -154,6 +183,7 @@ class PublisherMixin(GatewayBase):
                 error_code=ev.error_code, request_id=ev.request_id[:128], requester=ev.requester[:128],
             )
             pub.put(m.encode(msg))
+            hops.stamp("pub.event")
         except m.SchemaError as exc:
             log.error("drive %s/%s: event not publishable: %s", self.host, ev.axis, exc)
 

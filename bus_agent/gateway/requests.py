@@ -16,6 +16,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import zenoh
 
+from bus_agent import hops
 from schemas import keys
 from schemas import messages as m
 
@@ -58,8 +59,16 @@ class ParsedCommand:
 
 def axes_in_key(query_key: str, host: str, axes: Iterable[str], op: str = "*",
                 principal: str | None = None) -> tuple[str, ...]:
-    """The axes of ``host`` whose ``cmd/<op>`` key (of ``principal``, if any) intersects ``query_key``."""
-    qke = key_expr(str(query_key))
+    """The axes of ``host`` whose ``cmd/<op>`` key (of ``principal``, if any) intersects ``query_key``.
+    Remembered per arguments: supervisors repeat the same few keys, and working it out costs
+    about 6 us per axis (a key built and intersected), 0.1 ms for 16 drives on every command."""
+    return _axes_in_key(str(query_key), host, tuple(axes), op, principal)
+
+
+@functools.lru_cache(maxsize=1024)
+def _axes_in_key(query_key: str, host: str, axes: tuple[str, ...], op: str,
+                 principal: str | None) -> tuple[str, ...]:
+    qke = key_expr(query_key)
     return tuple(a for a in axes if key_expr(keys.drive_cmd(host, a, op, principal)).intersects(qke))
 
 
@@ -183,12 +192,14 @@ class Request:
                 remaining.discard(axis)
                 try:
                     query.reply(self.reply_keys[axis], m.encode(self.replies[axis]), encoding=MSGPACK)
+                    hops.stamp("gw.reply")
                 except Exception as exc:  # the querier may be gone; the others still get theirs
                     log.warning("reply to %s (%s) failed: %s", self.reply_keys[axis], self.request_id, exc)
             if remaining:
                 still.append((query, remaining))
             else:
                 finish(query)
+                hops.stamp("gw.finish")
         self.waiting = still
 
 

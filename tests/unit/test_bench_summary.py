@@ -197,6 +197,13 @@ def test_enable_latency_targets_are_3x_for_16_and_4x_for_64_drives(drives: int, 
     assert f"enable of {drives} drives" in s.enable_headline(_enable(drives, ratio))
 
 
+def test_enable_headline_gives_the_time_beyond_the_cycle_when_measured() -> None:
+    r = _enable(16, 5.0)
+    assert "time in the cycle" not in s.enable_headline(r)
+    r["enable_latency"]["beyond_cycle_time"] = {"p50_ms": 2.5, "p99_ms": 4.0}
+    assert "beyond the time in the cycle 2.5/4.0 ms" in s.enable_headline(r)
+
+
 @pytest.mark.parametrize("p50, p99, met", [(1.9, 2.9, (True, True)), (2.1, 2.9, (False, True)),
                                            (1.5, 3.5, (True, False))])
 def test_reflex_targets_p50_2ms_p99_3ms(p50: float, p99: float, met: tuple) -> None:
