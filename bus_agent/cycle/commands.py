@@ -60,9 +60,10 @@ class CommandsMixin(CycleBase):
                     self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=reason,
                                                state=d.state.value if d else "unknown"))
 
-    def _apply_inbox(self, now_ns: int) -> None:
+    def _apply_inbox(self, now_ns: int) -> bool:
+        """Apply the queued commands; True when there were any."""
         if not self._inbox:
-            return
+            return False
         with self._inbox_lock:
             cmds = list(self._inbox)
             self._inbox.clear()
@@ -76,6 +77,7 @@ class CommandsMixin(CycleBase):
                 log.exception("host %s: command %s failed", self.config.host, getattr(cmd, "request_id", "?"))
                 if isinstance(cmd, AgentCommand):
                     self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"internal error: {e}"))
+        return True
 
     def _refusal(self, d: Drive) -> str:
         """Why no command can act on ``d`` now ('' if one can)."""
