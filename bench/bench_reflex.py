@@ -20,9 +20,11 @@ faults h1's slave 0 (error 0x7305), and the figures come from the agents' own ev
 
 Then the Fleet resets the fault on h1/axis0. The bare figure: a publisher in h1 connected to h1's
 router puts its ``time.time_ns()`` every 10 ms (express), a subscriber in h2 connected to h2's
-router takes the difference on arrival.
+router takes the difference on arrival. The baseline of the express exchange (``next_cycle``):
+a second bed whose agents have ``[cycle] express_reflex = false``, the same rounds.
 
-    python -m bench.bench_reflex [--rounds N] [--drives N] [--bare N] [--rt-priority N] [--out PATH]
+    python -m bench.bench_reflex [--rounds N] [--drives N] [--bare N] [--rt-priority N] [--no-next-cycle]
+                                 [--out PATH]
 
 Writes ``bench/results/bench_reflex.json`` (ms percentiles, ratios to the bare put, load).
 """
@@ -193,44 +195,61 @@ def _last_json(proc: Any, timeout_s: float) -> dict:
     raise RuntimeError(f"{proc.name} gave no result (exit {proc.popen.poll()}):\n{proc.output()}")
 
 
-def run(args: Any) -> dict:
+def _bed(args: Any, express: bool, bare_puts: int) -> tuple[dict, list[int]]:
+    """One bed: the agents with ``[cycle] express_reflex`` as given; the bare puts first (if any)."""
     from tests.system.multihost import MultiHostRun, Proc
 
-    start = loadavg()
     bed = MultiHostRun(hosts=2, drives=args.drives, groups={"xg": list(GROUP)}, prefix=f"zr{os.getpid() % 100000}",
-                       agent_args=["--rt-priority", str(args.rt_priority)] if args.rt_priority else [])
-    py = sys.executable
-    me = [py, "-m", "bench.bench_reflex"]
+                       agent_args=["--rt-priority", str(args.rt_priority)] if args.rt_priority else [],
+                       agent_toml="" if express else "\n[cycle]\nexpress_reflex = false\n")
+    me = [sys.executable, "-m", "bench.bench_reflex"]
+    bare: list[int] = []
     try:
         bed.start()
-        sub = bed.spawn(Proc, "bare sub", "h2", [*me, "--child", "bare_sub", "--connect", bed.router_endpoint("h2"),
-                                                 "--bare", str(args.bare)], ready_marker="sub ready")
-        sub.expect_ready(30)
-        pub = bed.spawn(Proc, "bare pub", "h1", [*me, "--child", "bare_pub", "--connect", bed.router_endpoint("h1"),
-                                                 "--bare", str(args.bare)], ready_marker="pub done")
-        bare = _last_json(sub, 90 + args.bare * BARE_PERIOD_S * 4)["bare_ns"]
-        pub.popen.wait(10)
+        if bare_puts:
+            sub = bed.spawn(Proc, "bare sub", "h2", [*me, "--child", "bare_sub", "--connect",
+                                                     bed.router_endpoint("h2"), "--bare", str(bare_puts)],
+                            ready_marker="sub ready")
+            sub.expect_ready(30)
+            pub = bed.spawn(Proc, "bare pub", "h1", [*me, "--child", "bare_pub", "--connect",
+                                                     bed.router_endpoint("h1"), "--bare", str(bare_puts)],
+                            ready_marker="pub done")
+            bare = _last_json(sub, 90 + bare_puts * BARE_PERIOD_S * 4)["bare_ns"]
+            pub.popen.wait(10)
         reflex = bed.spawn(Proc, "reflex", "sup", [
             *me, "--child", "reflex", "--connect", bed.router_endpoint("h1"), "--drives", str(args.drives),
             "--rounds", str(args.rounds), "--control", os.path.join(bed.workdir, "h1.sock")], ready_marker="reflex ready")
-        res = _last_json(reflex, 120 + args.rounds * 15)
+        return _last_json(reflex, 120 + args.rounds * 15), bare
     except BaseException:
         print(bed.diagnostics(), file=sys.stderr)
         raise
     finally:
         bed.close()
+
+
+def _figures(res: dict) -> dict:
+    return {"fault_to_reflex": _ms(res["fault_to_reflex_ns"]), "fault_to_leave": _ms(res["fault_to_leave_ns"]),
+            "reflex_to_leave": _ms(res["reflex_to_leave_ns"]),
+            "fault_to_status_in_sup": _ms(res["fault_to_status_here_ns"]),
+            "failures": res["failures"][:10], "n_failures": len(res["failures"])}
+
+
+def run(args: Any) -> dict:
+    start = loadavg()
+    res, bare = _bed(args, True, args.bare)
     out: dict[str, Any] = {"rounds": args.rounds, "drives_per_host": args.drives, "group": list(GROUP),
-                           "rt_priority": args.rt_priority,
-                           "fault_to_reflex": _ms(res["fault_to_reflex_ns"]),
-                           "fault_to_leave": _ms(res["fault_to_leave_ns"]),
-                           "reflex_to_leave": _ms(res["reflex_to_leave_ns"]),
-                           "fault_to_status_in_sup": _ms(res["fault_to_status_here_ns"]),
-                           "bare_put": _ms(bare), "failures": res["failures"][:10],
-                           "n_failures": len(res["failures"])}
+                           "rt_priority": args.rt_priority, **_figures(res), "bare_put": _ms(bare)}
     leave, b = out["fault_to_leave"], out["bare_put"]
     if leave.get("n") and b.get("n"):
         out["ratios"] = {"leave_p50_over_bare_p50": round(leave["p50_ms"] / b["p50_ms"], 2),
                          "leave_p99_over_bare_p99": round(leave["p99_ms"] / b["p99_ms"], 2)}
+    if args.next_cycle:
+        # the baseline of the express exchange: the same rounds with the reflex applied by the next cycle
+        nxt = out["next_cycle"] = _figures(_bed(args, False, 0)[0])
+        nl = nxt["fault_to_leave"]
+        if leave.get("n") and nl.get("n"):
+            out["ratios"].update({"leave_p50_express_over_next_cycle": round(leave["p50_ms"] / nl["p50_ms"], 2),
+                                  "leave_p99_express_over_next_cycle": round(leave["p99_ms"] / nl["p99_ms"], 2)})
     out.update(run_stamp(start))
     return out
 
@@ -242,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bare", type=int, default=500, help="bare puts timed (default 500)")
     p.add_argument("--rt-priority", type=int, default=10,
                    help="SCHED_FIFO priority of the agents' cycle threads (0: off; default 10)")
+    p.add_argument("--no-next-cycle", dest="next_cycle", action="store_false",
+                   help="skip the baseline bed with [cycle] express_reflex = false")
     p.add_argument("--child", choices=("bare_sub", "bare_pub", "reflex"), help=_suppress())
     p.add_argument("--connect")
     p.add_argument("--control")

@@ -391,17 +391,22 @@ def enable_targets(r: Mapping[str, Any]) -> list[Target]:
 
 
 def reflex_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
-                                  "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")}
+    nxt = r.get("next_cycle") or {}
+    return {**{k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                     "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")},
+            "next_cycle": {k: nxt.get(k) for k in ("fault_to_reflex", "fault_to_leave", "reflex_to_leave",
+                                                   "n_failures")} if nxt else None}
 
 
 def reflex_headline(r: Mapping[str, Any]) -> str:
     lv, rf, b = r.get("fault_to_leave") or {}, r.get("fault_to_reflex") or {}, r.get("bare_put") or {}
     rl = r.get("reflex_to_leave") or {}
+    nl = (r.get("next_cycle") or {}).get("fault_to_leave") or {}
     return (f"fault on h1 -> h2's member leaves operation_enabled p50/p99 {lv.get('p50_ms')}/{lv.get('p99_ms')} ms "
             f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms, then {rl.get('p50_ms')}/{rl.get('p99_ms')} ms "
             f"to the drive seen leaving), bare put h1 -> h2 across the routers "
-            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)")
+            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)"
+            + (f"; without the express exchange {nl.get('p50_ms')}/{nl.get('p99_ms')} ms" if nl else ""))
 
 
 def reflex_targets(r: Mapping[str, Any]) -> list[Target]:
@@ -490,17 +495,19 @@ def idle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
             "spin": {k: {"cycle_cpu_pct": v["cycle_cpu_pct"], "jitter_us": v["jitter_us"],
                          "spin_us_at_end": v["spin_us_at_end"]}
                      for k, v in sp.items() if k != "ratios"},
-            "spin_ratios": sp.get("ratios")}
+            "spin_ratios": sp.get("ratios"), "work": r.get("work")}
 
 
 def idle_headline(r: Mapping[str, Any]) -> str:
     d, sp = r.get("demo") or {}, r.get("spin") or {}
     f, a, n = sp.get("spin_fixed") or {}, sp.get("spin_auto") or {}, sp.get("spin_none") or {}
+    w = r.get("work") or {}
     return (f"bus-agent --sim {r.get('drives')} idle: {d.get('total_cpu_pct')} % of a core (agent "
             f"{d.get('agent_cpu_pct')} %, gateway {d.get('gateway_cpu_pct')} %); cycle thread with the fixed 150 us "
             f"spin {f.get('cycle_cpu_pct')} %, adaptive {a.get('cycle_cpu_pct')} % (ending at {a.get('spin_us_at_end')} us), "
             f"none {n.get('cycle_cpu_pct')} %, jitter p99.9 {(f.get('jitter_us') or {}).get('p999')} / "
-            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us")
+            f"{(a.get('jitter_us') or {}).get('p999')} / {(n.get('jitter_us') or {}).get('p999')} us; one idle cycle "
+            f"without waiting {w.get('tick_us')} us (simulated drives {w.get('sim_exchange_us')} us)")
 
 
 def idle_targets(r: Mapping[str, Any]) -> list[Target]:

@@ -187,6 +187,7 @@ class AgentConfig:
     default_motion: MotionConfig = MotionConfig()
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
+    express_reflex: bool = True         # [cycle] express_reflex: a remote trigger wakes the cycle (Cycle._express)
     dc: DcConfig = DcConfig()           # [dc]: distributed clocks (SYNC0, the cycle kept in step)
     recorder: RecorderConfig = RecorderConfig()
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
@@ -583,6 +584,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     s.done()
     cy = t.table("cycle")
     rt_priority = cy.get("rt_priority", int, 0)
+    express_reflex = cy.get("express_reflex", bool, True)
     cy.done()
     dct = t.table("dc")
     dc = DcConfig(mode=dct.get("mode", str, "auto"), sync0_cycle_ns=dct.get("sync0_cycle_ns", int, 0),
@@ -643,6 +645,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         default_motion=default_motion,
         gateway=t.get("gateway", str, "process"),
         rt_priority=rt_priority,
+        express_reflex=express_reflex,
         dc=dc,
         recorder=recorder,
         can=_can(t.table("can")) if "can" in t.data else None,

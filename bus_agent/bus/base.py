@@ -7,6 +7,11 @@ beyond what it must, never blocking longer than one receive timeout); the cycle'
 thread calls ``read_al_status``, ``request_al_state`` and ``recover`` concurrently (SOEM's frame
 indices make concurrent datagrams safe), each bounded to a few milliseconds. ``open``, ``start``,
 the SDO calls and ``close`` run before or after the loop.
+
+Optional hook (looked up with ``getattr``): ``inputs_changed()`` -> the positions whose inputs
+changed at the last ``exchange`` (the other slaves' records hold the same values), or None when
+the backend cannot tell. With it the cycle skips the drives at rest (docs/agent-cycle.md, "Fast
+paths"); without it every drive is stepped every cycle.
 """
 
 from __future__ import annotations

@@ -96,18 +96,28 @@ def _decoder(struct_: struct.Struct, tx_keys: Sequence[tuple[int, int]]) -> Call
 
 
 def segment_decoder(codecs: Sequence["DriveCodec"], records: Sequence[DriveInputs], sources: Sequence[Any],
-                    attr: str = "input") -> Callable[[], None]:
+                    attr: str = "input", changes: bool = False) -> Callable[[], list[int] | None]:
     """One function that decodes every slave's inputs (``sources[k].<attr>``, e.g. a pysoem
     slave's ``input``) into ``records[k]`` with ``codecs[k]``: the whole process image in one
-    pass, straight-line code without a loop or a call per slave. Cycle-safe."""
+    pass, straight-line code without a loop or a call per slave. Cycle-safe.
+
+    ``changes``: decode only the slaves whose input bytes differ from the last call's (all at
+    the first call) and return their positions ``k`` in order (one list, reused: valid until the
+    next call); a slave at rest costs one bytes comparison. Else every slave is decoded and
+    None returned."""
     if not attr.isidentifier():
         raise ValueError(f"not an attribute name: {attr!r}")
-    ns: dict[str, Any] = {}
-    body: list[str] = []
+    ns: dict[str, Any] = {"P": [None] * len(codecs), "C": []}
+    body: list[str] = ["C.clear()"] if changes else []
     for k, (codec, rec, src) in enumerate(zip(codecs, records, sources, strict=True)):
         ns[f"U{k}"], ns[f"R{k}"], ns[f"S{k}"] = codec.in_struct.unpack_from, rec, src
-        body += _decode_lines(f"R{k}", f"S{k}.{attr}", f"U{k}", codec.tx_keys, str(k))
-    return _compile("decode_all", "def decode_all():\n    " + "\n    ".join(body or ["pass"]), ns)
+        if changes:
+            body += [f"b = S{k}.{attr}", f"if b != P[{k}]:", f"    P[{k}] = b", f"    C.append({k})"]
+            body += ["    " + line for line in _decode_lines(f"R{k}", "b", f"U{k}", codec.tx_keys, str(k))]
+        else:
+            body += _decode_lines(f"R{k}", f"S{k}.{attr}", f"U{k}", codec.tx_keys, str(k))
+    body.append("return C" if changes else "return None")
+    return _compile("decode_all", "def decode_all():\n    " + "\n    ".join(body), ns)
 
 
 def _encoder(struct_: struct.Struct, rx_keys: Sequence[tuple[int, int]]) -> Callable[[DriveOutputs], bytes]:

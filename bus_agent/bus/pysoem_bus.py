@@ -99,7 +99,8 @@ class PysoemBus(PysoemDc):
         self._preop_values: dict[tuple[int, int], bytes | BusError] = {}
         self._mappings: dict[int, SlaveMapping] = {}
         self._codecs: list[DriveCodec] = []
-        self._decode_all: Callable[[], None] = lambda: None
+        self._decode_all: Callable[[], list[int] | None] = lambda: None
+        self._changed: list[int] | None = None
         self._opened = False
         self._closed = False
         #: Per slave: the recovery step under way ("to_init", "to_preop", "to_safeop", "to_op").
@@ -278,7 +279,7 @@ class PysoemBus(PysoemDc):
             self._codecs.append(codec)
             log.info("%s: slave %d: %s; absent actual values: %s; other objects: %s", self.ifname, pos,
                      describe(mp), ", ".join(codec.absent_inputs) or "none", ", ".join(codec.extra_names) or "none")
-        self._decode_all = segment_decoder(self._codecs, self._inputs, self._slaves)
+        self._decode_all = segment_decoder(self._codecs, self._inputs, self._slaves, changes=True)
         if before_safeop:
             self._start_sync0(sorted(self._sync0))
             self._wait_sync0_start()
@@ -357,8 +358,14 @@ class PysoemBus(PysoemDc):
         wkc = m.receive_processdata(self.receive_timeout_us, release_gil=rg)
         if wkc >= 0:
             self._frames_back += 1  # the link carries frames (read by the management thread)
-        self._decode_all()  # every slave's inputs, in one pass (codec.segment_decoder)
+        # every slave's inputs in one pass, decoding only those whose bytes changed (codec.segment_decoder)
+        self._changed = self._decode_all()
         return wkc
+
+    def inputs_changed(self) -> list[int] | None:
+        """Positions of the slaves whose inputs changed at the last :meth:`exchange` (the others'
+        records hold the same values as before). Optional hook of the Bus protocol. Cycle-safe."""
+        return self._changed
 
     def inputs(self, position: int) -> DriveInputs:
         """The TxPDO of the slave as the last :meth:`exchange` received it, decoded by its codec

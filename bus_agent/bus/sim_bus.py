@@ -118,6 +118,7 @@ class SimBus:
         self._opened = False
         self._started = False
         self._last_t: float | None = None
+        self._changed: list[int] = []
 
     # ------------------------------------------------------------------ helpers
 
@@ -226,6 +227,7 @@ class SimBus:
             now = self._clock()
             dt = 0.0 if self._last_t is None else max(0.0, now - self._last_t)
             self._last_t = now
+            self._changed = []
             wkc = 0
             for pos, sl in enumerate(self._slaves):
                 if not sl.plugged:
@@ -242,11 +244,22 @@ class SimBus:
                     sl.watchdog_armed = True
                     sl.since_outputs_s = 0.0
                     wkc += WKC_PER_SLAVE_OP
-                    sl.inputs = sl.model.inputs()
+                    self._take_inputs(pos, sl)
                 elif sl.al_state is ALState.SAFEOP:
                     wkc += WKC_PER_SLAVE_SAFEOP
-                    sl.inputs = sl.model.inputs()
+                    self._take_inputs(pos, sl)
             return wkc
+
+    def _take_inputs(self, pos: int, sl: _Slave) -> None:
+        new = sl.model.inputs()
+        if new != sl.inputs:  # equal inputs keep their record (and the cycle its work for it)
+            sl.inputs = new
+            self._changed.append(pos)
+
+    def inputs_changed(self) -> list[int]:
+        """Positions of the slaves whose inputs changed at the last :meth:`exchange`. Optional
+        hook of the Bus protocol. Cycle-safe."""
+        return self._changed
 
     def inputs(self, position: int) -> DriveInputs:
         """Last received TxPDO of the slave (stale when it stopped answering). Cycle-safe."""

@@ -366,6 +366,12 @@ class DriveController:
         return self._phase.value
 
     @property
+    def settled(self) -> bool:
+        """The last step settled (see :meth:`step`): while its two inputs repeat, a step returns
+        the same output and changes nothing. Any command ends it."""
+        return self._settled is not None
+
+    @property
     def fault_reset_active(self) -> bool:
         return self._reset is not None
 

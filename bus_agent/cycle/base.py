@@ -108,6 +108,8 @@ class CycleBase:
         self.error: BaseException | None = None
         # statistics
         self.cycles = 0
+        #: Drive steps made in full so far (at most cycles x drives; the fast path skips the rest).
+        self.drives_stepped = 0
         self.overruns = 0
         self.wkc_errors = 0
         self._last_wkc = 0
@@ -144,6 +146,15 @@ class CycleBase:
         self.dc_log: array | None = None
         #: The flight recorder (created in :meth:`open`; None when ``[recorder] seconds = 0``).
         self.recorder: Recorder | None = None
+        #: Skip the per-drive work of drives at rest (docs/agent-cycle.md, "Fast paths"); False:
+        #: every drive is stepped in full every cycle (tests compare both).
+        self.fast_paths = True
+        self._inputs_changed: Callable[[], Sequence[int] | None] | None = getattr(bus, "inputs_changed", None)
+        #: Indices of the drives that are not at rest: stepped every cycle (see Cycle._at_rest).
+        self._busy: set[int] = set()
+        self._drives_of_slave: dict[int, tuple[int, ...]] = {}
+        self._all_op_wanted: bool | None = None   # cached while no NMT command runs
+        self._express_seen = 0                     # express_exchanges at the last cycle
 
     if TYPE_CHECKING:  # implemented by the parts (mixins) of Cycle
         def _event(self, axis: str, kind: str, detail: str = "", *, from_state: str = "unknown",
@@ -173,6 +184,6 @@ class CycleBase:
 
         def _close_bus(self) -> None: ...
 
-        def _drive_snapshots(self) -> tuple[DriveSnapshot, ...]: ...
+        def _drive_snapshots(self, work: Sequence[Drive] | None = None) -> tuple[DriveSnapshot, ...]: ...
 
         def _apply_agent(self, cmd: AgentCommand, now_ns: int) -> None: ...

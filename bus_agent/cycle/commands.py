@@ -60,9 +60,10 @@ class CommandsMixin(CycleBase):
                     self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=reason,
                                                state=d.state.value if d else "unknown"))
 
-    def _apply_inbox(self, now_ns: int) -> None:
+    def _apply_inbox(self, now_ns: int) -> bool:
+        """Apply the queued commands; True when there were any."""
         if not self._inbox:
-            return
+            return False
         with self._inbox_lock:
             cmds = list(self._inbox)
             self._inbox.clear()
@@ -76,6 +77,7 @@ class CommandsMixin(CycleBase):
                 log.exception("host %s: command %s failed", self.config.host, getattr(cmd, "request_id", "?"))
                 if isinstance(cmd, AgentCommand):
                     self._outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"internal error: {e}"))
+        return True
 
     def _refusal(self, d: Drive) -> str:
         """Why no command can act on ``d`` now ('' if one can)."""
@@ -259,9 +261,12 @@ class CommandsMixin(CycleBase):
         reflex's goal, and one extra exchange hands the new controlwords to the bus now, rather
         than with the frame after the next deadline (about one period later).
 
-        Only controlwords change in the express frame: every other output, and every other
-        drive's outputs, go out as they went in the last cycle (no mid-period trajectory sample;
-        no target jump). It is not a cycle: no period, statistics, DC step (the PI sees only the
+        The frame carries the process image as the last cycle left it for the next deadline: the
+        new controlwords, and every other output as computed for the next frame. So it is sent
+        only while no other drive follows a trajectory (``motion.plan``): a drive at rest gets
+        the same targets twice, a moving one would get its next target a period early and then
+        again (a step in its velocity). Otherwise the reflex is applied now and goes out with
+        the next frame. It is not a cycle: no period, statistics, DC step (the PI sees only the
         scheduled frames; docs/agent-cycle.md, Timing) or management work. Its events go out at
         once in a snapshot stamped before the exchange, numbered as the last cycle. Cycle thread."""
         events = self._events = []
@@ -288,7 +293,8 @@ class CommandsMixin(CycleBase):
                 changed = True
         snap = CycleSnapshot(cycle=self.cycles, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
                              events=tuple(events), stats=self._stats, agent_state=self.state)
-        if changed:
+        if changed and not any(d.motion.plan is not None for d in self.drives
+                               if not d.lost and d.axis not in reacting):
             bus.exchange()
             self.express_exchanges += 1
         self._express_events += events

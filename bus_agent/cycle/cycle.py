@@ -31,14 +31,15 @@ import select
 import sys
 import threading
 import time
+from typing import Sequence
 
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
-from bus_agent.cia402.states import decode_statusword
+from bus_agent.cia402.states import State, decode_statusword
 from bus_agent.cycle.base import (INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, SPIN_QUANTILE, STATS_EVERY,
                                   STATS_WINDOW)
 from bus_agent.cycle.commands import CommandsMixin
-from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS
+from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS, Drive
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
 from bus_agent.cycle.motion import MotionMixin, following_error
 from bus_agent.cycle.nmt import NmtMixin
@@ -351,7 +352,10 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             self._dc_offsets[cycle % STATS_WINDOW] = dcs.offset_ns
             if self.dc_log is not None and 0 < self.period_log_len <= len(self.dc_log):
                 self.dc_log[self.period_log_len - 1] = dcs.offset_ns
-        all_op_wanted = self._nmt is None and all(s == ALState.OP for s in self._desired_al.values())
+        all_op_wanted = self._all_op_wanted
+        if all_op_wanted is None:
+            all_op_wanted = self._all_op_wanted = self._nmt is None and all(
+                s == ALState.OP for s in self._desired_al.values())
         wkc_bad = wkc != bus.expected_wkc
         if wkc_bad and all_op_wanted:
             self.wkc_errors += 1
@@ -365,10 +369,22 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             mgmt.wake()
         if not mgmt.threaded and not self._closed:
             mgmt.run_once(now_ns)
-        if mgmt.reports:
+        reports = bool(mgmt.reports)
+        if reports:
             self._apply_reports(now_ns)
 
-        for d in self.drives:
+        # The drives to step this cycle: all of them, or (fast path) only those whose inputs
+        # changed or that are not at rest; see _at_rest and docs/agent-cycle.md, "Fast paths".
+        drives = self.drives
+        changed = self._inputs_changed() if self._inputs_changed is not None and self.fast_paths else None
+        work: Sequence[Drive] = drives
+        # (an express reflex since the last cycle changed goals, and its exchange inputs)
+        expressed = bool(self._express_events) or self.express_exchanges != self._express_seen
+        self._express_seen = self.express_exchanges
+        if (changed is not None and not reports and self.state == "running" and self._nmt is None
+                and not self._lost_origins and not expressed):
+            work = self._work(changed)
+        for d in work:
             i = d.inputs = bus.inputs(d.slave)
             if d.sdo_mode_display:
                 i.modes_of_operation_display = d.mode_display_sdo
@@ -376,7 +392,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                 i.error_code = d.error_code_sdo
         if self._take_emergencies is not None:
             for slave, code, register, text in self._take_emergencies():
-                for d in self.drives:
+                for d in drives:
                     if d.slave == slave:
                         self._event(d.axis, "emcy", f"EMCY 0x{code:04X} {text} (error register 0x{register:02X})",
                                     error_code=code)
@@ -384,7 +400,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         # Reflex origins are detected on the fresh statusword, before any controller step, so the
         # other members get their new goal in this very cycle.
         origins: list[tuple[str, str]] = []
-        for d in self.drives:
+        for d in work:
             if d.lost:
                 continue
             st = decode_statusword(d.inputs.statusword)
@@ -403,9 +419,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             origins.append((g, reason))
         self._lost_origins = []
 
-        if self.state == "running":
-            self._apply_inbox(now_ns)
+        applied = self._apply_inbox(now_ns) if self.state == "running" else False
         while self._triggers:
+            applied = True
             g, reason = self._triggers.popleft()
             self._reflex(g, None, f"remote: {reason}", now_ns)
         for g, reason in origins:
@@ -413,8 +429,15 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             self._reflex(g, origin_axis, reason, now_ns)
             if self.group_sink is not None:
                 self.group_sink(g, reason)
+        if applied or origins:
+            # commands and reflexes may address any drive: step them all (for the drives at
+            # rest, the input and fault checks above would have changed nothing)
+            work = drives
+            self._all_op_wanted = None  # an NMT command may change the wanted AL states
 
-        for d in self.drives:
+        self.drives_stepped += len(work)
+        busy = self._busy
+        for d in work:
             if d.lost:
                 # Outputs of a lost slave: disable voltage and hold; applied if it comes back.
                 o = d.out
@@ -424,11 +447,14 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                 o.target_torque = d.target_torque = 0
                 d.controlword = 0
                 bus.set_outputs(d.slave, o)
+                busy.add(d.index)
                 continue
             self._auto_reset(d, now_ns)
             out = d.ctrl.step(d.inputs.statusword, d.inputs.modes_of_operation_display, now_s)
             prev = d.state
             d.state = d.ctrl.state if d.ctrl.state is not None else decode_statusword(d.inputs.statusword)
+            targets = (d.target_position, d.target_velocity, d.target_torque)
+            idle = d.motion.idle
             self._motion_step(d, out.hold_target, now_ns)
             o = d.out
             o.controlword = d.controlword = out.controlword | d.motion.controlword_bits
@@ -451,8 +477,12 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             bus.set_outputs(d.slave, o)
             if out.events:
                 self._controller_events(d, out.events, prev, now_ns)
+            elif idle and self._at_rest(d, targets):
+                busy.discard(d.index)
+                continue
+            busy.add(d.index)
 
-        for d in self.drives:
+        for d in work:
             pend = d.pending
             if pend is not None and now_ns >= pend.deadline_ns:
                 if pend.kind == "goal" and d.ctrl.goal in UPWARD_GOALS:
@@ -461,6 +491,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                 self._resolve(d, "timeout", f"{pend.cmd.op} not done within {pend.cmd.timeout_s:g} s", now_ns)
         if self._nmt is not None:
             self._step_nmt(now_ns)
+            self._all_op_wanted = None
         if cycle % RECOVER_EVERY_CYCLES == 0:
             self._update_recover_set()
 
@@ -470,28 +501,64 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             self._express_events = []
         if rec is not None:
             # express reflexes since the last cycle (already published) trigger windows too
-            rec.record(cycle, now_ns, period_ns, wkc, self.drives, express + events if express else events)
+            rec.record(cycle, now_ns, period_ns, wkc, drives, express + events if express else events,
+                       None if work is drives else work)
         if cycle % STATS_EVERY == 0:
             self._update_stats()
             self._adapt_spin()
-        snap = CycleSnapshot(cycle=cycle, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
+        snap = CycleSnapshot(cycle=cycle, time_ns=self._wall_ns(), drives=self._drive_snapshots(work),
                              events=tuple(events), stats=self._stats, agent_state=self.state)
         self.latest = snap
         sink = self.snapshot_sink
         if sink is not None:
             sink(snap)
 
+    # ---- the fast path ---------------------------------------------------------------------------
+
+    def _work(self, changed: Sequence[int]) -> Sequence[Drive]:
+        """The drives to step in a cycle without commands, reflexes or management reports: those
+        whose inputs changed (``changed``: slave positions) and those not at rest, in
+        configuration order. Cycle thread only."""
+        busy = self._busy
+        if not changed:
+            if not busy:
+                return ()
+            idx = busy
+        else:
+            idx = set(busy)
+            of_slave = self._drives_of_slave
+            for pos in changed:
+                idx.update(of_slave.get(pos, ()))
+        drives = self.drives
+        return [drives[k] for k in sorted(idx)]
+
+    def _at_rest(self, d: Drive, targets_before: tuple[int, int, int]) -> bool:
+        """True when a full step of ``d`` (just made, without controller events, its motion idle
+        before it) would repeat itself exactly while its inputs do not change and no command,
+        reflex or report reaches it: the cycle may then skip it. The controller settled (its
+        output depends on the two inputs only), the motion is idle (:attr:`AxisMotion.idle`), the
+        targets did not move (the motion observes them), no command pending, no automatic fault
+        reset running (its backoff reads the clock), no emergency text that may change. Cycle thread only."""
+        if d.pending is not None or not d.ctrl.settled or not d.motion.idle:
+            return False
+        if (d.target_position, d.target_velocity, d.target_torque) != targets_before:
+            return False
+        if d.cfg.policy.auto_reset.enabled and (d.state is State.FAULT or d.auto_attempts):
+            return False
+        return not (d.inputs.error_code and self._error_texts)
+
     # ---- output --------------------------------------------------------------------------------------
 
-    def _drive_snapshots(self) -> tuple[DriveSnapshot, ...]:
+    def _drive_snapshots(self, work: Sequence[Drive] | None = None) -> tuple[DriveSnapshot, ...]:
         """Every drive's snapshot. A drive whose published values did not change since the last
         cycle keeps its DriveSnapshot (the same immutable object), and when no drive changed the
         tuple of the last cycle is returned as it was: building 26-field records for drives at rest
-        was the largest share of the cycle's CPU per drive. Cycle thread only."""
+        was the largest share of the cycle's CPU per drive. Only the drives stepped this cycle
+        (``work``; None: all) are looked at: the others' values are those of the last cycle.
+        Cycle thread only."""
         changed = False
         texts = self._error_texts
-        snaps = []
-        for d in self.drives:
+        for d in self.drives if work is None else work:
             i = d.inputs
             c = d.ctrl
             m = d.motion
@@ -499,9 +566,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                    i.position_actual, i.velocity_actual, i.torque_actual, i.error_code,
                    texts.get(d.slave) if i.error_code else None, d.al, d.lost, d.absent, d.object_names, i.extra,
                    d.dc, m.axis_state, m.homed, d.target_position, m.request_id)
-            snap = d.snapshot
-            if snap is None or key != d.snapshot_key:
-                snap = d.snapshot = DriveSnapshot(
+            if d.snapshot is None or key != d.snapshot_key:
+                d.snapshot = DriveSnapshot(
                     axis=d.axis, slave=d.slave, state=d.state.value, statusword=i.statusword,
                     controlword=d.controlword, goal=c.goal.value, halt=c.halt, mode=c.mode,
                     mode_display=i.modes_of_operation_display, position=i.position_actual,
@@ -513,10 +579,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                     following_error=following_error(d), motion_request_id=m.request_id)
                 d.snapshot_key = key
                 changed = True
-            snaps.append(snap)
         last = self._drive_snaps
-        if changed or len(last) != len(snaps):
-            last = self._drive_snaps = tuple(snaps)
+        if changed or len(last) != len(self.drives):
+            last = self._drive_snaps = tuple(d.snapshot for d in self.drives)  # type: ignore[misc]
         return last
 
     def _error_text(self, slave: int, error_code: int) -> str:

@@ -46,6 +46,7 @@ class Drive:
     slave: int
     ctrl: DriveController
     motion: AxisMotion
+    index: int = 0                      # position in Cycle.drives (and the recorder's axes)
     out: DriveOutputs = field(default_factory=DriveOutputs)
     inputs: DriveInputs = field(default_factory=DriveInputs)
     state: State = State.UNKNOWN

@@ -22,7 +22,7 @@ import threading
 import time
 from array import array
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Iterable, Protocol, Sequence
 
 from bus_agent.runtime import CycleEvent
 
@@ -51,6 +51,7 @@ class RecordedDrive(Protocol):
     """What the recorder reads of a drive (``bus_agent.cycle.drive.Drive``)."""
 
     inputs: Any           # DriveInputs: statusword, position_actual, velocity_actual, torque_actual, ...
+    index: int            # position in the recorder's axes
     controlword: int
     target_position: int
     target_velocity: int
@@ -112,6 +113,8 @@ class Recorder:
         n = len(self.axes)
         self._cyc = {k: array(c, bytes(array(c).itemsize * self.size)) for k, c in CYCLE_CODES.items()}
         self._drv = {k: array(c, bytes(array(c).itemsize * self.size * n)) for k, c in DRIVE_CODES.items()}
+        #: The per-drive channels as memoryviews: a row is copied to the next without a new array.
+        self._views = tuple(memoryview(a) for a in self._drv.values())
         self.written = 0            # records written so far; the next goes to slot written % size
         self.error = ""             # why recording stopped ('' while it runs)
         self._open: _Window | None = None
@@ -133,8 +136,10 @@ class Recorder:
     # ---- cycle thread ------------------------------------------------------------------------
 
     def record(self, cycle: int, now_ns: int, period_ns: int, wkc: int, drives: Sequence[RecordedDrive],
-               events: Sequence[CycleEvent]) -> None:
-        """Store one cycle. Cycle thread only; cycle-safe (array stores, no allocation)."""
+               events: Sequence[CycleEvent], changed: Sequence[RecordedDrive] | None = None) -> None:
+        """Store one cycle. ``changed``: only these drives may differ from the last record (the
+        others' values are copied from it, one block per channel), None: all. Cycle thread only;
+        cycle-safe (array stores, no allocation beyond the block copies' views)."""
         if self.error:
             return
         i = self.written % self.size
@@ -148,8 +153,17 @@ class Recorder:
             sw, cw, tp, tv, tt = d["statusword"], d["controlword"], d["target_position"], d["target_velocity"], \
                 d["target_torque"]
             pos, vel, tq, ec, md = d["position"], d["velocity"], d["torque"], d["error_code"], d["mode_display"]
-            k = i * len(self.axes)
-            for drv in drives:
+            n = len(self.axes)
+            row = i * n
+            slots: Iterable[tuple[int, RecordedDrive]]
+            if changed is not None and self.written:
+                last = (i - 1) % self.size * n
+                for ch in self._views:
+                    ch[row:row + n] = ch[last:last + n]
+                slots = ((row + drv.index, drv) for drv in changed)
+            else:
+                slots = enumerate(drives, row)
+            for k, drv in slots:
                 inp = drv.inputs
                 sw[k] = inp.statusword
                 cw[k] = drv.controlword
@@ -161,7 +175,6 @@ class Recorder:
                 tq[k] = inp.torque_actual
                 ec[k] = inp.error_code
                 md[k] = inp.modes_of_operation_display
-                k += 1
         except (OverflowError, TypeError, IndexError) as exc:  # a value beyond its channel: stop recording, not the cycle
             self.error = f"recording stopped at cycle {cycle}: {exc}"
             return

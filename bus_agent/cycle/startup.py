@@ -76,7 +76,7 @@ class StartupMixin(CycleBase):
                                       fault_reset_retries=pol.fault_reset_retries, mode_timeout_s=pol.transition_timeout_s)
                 d = Drive(cfg=dc, axis=dc.axis, slave=dc.slave,
                            ctrl=DriveController(cc, mode=dc.mode, supported_modes=supported[dc.slave]),
-                           motion=AxisMotion(dc.motion, self.period_ns / 1e9))
+                           motion=AxisMotion(dc.motion, self.period_ns / 1e9), index=len(self.drives))
                 self._unmapped_objects(d)
                 self.drives.append(d)
         except BaseException:
@@ -84,6 +84,11 @@ class StartupMixin(CycleBase):
             self._close_bus()
             raise
         self._by_axis = {d.axis: d for d in self.drives}
+        self._busy = set(range(len(self.drives)))  # every drive is stepped in full until it is at rest
+        of_slave: dict[int, list[int]] = {}
+        for d in self.drives:
+            of_slave.setdefault(d.slave, []).append(d.index)
+        self._drives_of_slave = {s: tuple(ix) for s, ix in of_slave.items()}
         self._start_dc()
         self._desired_al = {i: ALState.OP for i in range(len(self.slaves))}
         self._al_status = [SlaveALStatus(ALState.OP, False, 0)] * len(self.slaves)

@@ -54,7 +54,8 @@ class AxisMotion(DriveRunsMixin):
         self.limits = Limits(c.max_velocity, c.max_acceleration, c.max_jerk)
         #: Targets take effect at the next exchange: plans are sampled one period ahead.
         self.lead_s = period_s
-        #: The last step's time, and how many cycle stalls paused the profile (see step()).
+        #: The last step's time while a plan runs (None when the last step ended without one),
+        #: and how many cycle stalls paused the profile (see step()).
         self._last_step_s: float | None = None
         self.stalls = 0
         self.homed = False
@@ -125,6 +126,14 @@ class AxisMotion(DriveRunsMixin):
         if self.plan is not None:
             return AxisState.DISCRETE_MOTION
         return AxisState.STANDSTILL
+
+    @property
+    def idle(self) -> bool:
+        """No plan, command, homing run, profile run or request under way: a step with the same
+        observation as the last one changes nothing and finishes nothing, so the cycle may skip
+        it (docs/agent-cycle.md, "Fast paths"). Cycle-safe."""
+        return (self.plan is None and self.active is None and self.homing is None and self.profile_run is None
+                and self.mode_request is None and self.sdo_request is None)
 
     @property
     def request_id(self) -> str:
@@ -354,11 +363,18 @@ class AxisMotion(DriveRunsMixin):
         at most that many periods and pauses the profile for the rest: the drive held the last
         target meanwhile (no frames), so a target sampled at the wall-clock time would jump by
         velocity x stall and trip the drive's following error (0x8611). The profile then ends
-        later by the stall beyond those periods."""
-        last, self._last_step_s = self._last_step_s, now_s
+        later by the stall beyond those periods. Only a plan that ran at the last step can have
+        stalled: one a command started since then begins at its own start time (the cycle may
+        skip the steps of an idle axis, see :attr:`idle`)."""
+        last = self._last_step_s
         if last is not None and self.plan is not None and now_s - last > STALL_PERIODS * self.lead_s:
             self.plan_t0 += now_s - last - STALL_PERIODS * self.lead_s
             self.stalls += 1
+        ended = self._step(now_s)
+        self._last_step_s = now_s if self.plan is not None else None
+        return ended
+
+    def _step(self, now_s: float) -> list[Finished]:
         if self.homing is not None:
             return self._step_homing(self.homing, now_s)
         self.controlword_bits = 0

@@ -590,4 +590,5 @@ class DriveModel:
 
 def _clamp_int(value: int, datatype: str) -> int:
     lo, hi = _INT_RANGES[datatype]
-    return max(lo, min(hi, int(value)))
+    v = int(value)
+    return v if lo <= v <= hi else (lo if v < lo else hi)  # no max/min calls: 3 per drive and step

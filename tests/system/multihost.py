@@ -131,7 +131,8 @@ class MultiHostRun:
     """The whole stack on a bed of ``hosts`` host namespaces plus a ``sup`` namespace."""
 
     def __init__(self, hosts: int = 2, drives: int = 3, groups: dict[str, list[str]] | None = None,
-                 prefix: str | None = None, pki: str | None = None, agent_args: Sequence[str] = ()) -> None:
+                 prefix: str | None = None, pki: str | None = None, agent_args: Sequence[str] = (),
+                 agent_toml: str = "") -> None:
         self.prefix = prefix or f"zm{os.getpid() % 100000}"
         #: A drives-pki directory holding router certificates ``r-<host>`` (SAN: the host's
         #: address), agent certificates ``<host>`` and testbed certificates ``sim-<host>`` (each
@@ -143,6 +144,7 @@ class MultiHostRun:
         self.groups = groups or {}
         #: Extra ``bus-agent`` options for every agent (benchmarks: ``--rt-priority N``).
         self.agent_args = list(agent_args)
+        self.agent_toml = agent_toml  # appended to every agent's configuration file (tables after [groups])
         self.bed: MultiHostBed = multihost_plan(self.prefix, hosts, extra=("sup",))
         self.workdir = tempfile.mkdtemp(prefix="multihost-")
         self.procs: list[Proc] = []
@@ -199,7 +201,7 @@ class MultiHostRun:
         cfg = Path(self.workdir) / f"{host}.toml"
         lines = [f'host = "{host}"', f'ifname = "{hb.ecat_master}"', "", "[groups]"]
         lines += [f"{g} = [{', '.join(json.dumps(m) for m in members)}]" for g, members in self.groups.items()]
-        cfg.write_text("\n".join(lines) + "\n")
+        cfg.write_text("\n".join(lines) + "\n" + self.agent_toml)
         return self.spawn(Proc, f"bus-agent {host}", host, [
             sys.executable, "-m", "bus_agent.cli", "--config", str(cfg), "--ifname", hb.ecat_master or "",
             "--host", host, "--connect", self.router_endpoint(host), "--log-level", "WARNING", *self.security(host),

@@ -139,10 +139,10 @@ def test_a_drive_at_rest_keeps_its_snapshot_and_a_change_builds_a_new_one():
         faulted = h.until(lambda s: s.drives[2].state == "fault")
         assert faulted.drives[2].error_code == 0x2310 and faulted.drives[0] is first.drives[0]
         # every published value equals a snapshot built from scratch of the same cycle
-        assert h.cycle._drive_snapshots() is faulted.drives
+        assert h.cycle._drive_snapshots(h.cycle.drives) is faulted.drives
         for d in h.cycle.drives:
             d.snapshot = None
-        assert h.cycle._drive_snapshots() == faulted.drives
+        assert h.cycle._drive_snapshots(h.cycle.drives) == faulted.drives
     finally:
         h.cycle.stop(timeout_s=1.0)
 

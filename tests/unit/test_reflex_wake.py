@@ -13,19 +13,9 @@ from bus_agent.config import AgentConfig
 from bus_agent.cycle.cycle import Cycle
 from bus_agent.runtime import CycleSnapshot, DriveCommand
 
-PERIOD_NS = 1_000_000
+from tests.unit.test_cycle import PERIOD_NS, Clock
+
 GROUPS = {"arm": ("h1/axis0", "h2/axis0")}
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.ns = 1_000_000_000
-
-    def __call__(self) -> int:
-        return self.ns
-
-    def s(self) -> float:
-        return self.ns / 1e9
 
 
 class CountingDc:
@@ -316,3 +306,41 @@ def test_the_spin_adapts_by_default_unless_the_cycle_thread_is_real_time() -> No
     cfg = AgentConfig(host="h1", sim_drives=1)
     assert Cycle(SimBus(1), cfg).spin_ns is None                      # the demo, a laptop: CPU first
     assert Cycle(SimBus(1), cfg, rt_priority=10).spin_ns == SPIN_NS   # SCHED_FIFO: jitter first
+
+
+def test_express_reflex_is_a_cycle_setting_on_by_default() -> None:
+    import pytest
+
+    from bus_agent.config import ConfigError, config_from_dict
+
+    assert config_from_dict({"host": "h1", "sim_drives": 1}).express_reflex is True
+    assert config_from_dict({"host": "h1", "sim_drives": 1, "cycle": {"express_reflex": False}}).express_reflex is False
+    with pytest.raises(ConfigError, match="express_reflex"):
+        config_from_dict({"host": "h1", "sim_drives": 1, "cycle": {"express_reflex": "yes"}})
+
+
+def test_no_express_frame_while_another_drive_follows_a_trajectory() -> None:
+    """The express frame would hand a moving drive its next target a period early (then again):
+    while any non-reacting drive has a plan, the reflex is applied at once but goes out with the
+    next frame."""
+    cyc, bus, clock, snaps, exchanges = _enabled_cycle()
+    moved: list = []
+    assert cyc.submit(DriveCommand(request_id="m", op="move", axes=("axis1",), args={"by": 200_000},
+                                   on_outcome=moved.append))
+    for _ in range(20):
+        clock.ns += PERIOD_NS
+        cyc.tick()
+    d1 = cyc._by_axis["axis1"]
+    assert d1.motion.plan is not None and not moved          # axis1 is moving
+    n = len(exchanges)
+    clock.ns += PERIOD_NS // 2
+    cyc.trigger_group("arm", "h2/axis0 fault 0x7305")
+    cyc._express(clock.ns)
+    assert cyc.express_exchanges == 0 and len(exchanges) == n   # no extra frame
+    assert snaps[-1].drives[0].goal == "quick_stop"             # but the reflex is applied now
+    assert any(e.kind == "reflex" for e in snaps[-1].events)
+    clock.ns += PERIOD_NS // 2
+    cyc.tick()                                                  # and goes out with the next frame
+    clock.ns += PERIOD_NS
+    snap = cyc.tick()
+    assert snap.drives[0].state == "quick_stop_active" and snap.drives[1].state == "operation_enabled"
