@@ -89,12 +89,17 @@ def run_demo(args) -> dict:
         cpu0 = proc_cpu_s(agent.pid)
         kid0 = {k: proc_cpu_s(k) for k in kids}
         th0 = thread_cpu_ns(agent.pid)
+        kth0 = {k: thread_cpu_ns(k) for k in kids}
         time.sleep(args.seconds)
         el = time.monotonic() - t0
         cpu = proc_cpu_s(agent.pid) - cpu0
         kid = sum(proc_cpu_s(k) - c for k, c in kid0.items())
         th1 = thread_cpu_ns(agent.pid)
         threads = {n: round(100 * (ns - th0.get(n, 0)) / 1e9 / el, 2) for n, ns in th1.items()}
+        gw_threads: dict[str, float] = {}  # the gateway process's threads (Python's unnamed: "python")
+        for k, before in kth0.items():
+            for n, ns in thread_cpu_ns(k).items():
+                gw_threads[n] = round(gw_threads.get(n, 0.0) + 100 * (ns - before.get(n, 0)) / 1e9 / el, 2)
         status = _agent_status(ep, host)
     finally:
         agent.send_signal(signal.SIGTERM)
@@ -104,7 +109,8 @@ def run_demo(args) -> dict:
             stop_process(agent)
     return {"seconds": round(el, 1), "agent_cpu_pct": round(100 * cpu / el, 1),
             "gateway_cpu_pct": round(100 * kid / el, 1), "total_cpu_pct": round(100 * (cpu + kid) / el, 1),
-            "threads_cpu_pct": dict(sorted(threads.items(), key=lambda kv: -kv[1])), "cycle_stats": status}
+            "threads_cpu_pct": dict(sorted(threads.items(), key=lambda kv: -kv[1])),
+            "gateway_threads_cpu_pct": dict(sorted(gw_threads.items(), key=lambda kv: -kv[1])), "cycle_stats": status}
 
 
 def phase_spin(args) -> dict:

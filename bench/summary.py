@@ -491,7 +491,7 @@ def cycle_targets(r: Mapping[str, Any]) -> list[Target]:
 def idle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     d, sp = r.get("demo") or {}, r.get("spin") or {}
     return {"demo": {k: d.get(k) for k in ("agent_cpu_pct", "gateway_cpu_pct", "total_cpu_pct", "threads_cpu_pct",
-                                           "cycle_stats")},
+                                           "gateway_threads_cpu_pct", "cycle_stats")},
             "spin": {k: {"cycle_cpu_pct": v["cycle_cpu_pct"], "jitter_us": v["jitter_us"],
                          "spin_us_at_end": v["spin_us_at_end"]}
                      for k, v in sp.items() if k != "ratios"},
