@@ -5,8 +5,10 @@ Plain pysoem only (no project master code): what any SOEM-based master sees on t
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
+from typing import Iterator
 
 import pysoem  # a dependency: a broken import fails the run, never skips it
 import pytest
@@ -21,11 +23,16 @@ GENERIC = PROFILES["generic"]
 OUT_BYTES, IN_BYTES = RX_STRUCT.size, TX_STRUCT.size  # 13, 15
 
 
-def _open(ifname: str, n: int):
+@contextlib.contextmanager
+def _opened(ifname: str, n: int) -> Iterator[pysoem.Master]:
+    """A pysoem master on ``ifname`` that found ``n`` slaves; closed on exit."""
     m = pysoem.Master()
     m.open(ifname)
-    assert m.config_init() == n
-    return m
+    try:
+        assert m.config_init() == n
+        yield m
+    finally:
+        m.close()
 
 
 def _wait(predicate, timeout: float, what: str, poll=None):
@@ -83,8 +90,7 @@ def _abort_code(excinfo) -> int:
 @pytest.mark.parametrize("n", [1, 16])
 def test_discovery_identity_and_mapping(ecat_segment, n):
     ifname, _control = ecat_segment(n)
-    m = _open(ifname, n)
-    try:
+    with _opened(ifname, n) as m:
         for s in m.slaves:
             assert (s.name, s.man, s.id, s.rev) == (GENERIC.device_name, GENERIC.vendor_id,
                                                    GENERIC.product_code, GENERIC.revision)
@@ -97,14 +103,11 @@ def test_discovery_identity_and_mapping(ecat_segment, n):
             assert _cycle(m) == 3 * n
         serials = [struct.unpack("<I", s.sdo_read(0x1018, 4))[0] for s in m.slaves]
         assert serials == list(range(1, n + 1))
-    finally:
-        m.close()
 
 
 def test_sdo_transfers(ecat_segment):
     ifname, _ = ecat_segment(1)
-    m = _open(ifname, 1)
-    try:
+    with _opened(ifname, 1) as m:
         s = m.slaves[0]
         assert m.state_check(pysoem.PREOP_STATE, 2_000_000) == pysoem.PREOP_STATE
         assert struct.unpack("<I", s.sdo_read(0x1018, 1))[0] == GENERIC.vendor_id  # expedited
@@ -116,8 +119,6 @@ def test_sdo_transfers(ecat_segment):
         assert s.sdo_read(0x2FFF, 0, 512) == blob
         assert s.sdo_read(0x1C00, 0) == b"\x04"
         assert struct.unpack("<H", s.sdo_read(0x1C12, 1))[0] == 0x1600
-    finally:
-        m.close()
 
 
 ABORTS = [
@@ -132,8 +133,7 @@ ABORTS = [
 
 def test_sdo_aborts(ecat_segment):
     ifname, _ = ecat_segment(1)
-    m = _open(ifname, 1)
-    try:
+    with _opened(ifname, 1) as m:
         s = m.slaves[0]
         assert m.state_check(pysoem.PREOP_STATE, 2_000_000) == pysoem.PREOP_STATE
         s.sdo_write(0x1600, 0, b"\x00")
@@ -147,8 +147,6 @@ def test_sdo_aborts(ecat_segment):
         with pytest.raises(pysoem.SdoError) as excinfo:
             s.sdo_write(0x1C12, 0, b"\x00")
         assert _abort_code(excinfo) == 0x08000022  # wrong state: PDO assignment outside PRE-OP
-    finally:
-        m.close()
 
 
 def _remap(slave) -> None:
@@ -167,8 +165,7 @@ def _remap(slave) -> None:
 
 def test_remap_in_preop_then_refused(ecat_segment):
     ifname, _ = ecat_segment(2)
-    m = _open(ifname, 2)
-    try:
+    with _opened(ifname, 2) as m:
         for s in m.slaves:
             s.config_func = (lambda pos, s=s: _remap(s))  # runs in PRE-OP inside config_map
         assert m.config_map() == 2 * (6 + 6)
@@ -182,14 +179,11 @@ def test_remap_in_preop_then_refused(ecat_segment):
         with pytest.raises(pysoem.SdoError) as excinfo:
             m.slaves[0].sdo_write(0x1600, 0, b"\x00")
         assert _abort_code(excinfo) == 0x08000022
-    finally:
-        m.close()
 
 
 def test_enable_fault_emcy(ecat_segment):
     ifname, control = ecat_segment(2)
-    m = _open(ifname, 2)
-    try:
+    with _opened(ifname, 2) as m:
         _to_op(m)
         _enable(m)
         emergencies = []
@@ -202,14 +196,11 @@ def test_enable_fault_emcy(ecat_segment):
         _wait(lambda: any(e.error_code == 0x5530 for e in emergencies), 2.0, "EMCY 0x5530",
               poll=lambda: m.slaves[1].mbx_receive())
         assert not control.request("fault", slave=7, error_code=1)["ok"]  # bad input: refused
-    finally:
-        m.close()
 
 
 def test_sm_watchdog_trips(ecat_segment):
     ifname, control = ecat_segment(2)
-    m = _open(ifname, 2)
-    try:
+    with _opened(ifname, 2) as m:
         _to_op(m)
         _enable(m)
         emergencies = []
@@ -228,14 +219,11 @@ def test_sm_watchdog_trips(ecat_segment):
         assert [x["al_status_code"] for x in status] == [0x001B, 0x001B]
         # in SAFE-OP the inputs still flow (+1 each) but the outputs are not taken (no +2)
         assert _cycle(m) == 2
-    finally:
-        m.close()
 
 
 def test_al_error_codes(ecat_segment):
     ifname, _ = ecat_segment(1)
-    m = _open(ifname, 1)
-    try:
+    with _opened(ifname, 1) as m:
         s = m.slaves[0]
         assert m.state_check(pysoem.PREOP_STATE, 2_000_000) == pysoem.PREOP_STATE
         s.state = pysoem.OP_STATE  # PRE-OP -> OP skips SAFE-OP
@@ -269,14 +257,11 @@ def test_al_error_codes(ecat_segment):
         s.write_state()
         s.state_check(pysoem.PREOP_STATE, 100_000)
         assert s.state == pysoem.INIT_STATE | pysoem.STATE_ERROR and s.al_status == 0x0016
-    finally:
-        m.close()
 
 
 def test_unplug_plug_wkc_fault_and_frame_faults(ecat_segment):
     ifname, control = ecat_segment(3)
-    m = _open(ifname, 3)
-    try:
+    with _opened(ifname, 3) as m:
         _to_op(m)
         assert _cycle(m) == 9
         assert control.request("wkc_fault", slave=2, on=True)["ok"]
@@ -304,21 +289,16 @@ def test_unplug_plug_wkc_fault_and_frame_faults(ecat_segment):
         time.sleep(0.06)
         _wait(lambda: _cycle(m) == 9, 1.0, "cycles after the late answer")
         assert not control.request("drop_frames", ratio=3)["ok"]
-    finally:
-        m.close()
 
 
 def test_64_drives_multi_frame(ecat_segment):
     ifname, _ = ecat_segment(64)
-    m = _open(ifname, 64)
-    try:
+    with _opened(ifname, 64) as m:
         assert m.config_map() == 64 * (OUT_BYTES + IN_BYTES)  # beyond one frame: two LRWs
         assert m.expected_wkc == 192
         _to_op(m, map_first=False)
         for _ in range(20):
             assert _cycle(m) == 192
-    finally:
-        m.close()
 
 
 def test_fault_injection_over_zenoh(ecat_segment):
