@@ -76,7 +76,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("cycle_cpu", "the cycle thread's CPU per drive, 16 and 64 drives at 1 kHz, next to a bare pysoem loop; "
               "codec CPU next to the fixed structs", "bench.bench_cycle",
               ("--drives", "16,64", "--seconds", "30", "--rounds", "3", "--rt-priority", "10"),
-              ("--drives", "16,64", "--seconds", "4", "--rounds", "1", "--rt-priority", "10"), True,
+              ("--drives", "16,64", "--seconds", "4", "--rounds", "1", "--rt-priority", "10", "--tick-runs", "10"), True,
               s.cycle_figures, s.cycle_headline, s.cycle_targets),
     Benchmark("idle", "the idle demo (bus-agent --sim 4): CPU per process and thread; the cycle's spin fixed "
               "against adaptive and none", "bench.bench_idle", ("--seconds", "20", "--rounds", "2"),

@@ -433,6 +433,9 @@ def replies_headline(r: Mapping[str, Any]) -> str:
 #: bare pysoem loop 18.2 %), its jitter at p99.9 at most this many times the bare loop's; the
 #: mapped codec at most this many times the CPU of the fixed 13/15-byte structs (issue 8).
 CYCLE_CPU_PCT_MAX_64 = 30.0
+#: The cycle's own CPU per drive at rest beyond the bare exchange (tick() microbenchmark, best of
+#: runs: robust under load): what 64 drives at 1 kHz may add to a bare loop's ~20 % and stay <= 30 %.
+TICK_REST_US_PER_DRIVE_MAX = 1.2
 CYCLE_JITTER_RATIO_MAX = 1.25
 CODEC_RATIO_MAX = 1.10
 #: The idle demo (``bus-agent --sim 4``, agent and gateway processes) at most this % of a core
@@ -452,7 +455,7 @@ def cycle_figures(r: Mapping[str, Any]) -> dict[str, Any]:
                   "jitter_us": {k: v["jitter_us"] for k, v in ph.items()},
                   "overruns": {k: v["overruns"] for k, v in ph.items()},
                   "beyond_bare_us_per_drive": size["beyond_bare_us_per_drive"],
-                  "jitter_p999_over_bare": size["jitter_p999_over_bare"]}
+                  "jitter_p999_over_bare": size["jitter_p999_over_bare"], "ticks": size.get("ticks")}
     return out
 
 
@@ -463,6 +466,13 @@ def cycle_headline(r: Mapping[str, Any]) -> str:
         parts.append(f"{n} drives: cycle thread {ph['agent'].get('cpu_pct_of_period')} % of a core at 1 kHz (bare "
                      f"loop {ph['bare'].get('cpu_pct_of_period')} %), {size['beyond_bare_us_per_drive']} us per drive beyond the "
                      f"bare loop, jitter p99.9 {ph['agent']['jitter_us']['p999']} us (bare {ph['bare']['jitter_us']['p999']})")
+        t = size.get("ticks")
+        if t:
+            us = t["us"]
+            parts.append(f"{n} drives, one tick's CPU: {us['tick_rest']} us at rest (every drive stepped: "
+                         f"{us['tick_full']} us; bare exchange {us['bare_exchange']} us), "
+                         f"{t['rest_beyond_bare_us_per_drive']} us per drive at rest beyond the bare exchange, "
+                         f"one moving drive +{t['moving_drive_us']} us")
     c = r.get("codec") or {}
     parts.append(f"codec per cycle ({c.get('drives')} drives) {c.get('codec_default_us_per_cycle')} us default, "
                  f"{c.get('codec_predefined_us_per_cycle')} us predefined, fixed structs {c.get('fixed_struct_us_per_cycle')} us")
@@ -476,6 +486,10 @@ def cycle_targets(r: Mapping[str, Any]) -> list[Target]:
         ph = size["phases"]
         out.append(at_most("64 drives: cycle thread CPU per cycle, % of the 1 ms period",
                            ph["agent"].get("cpu_pct_of_period"), CYCLE_CPU_PCT_MAX_64))
+        t = size.get("ticks")
+        if t:
+            out.append(at_most("64 drives at rest: one tick's CPU beyond the bare exchange, per drive",
+                               t["rest_beyond_bare_us_per_drive"], TICK_REST_US_PER_DRIVE_MAX, " us"))
     for n, size in (r.get("sizes") or {}).items():
         ratio = size["jitter_p999_over_bare"]
         out.append(at_most(f"{n} drives: jitter p99.9, agent / bare", ratio, CYCLE_JITTER_RATIO_MAX, " x",

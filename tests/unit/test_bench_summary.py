@@ -263,3 +263,20 @@ def test_motion_row_targets_and_headline():
     assert met["synchronized move of every axis: arrival spread (cycles)"] is False
     assert met["move query to the cycle applying it, p50"] is True and met["moves not done in the motion phase"] is True
     assert "1.2 us per moving axis" in s.motion_headline(r) and s.motion_figures(r)["phases"]["motion"]["moves_not_done"] == 0
+
+
+def test_cycle_row_targets_include_the_tick_at_rest_and_tolerate_a_run_without_it():
+    ph = {k: {"jitter_us": {"p50": 0.1, "p99": 1.0, "p999": j, "max": 2 * j}, "overruns": 0, "cycle_cpu_pct": c,
+              "cpu_pct_of_period": c, "cpu_us_per_cycle": 10 * c} for k, j, c in (("bare", 10.0, 20.0), ("agent", 11.0, 23.0))}
+    ticks = {"us": {"bare_exchange": 10.0, "bus_exchange": 18.0, "tick_rest": 45.0, "tick_full": 340.0,
+                    "tick_one_moving": 75.0}, "rest_beyond_bare_us_per_drive": 0.55, "moving_drive_us": 26.0}
+    size = {"phases": ph, "beyond_bare_us_per_drive": 0.47, "jitter_p999_over_bare": 1.1, "ticks": ticks}
+    r = {"sizes": {"64": size}, "codec": {"ratio_default": 1.02}}
+    met = {t.name: t.met for t in s.cycle_targets(r)}
+    assert met["64 drives at rest: one tick's CPU beyond the bare exchange, per drive"] is True
+    assert met["64 drives: cycle thread CPU per cycle, % of the 1 ms period"] is True
+    assert "45.0 us at rest (every drive stepped: 340.0 us" in s.cycle_headline(r)
+    size["ticks"]["rest_beyond_bare_us_per_drive"] = 1.5
+    assert {t.name: t.met for t in s.cycle_targets(r)}["64 drives at rest: one tick's CPU beyond the bare exchange, per drive"] is False
+    del size["ticks"]  # an older result: no tick figures, no tick target
+    assert not any("tick" in t.name for t in s.cycle_targets(r)) and "one tick" not in s.cycle_headline(r)
