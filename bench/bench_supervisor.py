@@ -22,8 +22,9 @@ agent with its own Zenoh session, all through one router process):
   latency the system tests only bound generously.
 
 Results go to ``bench/results/bench_supervisor.json`` and are printed. Flags: ``--sizes``,
-``--rounds``, ``--per-process``, ``--cycle-us`` (default 1000 up to 64 drives, else 20000 so
-that 1024 simulated drives fit on a 2-core machine), ``--sm-watchdog-s`` (default 5 s, so a
+``--rounds``, ``--per-process``, ``--cycle-us`` (default 5000 up to 64 drives, else 20000, so
+that the simulated drives leave the supervisor and Zenoh a share of a 2-core machine: the
+figures exclude the drives' own time, see :data:`CYCLE_US`), ``--sm-watchdog-s`` (default 5 s, so a
 starved machine's late cycles do not drop simulated slaves), ``--gets``, ``--no-fanin``,
 ``--pin`` (the agents' processes on the last half of the CPUs, the supervisor, router, echo
 and watcher on the first: the bare get is then measured away from the agents' load; on 2 CPUs
@@ -47,10 +48,19 @@ import zenoh
 from schemas import keys
 from supervisor.fleet import Fleet
 from supervisor.results import CommandResult, Report
-from bench.common import proc_cpu_s
+from bench.common import proc_cpu_s, thread_cpu_ns
 from supervisor.testbed import Proc, spawn, start_agents, start_router
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_supervisor.json"
+#: The simulated agents' cycle up to 64 drives. The figures are the supervisor's and Zenoh's share
+#: (wall time minus the slowest drive's own time), but at 1 ms the 4x16 agents (64 simulated
+#: drives, one process, their 4 gateway processes) took about a core and a half during an enable
+#: and starved the supervisor and the router of the 2-core machine: at load 4-5, two alternating
+#: pairs of runs gave an enable overhead of 80 and 71 ms at 1 ms, 38 and 40 ms at 5 ms (the
+#: agents' process 84/69 -> 42/43 ms of CPU per enable).
+CYCLE_US = 5000
+#: Beyond 64 drives (1024 simulated drives must fit on 2 cores).
+CYCLE_US_LARGE = 20000
 
 WATCHER = r"""
 import json, sys, threading, time
@@ -198,7 +208,7 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
     (the PKI must hold SECURE_PRINCIPALS and an agent certificate per host name). Without a PKI
     the bare get goes to an echo queryable; with one (its key is outside every role) it is left out."""
     total = n_agents * n_drives
-    cycle_us = args.cycle_us or (1000 if total <= 64 else 20000)
+    cycle_us = args.cycle_us or (CYCLE_US if total <= 64 else CYCLE_US_LARGE)
     router, ep = start_router(pki=pki, identity="bench-router")
     procs: list[Proc] = []
     hosts = host_names(n_agents)
@@ -235,10 +245,18 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
                                              consolidation=zenoh.ConsolidationMode.NONE, timeout=10))
             out["status_fanout_get"] = {"replies": len(replies), "wall_ms": round(1e3 * (time.perf_counter() - t), 3)}
             rounds = []
+            groups = {"router": [router.pid], "agents": [p.pid for p in procs if p.name.startswith("agents")]}
+            groups["gateways"] = [c for pid in groups["agents"] for c in child_pids(pid)]
             for _ in range(args.rounds):
+                cpu = {g: cpu_s(pids) for g, pids in groups.items()}
+                cpu["supervisor"] = time.process_time()
                 en = fleet.enable("**", timeout_s=10)
+                cpu["supervisor"] = time.process_time() - cpu["supervisor"]
+                for g, pids in groups.items():
+                    cpu[g] = cpu_s(pids) - cpu[g]
                 dis = fleet.command("disable", "**", timeout_s=10)
-                rounds.append({"enable": report_figures(en), "disable": step_figures(dis)})
+                rounds.append({"enable": {**report_figures(en), "cpu_ms": {g: round(1e3 * v, 2) for g, v in cpu.items()}},
+                               "disable": step_figures(dis)})
                 if not (en.ok and dis.ok):
                     print(f"  round failed: {en.reason} {dis.failures[:3]}", file=sys.stderr)
             out["rounds"] = rounds
@@ -246,6 +264,10 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
             if ok_rounds:
                 out["enable_wall_s_median"] = statistics.median(r["enable"]["wall_s"] for r in ok_rounds)
                 out["enable_overhead_s_median"] = statistics.median(r["enable"]["overhead_s"] for r in ok_rounds)
+                # CPU time of each party during the enable: robust where wall-clock times are not
+                # (a loaded machine), so it shows what a change costs or saves
+                out["enable_cpu_ms_median"] = {g: round(statistics.median(r["enable"]["cpu_ms"][g] for r in ok_rounds), 2)
+                                               for g in ok_rounds[0]["enable"]["cpu_ms"]}
                 out["disable_wall_s_median"] = statistics.median(r["disable"]["wall_s"] for r in ok_rounds)
                 out["disable_overhead_s_median"] = statistics.median(r["disable"]["overhead_s"] for r in ok_rounds)
             if fanin:
@@ -268,6 +290,20 @@ def cpu_split(pin: bool) -> tuple[set[int], set[int]] | None:
         return None
     half = len(cpus) // 2
     return set(cpus[:half]), set(cpus[half:])
+
+
+def cpu_s(pids: list[int]) -> float:
+    """CPU time of the processes' live threads (schedstat: ns, not the 10 ms ticks of /stat)."""
+    return sum(sum(thread_cpu_ns(pid).values()) for pid in pids) / 1e9
+
+
+def child_pids(pid: int) -> list[int]:
+    """The child processes of ``pid`` (an agents process's gateway processes)."""
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(c) for c in f.read().split()]
+    except OSError:
+        return []
 
 
 def pin_process(pid: int, cpus: set[int]) -> None:
@@ -326,7 +362,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", default="4x16,32x32", help="comma-separated AGENTSxDRIVES (default 4x16,32x32)")
     p.add_argument("--rounds", type=int, default=3, help="enable+disable rounds per size (default 3)")
     p.add_argument("--per-process", type=int, default=8, help="agents per process (default 8)")
-    p.add_argument("--cycle-us", type=int, default=0, help="agent cycle (default 1000, 20000 beyond 64 drives)")
+    p.add_argument("--cycle-us", type=int, default=0,
+                   help=f"agent cycle (default {CYCLE_US}, {CYCLE_US_LARGE} beyond 64 drives)")
     p.add_argument("--sm-watchdog-s", type=float, default=5.0,
                    help="simulated slaves' SM watchdog (default 5 s: a starved 2-core box must not drop slaves)")
     p.add_argument("--gets", type=int, default=200, help="bare get round trips to time (default 200)")

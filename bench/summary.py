@@ -249,6 +249,8 @@ def supervisor_figures(r: Mapping[str, Any]) -> dict[str, Any]:
                "enable_overhead_s_median": s.get("enable_overhead_s_median"),
                "disable_wall_s_median": s.get("disable_wall_s_median"),
                "disable_overhead_s_median": s.get("disable_overhead_s_median"),
+               "enable_cpu_ms_median": s.get("enable_cpu_ms_median"),
+               "load_avg_1min_at_start": s.get("load_avg_1min_at_start"),
                "get_rtt_bare_ms": {k: bare.get(k) for k in ("p50_ms", "p99_ms")},
                "enable_overhead_over_bare_get_p50": _ratio((s.get("enable_overhead_s_median") or 0) * 1e3 or None,
                                                            bare.get("p50_ms")),

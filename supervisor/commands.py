@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
 
 import zenoh
 
+from bus_agent import hops
 from schemas import keys
 from schemas.messages import (
     CommandReply,
@@ -47,9 +48,13 @@ REPLY_MARGIN_S = 1.0
 DEFAULT_TIMEOUT_S = 5.0
 
 
-@dataclass
+@dataclass(eq=False)  # identity: a set member of the Fleet while it waits
 class _Collector:
-    """Replies of one command, filled from Zenoh reply callbacks."""
+    """Replies of one command, filled from Zenoh reply callbacks under its own condition ``cv``.
+
+    Not under the Fleet's lock: that one is notified for every status sample (about 200 per
+    phase of a 64-drive enable), and each notification woke the waiting caller to walk every
+    addressed drive, competing for the GIL with the reply callbacks it waited for."""
 
     addressed: frozenset[DriveRef]
     replies: dict[DriveRef, CommandReply] = field(default_factory=dict)
@@ -57,6 +62,9 @@ class _Collector:
     finished: int = 0
     #: Addressed drives per host still without a reply.
     left: dict[str, int] = field(default_factory=dict)
+    #: Guards the fields above; notified on progress (a host complete, an error, a query's end)
+    #: and by the Fleet when an agent departs.
+    cv: threading.Condition = field(default_factory=threading.Condition)
 
     def __post_init__(self) -> None:
         for ref in self.addressed:
@@ -84,6 +92,7 @@ class FleetCommands:
         identity: str | None
         lease_ttl_s: float
         _lock: threading.Condition
+        _collectors: set[_Collector]
         _agents: dict[str, AgentInfo]
         _leases: dict[DriveRef, float]
         _lease_selectors: list[tuple[str, ...]]
@@ -139,49 +148,60 @@ class FleetCommands:
         t0 = time.monotonic()
 
         def on_reply(reply: zenoh.Reply) -> None:
+            hops.stamp("sup.reply")
             if reply.ok is not None:
                 try:
                     msg = decode(reply.ok.payload.to_bytes(), CommandReply)
                 except SchemaError as exc:
-                    with self._lock:
+                    with col.cv:
                         col.errors.append(f"bad reply on {reply.ok.key_expr}: {exc}")
                     return
                 if msg.request_id not in ids:
                     return
                 ref = DriveRef(msg.host, "" if agent_level else msg.axis)
-                with self._lock:
+                with col.cv:
                     if col.add(ref, msg):
-                        self._lock.notify_all()
+                        col.cv.notify_all()
             else:
                 text = reply.err.payload.to_string() if reply.err is not None else "?"
                 if text != "Timeout":  # zenoh's own end-of-query marker, not an agent's answer
-                    with self._lock:
+                    with col.cv:
                         col.errors.append(text)
-                        self._lock.notify_all()
+                        col.cv.notify_all()
 
         def on_done() -> None:
-            with self._lock:
+            with col.cv:
                 col.finished += 1
-                self._lock.notify_all()
+                col.cv.notify_all()
 
-        for ke, req in payloads:
-            s.get(ke, zenoh.handlers.Callback(on_reply, on_done), target=zenoh.QueryTarget.ALL,
-                  consolidation=zenoh.ConsolidationMode.NONE, timeout=wait_s, payload=encode(req))
+        hops.stamp(f"sup.send.{request.op}")
         deadline = t0 + wait_s + 0.2
         with self._lock:
+            self._collectors.add(col)  # woken when an agent departs
+        try:
+            for ke, req in payloads:
+                s.get(ke, zenoh.handlers.Callback(on_reply, on_done), target=zenoh.QueryTarget.ALL,
+                      consolidation=zenoh.ConsolidationMode.NONE, timeout=wait_s, payload=encode(req))
             while True:
-                alive = {h for h, a in self._agents.items() if a.alive}
-                waiting = [r for r in col.addressed if r not in col.replies and r.host in alive]
-                if not waiting or col.finished >= len(keyexprs):
-                    break
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                self._lock.wait(min(left, 0.05))
-            gone = {r.host for r in col.addressed} - {h for h, a in self._agents.items() if a.alive}
+                with self._lock:  # not nested in col.cv: the Fleet takes col.cv inside its lock
+                    alive = {h for h, a in self._agents.items() if a.alive}
+                with col.cv:
+                    waiting = [r for r in col.addressed if r not in col.replies and r.host in alive]
+                    if not waiting or col.finished >= len(keyexprs):
+                        break
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    col.cv.wait(min(left, 0.05))
+        finally:
+            with self._lock:
+                self._collectors.discard(col)
+                gone = {r.host for r in col.addressed} - {h for h, a in self._agents.items() if a.alive}
+        with col.cv:
             replies = dict(col.replies)
             errors = list(col.errors)
         elapsed = time.monotonic() - t0
+        hops.stamp(f"sup.done.{request.op}")
         silent = ""
         if self.identity and not replies and not errors and col.finished >= len(keyexprs) and elapsed < wait_s / 2:
             # Every query ended with no reply long before its deadline: what an ACL denial looks like.

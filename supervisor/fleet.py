@@ -179,6 +179,7 @@ class Fleet(FleetCommands):
         self.discovery_timeout_s = discovery_timeout_s
         self.lease_ttl_s = lease_ttl_s
         self._lock = threading.Condition()
+        self._collectors: set[Any] = set()   # commands waiting for replies (FleetCommands._query)
         self._agents: dict[str, AgentInfo] = {}
         self._drives: dict[DriveRef, DriveStatus] = {}
         self._missed: dict[DriveRef, int] = {}
@@ -365,6 +366,9 @@ class Fleet(FleetCommands):
             elif not alive and was:
                 info.gone_monotonic = now
                 self._instances.pop(host, None)  # a restarted agent is not a second one
+                for col in self._collectors:  # a command waiting for this agent stops waiting
+                    with col.cv:
+                        col.cv.notify_all()
             self._lock.notify_all()
         if alive and not was:
             log.info("agent %s arrived", host)

@@ -285,6 +285,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
         # as if the whole agent had crashed; a Python-level session close only adds delay.
         log.error("gateway %s: the cycle process is gone: exiting", host)
         logging.shutdown()
+        hops.write()  # os._exit skips atexit
         os._exit(1)
     gw.close()
     if sim_control is not None:

@@ -29,3 +29,30 @@ def test_agent_level_refs_count_per_host() -> None:
     col = _Collector(frozenset({DriveRef("h1", ""), DriveRef("h2", "")}))
     assert col.add(DriveRef("h1", ""), _reply("h1", "")) is True
     assert col.add(DriveRef("h2", ""), _reply("h2", "")) is True
+
+
+def test_a_departing_agent_wakes_the_commands_waiting_for_it() -> None:
+    import threading
+
+    from schemas import keys
+    from supervisor.fleet import Fleet
+
+    fleet = Fleet(connect=["tcp/127.0.0.1:1"], name="t")   # not opened: only its view is used
+    fleet._host_alive(keys.alive("h1"), True)
+    col = _Collector(frozenset({DriveRef("h1", "a")}))
+    fleet._collectors.add(col)
+    waiting, woken = threading.Event(), []
+
+    def waiter() -> None:
+        with col.cv:
+            waiting.set()
+            woken.append(col.cv.wait(10))
+
+    t = threading.Thread(target=waiter)
+    t.start()
+    assert waiting.wait(10)
+    with col.cv:  # taken only once the waiter is inside wait()
+        pass
+    fleet._host_alive(keys.alive("h1"), False)
+    t.join(10)
+    assert woken == [True] and fleet.hosts() == []
