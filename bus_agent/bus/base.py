@@ -139,6 +139,11 @@ class Bus(Protocol):
     """An EtherCAT segment of CiA 402 drives, one per slave position."""
 
     backend: str  # "pysoem" or "sim"
+    #: An exchange between two cycles is harmless (EtherCAT: one more frame; a drive latches
+    #: outputs at SM2 or SYNC0 either way), so the cycle may send a group reflex in an express
+    #: exchange (docs/agent-cycle.md, Timing). False on CANopen: every exchange sends a SYNC,
+    #: which every node takes as a cycle of its own. Read with ``getattr(bus, ..., False)``.
+    express_exchange: bool
 
     def open(self) -> list[SlaveInfo]:
         """Find and identify the slaves (INIT -> PRE-OP). Raises BusError."""

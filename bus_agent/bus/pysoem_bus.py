@@ -76,6 +76,7 @@ class PysoemBus(PysoemDc):
     """The Bus protocol over pysoem (backend "pysoem"); distributed clocks in :class:`PysoemDc`."""
 
     backend = "pysoem"
+    express_exchange = True
 
     def __init__(self, ifname: str, receive_timeout_us: int = 1000, release_gil: bool = True,
                  config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S) -> None:

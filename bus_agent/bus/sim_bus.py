@@ -103,6 +103,7 @@ class SimBus:
     """The Bus protocol over N in-process drive models (backend "sim")."""
 
     backend = "sim"
+    express_exchange = True
 
     def __init__(self, n_drives: int, profile: str | DriveProfile | Sequence[str | DriveProfile] = "generic",
                  segment_name: str = "sim", clock: Callable[[], float] = time.monotonic,

@@ -83,6 +83,7 @@ class CycleBase:
         #: eventfd the cycle thread's sleep waits on; ``trigger_group`` writes it (-1: plain sleep,
         #: e.g. with an injected clock, or before ``start``).
         self._wake_fd = -1
+        self._wake_lock = threading.Lock()
         #: Events of express reflexes since the last cycle, for the flight recorder's triggers.
         self._express_events: list[CycleEvent] = []
         self.express_exchanges = 0

@@ -265,8 +265,9 @@ class CommandsMixin(CycleBase):
         new controlwords, and every other output as computed for the next frame. So it is sent
         only while no other drive follows a trajectory (``motion.plan``): a drive at rest gets
         the same targets twice, a moving one would get its next target a period early and then
-        again (a step in its velocity). Otherwise the reflex is applied now and goes out with
-        the next frame. It is not a cycle: no period, statistics, DC step (the PI sees only the
+        again (a step in its velocity). Nor on a bus without ``express_exchange`` (CANopen: the
+        exchange sends a SYNC). Otherwise the reflex is applied now and goes out with the next
+        frame. It is not a cycle: no period, statistics, DC step (the PI sees only the
         scheduled frames; docs/agent-cycle.md, Timing) or management work. Its events go out at
         once in a snapshot stamped before the exchange, numbered as the last cycle. Cycle thread."""
         events = self._events = []
@@ -293,8 +294,8 @@ class CommandsMixin(CycleBase):
                 changed = True
         snap = CycleSnapshot(cycle=self.cycles, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
                              events=tuple(events), stats=self._stats, agent_state=self.state)
-        if changed and not any(d.motion.plan is not None for d in self.drives
-                               if not d.lost and d.axis not in reacting):
+        if changed and getattr(bus, "express_exchange", False) and not any(
+                d.motion.plan is not None for d in self.drives if not d.lost and d.axis not in reacting):
             bus.exchange()
             self.express_exchanges += 1
         self._express_events += events

@@ -141,9 +141,10 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         if self._closed:
             return
         self._closed = True
-        fd, self._wake_fd = self._wake_fd, -1
-        if fd >= 0:
-            os.close(fd)
+        with self._wake_lock:  # no trigger_group writes to the number once closed (it may be reused)
+            fd, self._wake_fd = self._wake_fd, -1
+            if fd >= 0:
+                os.close(fd)
         self._mgmt.stop()
         if self.recorder is not None:
             self.recorder.stop()
@@ -173,12 +174,9 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         the configured reflex, at once when the loop is asleep before a deadline (an express
         exchange, :meth:`_express`), else in the running or next cycle. Thread-safe."""
         self._triggers.append((group, reason))
-        fd = self._wake_fd
-        if fd >= 0:
-            try:
-                os.eventfd_write(fd, 1)
-            except OSError:  # closed meanwhile: the agent is stopping
-                pass
+        with self._wake_lock:
+            if self._wake_fd >= 0:
+                os.eventfd_write(self._wake_fd, 1)
 
     def stats(self) -> CycleStats:
         return self._stats

@@ -344,3 +344,15 @@ def test_no_express_frame_while_another_drive_follows_a_trajectory() -> None:
     clock.ns += PERIOD_NS
     snap = cyc.tick()
     assert snap.drives[0].state == "quick_stop_active" and snap.drives[1].state == "operation_enabled"
+
+
+def test_no_express_frame_on_a_bus_without_express_exchange() -> None:
+    """CANopen: an exchange sends a SYNC, a cycle for every node; the reflex waits for the next."""
+    cyc, bus, clock, snaps, exchanges = _enabled_cycle()
+    bus.express_exchange = False  # type: ignore[misc]
+    clock.ns += PERIOD_NS // 2
+    cyc.trigger_group("arm", "h2/axis0 fault 0x7305")
+    cyc._express(clock.ns)
+    assert cyc.express_exchanges == 0 and not exchanges and snaps[-1].drives[0].goal == "quick_stop"
+    from bus_agent.bus.canopen.bus import CanopenBus
+    assert CanopenBus.express_exchange is False

@@ -105,6 +105,7 @@ class CanopenBus:
     """The Bus protocol over one CAN bus of CANopen CiA 402 nodes (backend "canopen")."""
 
     backend = "canopen"
+    express_exchange = False  # an exchange sends a SYNC: every node would run a cycle
 
     def __init__(self, channel: str, nodes: Sequence[NodeConfig | int], interface: str = "socketcan",
                  heartbeat_ms: int = DEFAULT_HEARTBEAT_MS, boot_timeout_s: float = BOOT_TIMEOUT_S,
