@@ -353,7 +353,8 @@ def _run_phase(name: str, ifname: str, args, seconds: float, log_file: str, time
            "--drives", str(args.drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us),
            "--rt-priority", str(args.rt_priority), "--receive-timeout-us", str(args.receive_timeout_us),
            "--rate", str(args.query_rate), "--log-file", log_file, "--enable-rounds", str(args.enable_rounds),
-           "--gets-per-round", str(args.gets_per_round), "--profile", args.profile, "--dc", args.dc]
+           "--gets-per-round", str(args.gets_per_round), "--profile", args.profile, "--dc", args.dc,
+           "--client-rt-priority", str(args.client_rt_priority)]
     return run_json(cmd, f"phase {name}", timeout_s or seconds * 4 + 120, env=env)
 
 
@@ -434,6 +435,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="enable_latency phase: enable/disable rounds of every drive (default 50, 0: skip)")
     p.add_argument("--gets-per-round", type=int, default=5,
                    help="enable_latency phase: bare zenoh gets per round (default 5)")
+    p.add_argument("--client-rt-priority", type=int, default=0,
+                   help="enable_latency phase: SCHED_FIFO of the client process, a stand-in for a supervisor on "
+                        "another host (default 0: normal scheduling)")
     p.add_argument("--profile", default="generic",
                    help="ecat-sim slave profile(s), e.g. omron1s:dc-required (predefined PDOs, DC SYNC0)")
     p.add_argument("--dc", choices=("auto", "off"), default="auto",

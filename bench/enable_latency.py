@@ -101,6 +101,24 @@ def _fanout(session, key: str, req, expected: int, timeout_s: float) -> tuple[fl
     return last, replies
 
 
+def _client_fifo(priority: int) -> None:
+    """This process's threads, zenoh's included, under SCHED_FIFO ``priority``
+    (``--client-rt-priority``): the client stands in for a supervisor on another host, which the
+    agent's own threads would not keep off the CPU."""
+    from bus_agent.cycle.realtime import set_thread_fifo
+    from bus_agent.gateway.child import ZENOH_THREADS, zenoh_threads_fifo
+
+    set_thread_fifo(priority, "the enable client")
+    seen: set[int] = set()
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:  # zenoh names its threads after they start
+        zenoh_threads_fifo(priority, seen)
+        names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+        if sum(n.startswith(ZENOH_THREADS) for n in names) >= len(seen) >= 2:
+            break
+        time.sleep(0.05)
+
+
 def phase_enable_client(args) -> dict:
     """The commanding side: ``--enable-rounds`` rounds of [bare gets to the echo queryable,
     enable of every drive timed to the last reply, disable (not timed)]."""
@@ -111,6 +129,8 @@ def phase_enable_client(args) -> dict:
     from schemas.messages import CommandRequest
 
     session = zenoh.open(make_zenoh_config("peer", connect=[args.connect, args.echo]))
+    if args.client_rt_priority:
+        _client_fifo(args.client_rt_priority)
     cycle_s = args.cycle_us / 1e6
     en_key, dis_key = keys.drive_cmd(args.host, "*", "enable"), keys.drive_cmd(args.host, "*", "disable")
     status_key = keys.drive_status(args.host, "*")
@@ -220,6 +240,7 @@ def phase_enable_latency(args) -> dict:
         t0, g0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
         client = subprocess.Popen(
             [*me, "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
+             "--client-rt-priority", str(args.client_rt_priority),
              "--host", "bench", "--drives", str(args.drives), "--cycle-us", str(args.cycle_us),
              "--enable-rounds", str(args.enable_rounds), "--gets-per-round", str(args.gets_per_round)],
             cwd=ROOT, stdout=subprocess.PIPE, text=True)
@@ -263,6 +284,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--echo")
     p.add_argument("--listen")
     p.add_argument("--host", default="bench")
+    p.add_argument("--client-rt-priority", type=int, default=0,
+                   help="SCHED_FIFO priority of the client process's threads (0: normal scheduling)")
     args, _ = p.parse_known_args(argv)  # bench_agent passes its other phases' options too
     out = PHASES[args.phase](args)
     if args.phase != "echo":

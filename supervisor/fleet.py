@@ -312,7 +312,7 @@ class Fleet(FleetCommands):
                 ref = DriveRef(st.host, st.axis)
                 if ref in wanted:
                     out[ref] = st
-                self._on_status_sample(reply.ok)
+                self._apply_status(st)  # decoded once
         return out
 
     # ---- events --------------------------------------------------------------------------
@@ -410,8 +410,11 @@ class Fleet(FleetCommands):
 
     def _on_status_sample(self, sample: zenoh.Sample) -> None:
         st = self._decoded(sample, DriveStatus, "status")
-        if st is None:
-            return
+        if st is not None:
+            self._apply_status(st)
+
+    def _apply_status(self, st: DriveStatus) -> None:
+        """Take a drive's status into the view (unless older than what is there) and emit it."""
         ref = DriveRef(st.host, st.axis)
         with self._lock:
             old = self._drives.get(ref)
