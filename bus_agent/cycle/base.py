@@ -70,6 +70,7 @@ class CycleBase:
         self.group_sink: Callable[[str, str], None] | None = None
         self.latest: CycleSnapshot | None = None
         self._drive_snaps: tuple[DriveSnapshot, ...] = ()
+        self._snap_list: list[DriveSnapshot | None] = []   # each drive's snapshot, by Drive.index
         self.state = "starting"            # schemas.messages.AGENT_STATES
         self.slaves: list[SlaveInfo] = []
         self.drives: list[Drive] = []

@@ -304,3 +304,39 @@ def test_dropped_and_late_frames_neither_stall_nor_lose_slaves(ecat_segment):
         assert all(d.state == "operation_enabled" and not d.lost for d in agent.cycle.latest.drives)
     finally:
         agent.cycle.stop()
+
+
+def test_drives_at_rest_are_skipped_and_their_outputs_stay_on_the_wire(ecat_segment):
+    """The fast path on the real path: drives at rest are not stepped, their outputs are not
+    written again, and the drives still get them every frame (SOEM sends the IO map as it is):
+    they stay in Operation enabled with controlword 0x000F. A fault is seen at once and reaches the
+    group; a command to one drive is carried out."""
+    ifname, control = ecat_segment(4, "generic")
+    agent = Agent(ifname, 4, groups={"pair": ("h1/axis1", "h1/axis2")})
+    agent.cycle.start()
+    try:
+        rid = agent.cmd("enable", "axis0", "axis1", "axis2", "axis3")
+        assert all(o.outcome == "done" for o in agent.wait_outcomes(rid, 4))
+        cyc = agent.cycle
+        _wait(lambda: not cyc._busy, 5, "every drive at rest")
+        c0, s0 = cyc.cycles, cyc.drives_stepped
+        _wait(lambda: cyc.cycles >= c0 + 500, 10, "500 cycles")
+        c1, s1 = cyc.cycles, cyc.drives_stepped
+        # at rest nothing is stepped; a working counter error on a loaded host steps all in one cycle
+        assert s1 - s0 <= (c1 - c0) * 4 // 10, (s1 - s0, c1 - c0)
+        reply = control.request("status")
+        assert [(s["drive_state"], s["controlword"]) for s in reply["slaves"]] == [("operation_enabled", 0x000F)] * 4
+        assert control.request("fault", slave=1, error_code=0x2310)["ok"]
+        _wait(lambda: agent.has_event("fault", "axis1"), 5, "fault event of axis1")
+        _wait(lambda: agent.has_event("reflex", "axis2"), 1, "group reflex on axis2")
+        _wait(lambda: _drive_states(control)[2] != "operation_enabled", 5, "axis2 leaving operation enabled")
+        rid = agent.cmd("move", "axis3", by=2000)
+        assert [o.outcome for o in agent.wait_outcomes(rid, 1)] == ["done"]
+        snap = cyc.latest
+        assert snap is not None
+        axis3 = next(d for d in snap.drives if d.axis == "axis3")
+        assert axis3.position == axis3.target_position and axis3.axis_state == "standstill"
+        states = _drive_states(control)
+        assert states[0] == states[3] == "operation_enabled" and states[1] in ("fault", "fault_reaction_active")
+    finally:
+        agent.cycle.stop()

@@ -104,8 +104,9 @@ def test_the_statusword_table_equals_the_standards_patterns():
 
 # ---- the cycle's snapshots: rebuilt only for drives whose values changed ---------------------------
 
-#: Every DriveSnapshot field the cycle fills. A new field must also be added to the change key in
-#: Cycle._drive_snapshots (else a change of it alone would not be published): update both.
+#: Every DriveSnapshot field the cycle fills, in order. A new field must also be added to the change
+#: key in Cycle._drive_snapshots (else a change of it alone would not be published), and the cycle
+#: builds the record positionally in this order: update all three.
 SNAPSHOT_FIELDS = ("axis", "slave", "state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                    "position", "velocity", "torque", "error_code", "error_text", "al_state", "lost", "absent",
                    "object_names", "objects", "dc", "axis_state", "homed", "target_position", "following_error",
@@ -143,6 +144,13 @@ def test_a_drive_at_rest_keeps_its_snapshot_and_a_change_builds_a_new_one():
         for d in h.cycle.drives:
             d.snapshot = None
         assert h.cycle._drive_snapshots(h.cycle.drives) == faulted.drives
+        # the positional build names each value right: the fields from their sources, by name
+        d, snap = h.cycle.drives[2], faulted.drives[2]
+        i = d.inputs
+        assert (snap.axis, snap.slave, snap.state, snap.statusword, snap.controlword, snap.goal, snap.mode,
+                snap.mode_display, snap.position, snap.error_code, snap.al_state, snap.axis_state) == (
+            d.axis, d.slave, d.state.value, i.statusword, d.controlword, d.ctrl.goal.value, d.ctrl.mode,
+            i.modes_of_operation_display, i.position_actual, i.error_code, "op", d.motion.axis_state.value)
     finally:
         h.cycle.stop(timeout_s=1.0)
 
