@@ -13,6 +13,7 @@ import itertools
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 from multiprocessing.connection import Connection
@@ -56,6 +57,8 @@ class CycleProxy:
         self.event_sink: Callable[[list[tuple[rt.CycleEvent, int, int]]], None] | None = None
         self.group_sink: Callable[[str, str], None] | None = None  # the cycle process does not forward it
         self.latest: rt.CycleSnapshot | None = None
+        #: Group triggers as datagrams straight to the cycle thread; None: Msg.TRIGGER to bridge-in.
+        self.trigger_sock: socket.socket | None = None
         self.state = "running"
         self._send_lock = threading.Lock()
         self._ids = itertools.count(1)
@@ -105,7 +108,10 @@ class CycleProxy:
 
     def trigger_group(self, group: str, reason: str) -> None:
         try:
-            self._send(dumps((Msg.TRIGGER.value, group, reason)))
+            if self.trigger_sock is not None:  # to the cycle thread itself (Cycle.trigger_socket)
+                self.trigger_sock.send(f"{group}\0{reason}".encode("utf-8", "replace")[:4096])
+            else:
+                self._send(dumps((Msg.TRIGGER.value, group, reason)))
         except OSError as exc:
             log.error("group %s trigger not delivered to the cycle: %s", group, exc)
 
@@ -183,6 +189,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     """The gateway process: ``python -m bus_agent.gateway.bridge --fd N [--log-level L]``."""
     p = argparse.ArgumentParser(prog="python -m bus_agent.gateway.bridge")
     p.add_argument("--fd", type=int, required=True, help="this end of the socketpair to the cycle process")
+    p.add_argument("--trigger-fd", type=int, help="this end of the datagram socketpair for group triggers")
     p.add_argument("--log-level", default="INFO")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
@@ -210,6 +217,8 @@ def child_main(argv: Sequence[str] | None = None) -> int:
 
     host = settings["host"]
     proxy = CycleProxy(conn, settings["axes"])
+    if args.trigger_fd is not None:
+        proxy.trigger_sock = socket.socket(fileno=args.trigger_fd)
     done = threading.Event()
     ending: list[str] = []
     gws: list[Any] = []   # the gateway, once declared
