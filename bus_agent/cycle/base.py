@@ -10,6 +10,7 @@ the documented thread-safe doors of ``Cycle``.
 from __future__ import annotations
 
 import collections
+import socket
 import threading
 import time
 from array import array
@@ -85,6 +86,8 @@ class CycleBase:
         #: e.g. with an injected clock, or before ``start``).
         self._wake_fd = -1
         self._wake_lock = threading.Lock()
+        #: Group triggers as datagrams, read by the cycle thread (``Cycle.trigger_socket``).
+        self._trigger_sock: socket.socket | None = None
         #: Events of express reflexes since the last cycle, for the flight recorder's triggers.
         self._express_events: list[CycleEvent] = []
         self.express_exchanges = 0

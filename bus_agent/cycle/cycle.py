@@ -28,6 +28,7 @@ import gc
 import logging
 import os
 import select
+import socket
 import sys
 import threading
 import time
@@ -145,6 +146,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             fd, self._wake_fd = self._wake_fd, -1
             if fd >= 0:
                 os.close(fd)
+        if self._trigger_sock is not None:
+            self._trigger_sock.close()
         self._mgmt.stop()
         if self.recorder is not None:
             self.recorder.stop()
@@ -168,6 +171,30 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                 return False
             self._inbox.append(cmd)
         return True
+
+    def trigger_socket(self, sock: socket.socket) -> None:
+        """Take group triggers as datagrams ``group NUL reason`` (UTF-8) on ``sock`` as well: the
+        cycle thread's sleep waits on it and reads them itself, one thread hop less than
+        :meth:`trigger_group` from a reader thread (the gateway process writes them). Call
+        before :meth:`start`; the socket is closed with the bus."""
+        sock.setblocking(False)
+        self._trigger_sock = sock
+
+    def _take_trigger_datagrams(self) -> None:
+        sock = self._trigger_sock
+        if sock is None:
+            return
+        while True:
+            try:
+                data = sock.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # the other end is gone: the bridge reports the loss
+                return
+            if not data:
+                return
+            group, _, reason = data.decode("utf-8", "replace").partition("\0")
+            self._triggers.append((group, reason))
 
     def trigger_group(self, group: str, reason: str) -> None:
         """A member of ``group`` faulted or was lost on another host: local members react with
@@ -283,12 +310,17 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
             self._sleep(seconds)
             # an injected sleep (tests, tools): a trigger queued meanwhile counts as a wake
             return self.express_reflex and bool(self._triggers)
-        if not select.select((fd,), (), (), seconds)[0]:
+        sock = self._trigger_sock
+        ready = select.select((fd,) if sock is None else (fd, sock), (), (), seconds)[0]
+        if not ready:
             return False
-        try:
-            os.eventfd_read(fd)
-        except OSError:  # BlockingIOError: read by a wake before; EBADF: closed while stopping
-            pass
+        if fd in ready:
+            try:
+                os.eventfd_read(fd)
+            except OSError:  # BlockingIOError: read by a wake before; EBADF: closed while stopping
+                pass
+        if sock is not None and sock in ready:
+            self._take_trigger_datagrams()
         return True
 
     def _adapt_spin(self) -> None:
@@ -418,6 +450,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         self._lost_origins = []
 
         applied = self._apply_inbox(now_ns) if self.state == "running" else False
+        self._take_trigger_datagrams()
         while self._triggers:
             applied = True
             g, reason = self._triggers.popleft()

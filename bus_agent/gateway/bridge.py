@@ -19,7 +19,10 @@ Cycle -> gateway (thread ``bridge-out``, woken by the snapshot sink):
 The cycle thread only stores the latest snapshot, extends a bounded deque and sets an event.
 
 Gateway -> cycle (thread ``bridge-in``, blocked in ``recv`` otherwise): commands (the
-DriveCommand/AgentCommand fields without the callback), group triggers, sim control calls.
+DriveCommand/AgentCommand fields without the callback), sim control calls. Group triggers take
+a second, datagram socketpair straight to the cycle thread, whose sleep waits on it
+(``Cycle.trigger_socket``); ``Msg.TRIGGER`` through ``bridge-in`` remains for a bridge attached
+without it (tests).
 ``CycleProxy.submit`` is a synchronous round trip (the real ``Cycle.submit`` answer and the
 cycle's state), so "inbox full" and "agent stopping" reach the gateway exactly as in-process.
 
@@ -131,19 +134,29 @@ class GatewayProcess:
     def start(self, timeout_s: float = READY_TIMEOUT_S) -> None:
         """Start the child and wait until its gateway is declared. Raises BridgeError."""
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        # Group triggers go straight to the cycle thread, which waits on this socket in its sleep
+        # (Cycle.trigger_socket): one thread hop and GIL hand-over less than through bridge-in.
+        trig_ours, trig_theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
         root = str(Path(__file__).resolve().parents[1])
         env = dict(os.environ)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         try:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "bus_agent.gateway.bridge", "--fd", str(theirs.fileno()),
-                 "--log-level", logging.getLevelName(self.log_level)],
-                pass_fds=(theirs.fileno(),), env=env, stdin=subprocess.DEVNULL)
+                 "--trigger-fd", str(trig_theirs.fileno()), "--log-level", logging.getLevelName(self.log_level)],
+                pass_fds=(theirs.fileno(), trig_theirs.fileno()), env=env, stdin=subprocess.DEVNULL)
         except OSError as exc:
             ours.close()
+            trig_ours.close()
             raise BridgeError("gateway", f"cannot start the gateway process: {exc}") from None
         finally:
             theirs.close()  # the child's end lives in the child only: its death is our EOF
+            trig_theirs.close()
+        take = getattr(self.cycle, "trigger_socket", None)
+        if take is not None:
+            take(trig_ours)
+        else:
+            trig_ours.close()
         self.attach(Connection(ours.detach()), timeout_s)
 
     def attach(self, conn: Connection, timeout_s: float = READY_TIMEOUT_S) -> None:

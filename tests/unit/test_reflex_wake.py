@@ -356,3 +356,34 @@ def test_no_express_frame_on_a_bus_without_express_exchange() -> None:
     assert cyc.express_exchanges == 0 and not exchanges and snaps[-1].drives[0].goal == "quick_stop"
     from bus_agent.bus.canopen.bus import CanopenBus
     assert CanopenBus.express_exchange is False
+
+
+def test_triggers_as_datagrams_wake_the_cycle_thread_itself() -> None:
+    """Cycle.trigger_socket (the gateway process's triggers): the cycle thread's sleep waits on
+    the socket and reads ``group NUL reason`` itself; a datagram that comes while the cycle runs
+    is read there. Real threads and clock, a 200 ms period."""
+    import socket
+
+    bus = SimBus(2, sm_watchdog_s=1.0)
+    cyc = Cycle(bus, AgentConfig(host="h1", sim_drives=2, groups=GROUPS, cycle_us=200_000))
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    cyc.trigger_socket(ours)
+    snaps: queue.SimpleQueue = queue.SimpleQueue()
+    cyc.snapshot_sink = snaps.put
+    cyc.start()
+    try:
+        done: queue.SimpleQueue = queue.SimpleQueue()
+        assert cyc.submit(DriveCommand(request_id="e", op="enable", axes=("axis0",), on_outcome=done.put))
+        assert done.get(timeout=30).outcome == "done"
+        while not snaps.empty():
+            snaps.get_nowait()
+        before = snaps.get(timeout=5)
+        theirs.send("arm\0h2/axis0 fault 0x7305 (é)".encode())
+        snap = snaps.get(timeout=5)
+        ev = [e for e in snap.events if e.kind == "reflex"]
+        assert ev and ev[0].axis == "axis0" and "h2/axis0 fault 0x7305 (é)" in ev[0].detail
+        assert snap.cycle == before.cycle and cyc.express_exchanges == 1
+    finally:
+        cyc.stop()
+        theirs.close()
+    assert ours.fileno() == -1  # closed with the bus
