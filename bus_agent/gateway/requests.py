@@ -148,6 +148,14 @@ def recording_message(host: str, data: Any) -> m.Recording:
 # ---- pending requests ----------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=4096)
+def reply_key(host: str, axis: str, op: str, principal: str | None) -> str:
+    """The key a reply for ``axis`` ('' : the agent) goes on: the command key asked, the
+    authenticated form included (a reply must intersect the query). Remembered: building and
+    checking 64 keys took about 0.18 ms of every 64-drive command."""
+    return keys.drive_cmd(host, axis, op, principal) if axis else keys.agent_cmd(host, op, principal)
+
+
 class Request:
     """One request id: its axes, the replies gathered so far, the queries waiting for them.
     Touched only by the command thread."""
@@ -160,8 +168,7 @@ class Request:
         self.supervisor = req.supervisor
         # Replies go on the key asked, authenticated form included (a reply must intersect the query).
         self.principal = parsed.principal
-        self.reply_keys = {a: (keys.drive_cmd(host, a, req.op, self.principal) if a else
-                               keys.agent_cmd(host, req.op, self.principal)) for a in self.axes}
+        self.reply_keys = {a: reply_key(host, a, req.op, self.principal) for a in self.axes}
         self.created_s = now_s
         self.received_ns = time.monotonic_ns()
         self.deadline_s = now_s + req.timeout_s + OUTCOME_GRACE_S

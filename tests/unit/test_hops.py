@@ -122,3 +122,13 @@ def test_axes_in_key_is_remembered_per_key_op_and_principal():
         assert axes_in_key(keys.drive_cmd("h1", "*", "enable", "alice"), "h1", axes) == ()
         assert axes_in_key(keys.drive_cmd("h1", "*", "enable", "alice"), "h1", axes, principal="*") == axes
         assert axes_in_key(keys.drive_cmd("h1", "*", "enable"), "h2", axes) == ()
+
+
+def test_reply_keys_are_the_command_keys_asked():
+    from bus_agent.gateway.requests import reply_key
+
+    for _ in range(2):  # the second time from memory
+        assert reply_key("h1", "x", "enable", None) == keys.drive_cmd("h1", "x", "enable")
+        assert reply_key("h1", "x", "enable", "alice") == keys.drive_cmd("h1", "x", "enable", "alice")
+        assert reply_key("h1", "", "nmt", None) == keys.agent_cmd("h1", "nmt")
+        assert reply_key("h1", "", "nmt", "alice") == keys.agent_cmd("h1", "nmt", "alice")
