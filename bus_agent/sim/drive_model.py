@@ -34,13 +34,14 @@ from typing import Mapping
 from bus_agent.cia402.states import (
     CONTROLWORD_FAULT_RESET_BIT,
     CONTROLWORD_HALT,
+    Controlword,
     STATUSWORD_OF_STATE,
     Mode,
     State,
     StatuswordBit,
 )
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX, DriveInputs, DriveOutputs
-from bus_agent.sim.drive_profiles import PROFILES, DriveProfile, Emcy, _Cmd, decode_command
+from bus_agent.sim.drive_profiles import PROFILES, DriveProfile, Emcy, decode_command
 from bus_agent.sim.homing_model import HOME_SWITCH_BIT, HOMING_BITS_MASK, SimHoming
 # The object dictionary, abort and error codes live in bus_agent.sim.objects; re-exported here
 # for the simulators and tests that import them from the drive model.
@@ -356,41 +357,41 @@ class DriveModel:
         S = State
         if s is S.NOT_READY_TO_SWITCH_ON:
             if self.profile.not_ready_on_power_up:
-                if cmd == _Cmd.SHUTDOWN:       # indy7: accepts Shutdown here (seed 004)
+                if cmd == Controlword.SHUTDOWN:       # indy7: accepts Shutdown here (seed 004)
                     self._enter(S.READY_TO_SWITCH_ON)
             elif self._steps_in_state >= self.profile.self_test_steps:
                 self._enter(S.SWITCH_ON_DISABLED)     # transition 1
         elif s is S.SWITCH_ON_DISABLED:
-            if cmd == _Cmd.SHUTDOWN:
+            if cmd == Controlword.SHUTDOWN:
                 self._enter(S.READY_TO_SWITCH_ON)     # 2
         elif s is S.READY_TO_SWITCH_ON:
-            if cmd in (_Cmd.SWITCH_ON, _Cmd.ENABLE_OPERATION):
+            if cmd in (Controlword.SWITCH_ON, Controlword.ENABLE_OPERATION):
                 self._enter(S.SWITCHED_ON)            # 3 (Enable operation: 3 now, 4 next step)
-            elif cmd in (_Cmd.DISABLE_VOLTAGE, _Cmd.QUICK_STOP):
+            elif cmd in (Controlword.DISABLE_VOLTAGE, Controlword.QUICK_STOP):
                 self._enter(S.SWITCH_ON_DISABLED)     # 7
         elif s is S.SWITCHED_ON:
-            if cmd == _Cmd.ENABLE_OPERATION:
+            if cmd == Controlword.ENABLE_OPERATION:
                 self._enter(S.OPERATION_ENABLED)      # 4
-            elif cmd == _Cmd.SHUTDOWN:
+            elif cmd == Controlword.SHUTDOWN:
                 self._enter(S.READY_TO_SWITCH_ON)     # 6
-            elif cmd in (_Cmd.DISABLE_VOLTAGE, _Cmd.QUICK_STOP):
+            elif cmd in (Controlword.DISABLE_VOLTAGE, Controlword.QUICK_STOP):
                 self._enter(S.SWITCH_ON_DISABLED)     # 10
         elif s is S.OPERATION_ENABLED:
-            if cmd == _Cmd.SWITCH_ON:
+            if cmd == Controlword.SWITCH_ON:
                 self._enter(S.SWITCHED_ON)            # 5 (disable operation)
-            elif cmd == _Cmd.SHUTDOWN:
+            elif cmd == Controlword.SHUTDOWN:
                 self._enter(S.READY_TO_SWITCH_ON)     # 8
-            elif cmd == _Cmd.DISABLE_VOLTAGE:
+            elif cmd == Controlword.DISABLE_VOLTAGE:
                 self._enter(S.SWITCH_ON_DISABLED)     # 9
-            elif cmd == _Cmd.QUICK_STOP:
+            elif cmd == Controlword.QUICK_STOP:
                 self._enter(S.QUICK_STOP_ACTIVE)      # 11
                 if self._quick_stop_option() == 0:    # coast: torque off at once
                     self._velocity = 0.0
         elif s is S.QUICK_STOP_ACTIVE:
             option = self._quick_stop_option()
-            if cmd == _Cmd.DISABLE_VOLTAGE:
+            if cmd == Controlword.DISABLE_VOLTAGE:
                 self._enter(S.SWITCH_ON_DISABLED)     # 12 (disable voltage)
-            elif cmd == _Cmd.ENABLE_OPERATION and option >= 5:
+            elif cmd == Controlword.ENABLE_OPERATION and option >= 5:
                 self._enter(S.OPERATION_ENABLED)      # 16
             elif option <= 4 and self._velocity == 0.0:
                 self._enter(S.SWITCH_ON_DISABLED)     # 12 (quick stop completed)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bus_agent.cia402.states import Mode
+from bus_agent.cia402.states import Controlword, Mode
 
 # --------------------------------------------------------------------------------------------
 # Emergency and profiles
@@ -71,29 +71,22 @@ PROFILES: dict[str, DriveProfile] = {
 # Controlword decoding (CiA 402 Table "command coding", bits 7,3,2,1,0)
 
 
-class _Cmd:
-    SHUTDOWN = "shutdown"
-    SWITCH_ON = "switch_on"
-    ENABLE_OPERATION = "enable_operation"
-    DISABLE_VOLTAGE = "disable_voltage"
-    QUICK_STOP = "quick_stop"
-
-
 #: The device command coding of the controlword (CiA 402, "command coding": bits 3, 2, 1, 0; bit
-#: 7, fault reset, is an edge handled by the model), as (mask, value, command) in the order the
-#: standard resolves overlaps: disable voltage (bit 1 = 0) wins over quick stop (bit 2 = 0).
-COMMAND_CODING: tuple[tuple[int, int, str], ...] = (
-    (0x02, 0x00, _Cmd.DISABLE_VOLTAGE),   # x x 0 x
-    (0x06, 0x02, _Cmd.QUICK_STOP),        # x 0 1 x
-    (0x07, 0x06, _Cmd.SHUTDOWN),          # x 1 1 0
-    (0x0F, 0x07, _Cmd.SWITCH_ON),         # 0 1 1 1 (also disable operation)
-    (0x0F, 0x0F, _Cmd.ENABLE_OPERATION),  # 1 1 1 1
+#: 7, fault reset, is an edge handled by the model), as (mask, command): the command whose bits
+#: under the mask match, in the order the standard resolves overlaps: disable voltage (bit 1 = 0)
+#: wins over quick stop (bit 2 = 0).
+COMMAND_CODING: tuple[tuple[int, Controlword], ...] = (
+    (0x02, Controlword.DISABLE_VOLTAGE),   # x x 0 x
+    (0x06, Controlword.QUICK_STOP),        # x 0 1 x
+    (0x07, Controlword.SHUTDOWN),          # x 1 1 0
+    (0x0F, Controlword.SWITCH_ON),         # 0 1 1 1 (also disable operation)
+    (0x0F, Controlword.ENABLE_OPERATION),  # 1 1 1 1
 )
 #: :data:`COMMAND_CODING` resolved for each of the 16 values of bits 3..0 (one lookup per step).
-_COMMAND_OF_BITS: tuple[str, ...] = tuple(next(c for mask, value, c in COMMAND_CODING if bits & mask == value)
-                                          for bits in range(16))
+_COMMAND_OF_BITS: tuple[Controlword, ...] = tuple(next(c for mask, c in COMMAND_CODING if bits & mask == c & mask)
+                                                  for bits in range(16))
 
 
-def decode_command(controlword: int) -> str:
+def decode_command(controlword: int) -> Controlword:
     """The device command of a controlword's bits 3, 2, 1, 0 (:data:`COMMAND_CODING`)."""
     return _COMMAND_OF_BITS[controlword & 0x0F]

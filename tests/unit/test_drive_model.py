@@ -557,14 +557,11 @@ def test_pdo_mapping_locked_outside_preop() -> None:
 
 
 def test_decode_command_table() -> None:
-    assert decode_command(0x0006) == "shutdown"
-    assert decode_command(0x000E) == "shutdown"
-    assert decode_command(0x0007) == "switch_on"
-    assert decode_command(0x000F) == "enable_operation"
-    assert decode_command(0x0000) == "disable_voltage"
-    assert decode_command(0x0004) == "disable_voltage"
-    assert decode_command(0x0002) == "quick_stop"
-    assert decode_command(0x000B) == "quick_stop"
+    C = Controlword
+    cases = {0x0006: C.SHUTDOWN, 0x000E: C.SHUTDOWN, 0x0007: C.SWITCH_ON, 0x000F: C.ENABLE_OPERATION,
+             0x0000: C.DISABLE_VOLTAGE, 0x0004: C.DISABLE_VOLTAGE, 0x0002: C.QUICK_STOP, 0x000B: C.QUICK_STOP,
+             0x008F: C.ENABLE_OPERATION, 0x010F: C.ENABLE_OPERATION}  # bits 7 and 8 are not the command
+    assert {cw: decode_command(cw) for cw in cases} == cases
 
 
 def test_communication_lost_from_quick_stop_active() -> None:
