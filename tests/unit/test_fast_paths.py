@@ -193,6 +193,38 @@ def test_the_segment_decoder_equals_each_drives_own_decode(data):
         segment_decoder(codecs, records, sources, attr="input; import os")
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_the_change_tracking_decoder_reports_and_decodes_exactly_the_changed_slaves(data):
+    import random
+    from types import SimpleNamespace
+
+    from bus_agent.bus.codec import DriveCodec, segment_decoder
+    from bus_agent.bus.mapping import mapping_of
+    from bus_agent.bus.pdo import DriveInputs, mapping_entry
+
+    layouts = _random_layouts(data, data.draw(st.integers(1, 5)))
+    codecs = [DriveCodec(mapping_of([(0x1600, [mapping_entry(0x6040, 0, 16)])],
+                                    [(0x1A00, [mapping_entry(*e) for e in tx])])) for tx in layouts]
+    rng = random.Random(data.draw(st.integers(0, 2**32)))
+    sources = [SimpleNamespace(input=rng.randbytes(c.in_size)) for c in codecs]
+    records = [DriveInputs() for _ in codecs]
+    decode = segment_decoder(codecs, records, sources, changes=True)
+    assert decode() == list(range(len(codecs)))  # the first call decodes every slave
+    for _ in range(5):
+        changed = sorted(set(data.draw(st.lists(st.integers(0, len(codecs) - 1), max_size=len(codecs)))))
+        for k in changed:  # new bytes (a flipped bit, so they differ)
+            b = bytearray(sources[k].input)
+            b[rng.randrange(len(b))] ^= 1 << rng.randrange(8)
+            sources[k].input = bytes(b)
+        assert decode() == changed
+        for c, src, rec in zip(codecs, sources, records):
+            alone = DriveInputs()
+            c.decode_into(alone, src.input)
+            assert rec == alone
+    assert decode() == []
+
+
 def test_decode_into_writes_every_field_of_a_reused_record():
     from bus_agent.bus.codec import DriveCodec
     from bus_agent.bus.mapping import mapping_of
