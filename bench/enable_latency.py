@@ -38,7 +38,7 @@ import threading
 import time
 
 from bench.bench_agent import _ready
-from bench.common import ROOT, free_port, percentile, proc_cpu_s, stop_process, summary_ms
+from bench.common import ROOT, free_port, percentile, proc_cpu_s, stop_process, summary_ms, thread_cpu_ns
 from bus_agent import hops
 
 ECHO_KEY = "bench/echo"
@@ -233,11 +233,14 @@ def phase_enable_latency(args) -> dict:
         # deadline varies with the load, so its idle rate does not carry over.
         gw_pid = agent.bridge.pid if agent.bridge is not None else None
         idle_s, g_idle0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
+        th_idle0 = thread_cpu_ns(gw_pid) if gw_pid else {}
         time.sleep(ENABLE_IDLE_S)
         idle_s = time.monotonic() - idle_s
         g_idle = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g_idle0
+        th_idle = _delta(thread_cpu_ns(gw_pid) if gw_pid else {}, th_idle0)
         ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
         t0, g0 = time.monotonic(), proc_cpu_s(gw_pid) if gw_pid else 0.0
+        th0 = thread_cpu_ns(gw_pid) if gw_pid else {}
         client = subprocess.Popen(
             [*me, "--phase", "enable_client", "--connect", ep, "--echo", echo_ep,
              "--client-rt-priority", str(args.client_rt_priority),
@@ -252,6 +255,12 @@ def phase_enable_latency(args) -> dict:
         res = json.loads(out.strip().splitlines()[-1])
         n = args.enable_rounds + 1  # with the warm-up round
         gateway_s = (proc_cpu_s(gw_pid) if gw_pid else 0.0) - g0 - g_idle / idle_s * el
+        th = _delta(thread_cpu_ns(gw_pid) if gw_pid else {}, th0)
+        # per thread of the gateway process (gw-publish, gw-command, the reader, zenoh's pools):
+        # where the gateway's CPU of a round goes
+        res["gateway_cpu_ms_per_round_by_thread"] = {
+            name: round((ns - th_idle.get(name, 0) / idle_s * el) / 1e6 / (args.enable_rounds + 1), 3)
+            for name, ns in sorted(th.items(), key=lambda kv: -kv[1])}
         res["cpu_ms_per_round_beyond_idle"] = {"gateway_process": round(1e3 * gateway_s / n, 3),
                                                "client_process": round(1e3 * res.pop("client_cpu_s") / n, 3)}
         res["cycle"] = {"cycles": cyc.cycles - c0, "overruns": cyc.overruns - ov0, "wkc_errors": cyc.wkc_errors - wk0}
@@ -264,6 +273,10 @@ def phase_enable_latency(args) -> dict:
         hops.write()
         res.update(hop_figures(hops.read(os.environ[hops.ENV]), (res.get("bare_get") or {}).get("p50_ms")))
     return res
+
+
+def _delta(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+    return {k: v - before.get(k, 0) for k, v in after.items()}
 
 
 PHASES = {"enable_latency": phase_enable_latency, "enable_client": phase_enable_client, "echo": phase_echo}

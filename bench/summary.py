@@ -366,7 +366,7 @@ def enable_figures(r: Mapping[str, Any]) -> dict[str, Any]:
     return {"drives": r.get("drives"), **{k: en.get(k) for k in (
         "rounds", "timed", "n_failures", "latency", "beyond_cycles", "beyond_elapsed", "bare_get",
         "transition_cycles", "ratios", "cpu_ms_per_round_beyond_idle", "cycle_time", "beyond_cycle_time",
-        "beyond_cycle_time_p50_over_bare_get_p50", "hops")}}
+        "beyond_cycle_time_p50_over_bare_get_p50", "gateway_cpu_ms_per_round_by_thread", "hops")}}
 
 
 def enable_headline(r: Mapping[str, Any]) -> str:

@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 
 from bus_agent import hops
 from bus_agent import runtime as rt
-from bus_agent.cycle.realtime import set_thread_fifo
+from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 from bus_agent.gateway.wire import (RECORD_MARGIN_S, SUBMIT_TIMEOUT_S, Msg, decode_event, decode_outcome, decode_snapshot,
                                     dumps, encode_command, loads)
 
@@ -224,6 +224,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     gws: list[Any] = []   # the gateway, once declared
 
     def reader() -> None:
+        name_thread("bridge-reader")
         set_thread_fifo(settings.get("rt_priority", 0), f"bridge-reader of {host}")
         while True:
             try:
@@ -346,6 +347,7 @@ def zenoh_threads_fifo(priority: int, seen: set[int]) -> int:
 def _zenoh_threads_loop(priority: int, done: threading.Event) -> None:
     """Thread ``gw-sched``: zenoh starts some runtime pools on first use (a peer's first link),
     so new threads are looked for every :data:`ZENOH_SCAN_S` (a directory listing)."""
+    name_thread("gw-sched")
     seen: set[int] = set()
     while True:
         zenoh_threads_fifo(priority, seen)

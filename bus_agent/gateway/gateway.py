@@ -32,7 +32,7 @@ import zenoh
 
 from bus_agent import hops
 from bus_agent import runtime as rt
-from bus_agent.cycle.realtime import set_thread_fifo
+from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 from bus_agent.gateway.base import (AGENT_SUPERVISOR, BAD_STATES, CHANGE_FIELDS, CONFLICT_REFUSED_OPS, DEDUP_SIZE,
                                     DEDUP_TTL_S, LEASE_REACTION_OPS, MOTION_FIELDS, CycleLike,
                                     GatewaySettings)
@@ -174,6 +174,7 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
     # ---- command thread ---------------------------------------------------------------------
 
     def _command_loop(self) -> None:
+        name_thread("gw-command")
         set_thread_fifo(self.s.rt_priority, f"gw-command of {self.host}")
         while True:
             timeout = self._next_timer_s() - time.monotonic()
