@@ -24,31 +24,29 @@ cycles). See docs/agent-cycle.md for the decisions (outcomes, NMT, shutdown, GC)
 
 from __future__ import annotations
 
-import gc
 import logging
 import os
-import select
 import socket
-import sys
 import threading
 import time
 from typing import Sequence
 
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
-from bus_agent.cia402.states import State, decode_statusword
-from bus_agent.cycle.base import (INBOX_MAX, SPIN_MARGIN_NS, SPIN_MIN_NS, SPIN_NS, SPIN_QUANTILE, STATS_EVERY,
-                                  STATS_WINDOW)
+from bus_agent.cia402.states import decode_statusword
+from bus_agent.cycle.base import INBOX_MAX, SPIN_MIN_NS, SPIN_NS, STATS_EVERY, STATS_WINDOW
 from bus_agent.cycle.commands import CommandsMixin
 from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS, Drive
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
-from bus_agent.cycle.motion import MotionMixin, following_error
+from bus_agent.cycle.motion import MotionMixin
 from bus_agent.cycle.nmt import NmtMixin
+from bus_agent.cycle.output import OutputMixin
 from bus_agent.cycle.realtime import helper_priority, name_thread, set_thread_fifo, set_timer_slack_ns
 from bus_agent.cycle.recorder import RecordingData, RecordingUnavailable
 from bus_agent.cycle.slaves import SlavesMixin
 from bus_agent.cycle.startup import IdentityMismatch, StartupMixin, decode_supported_modes
-from bus_agent.runtime import AgentCommand, CycleSnapshot, CycleStats, DriveCommand, DriveSnapshot
+from bus_agent.cycle.timing import TimingMixin
+from bus_agent.runtime import AgentCommand, CycleSnapshot, CycleStats, DriveCommand
 
 __all__ = ["Cycle", "IdentityMismatch", "decode_supported_modes", "INBOX_MAX", "STATS_EVERY", "SPIN_NS",
            "SPIN_MIN_NS"]
@@ -57,7 +55,7 @@ log = logging.getLogger(__name__)
 
 
 
-class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
+class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, TimingMixin, OutputMixin):
     """The cyclic process-data loop of one bus agent.
 
     ``Cycle(bus, config, clock_ns=time.monotonic_ns)``; :meth:`open` brings the segment to OP
@@ -217,29 +215,6 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
 
     # ---- the loop -------------------------------------------------------------------------------
 
-    def _prepare_process(self) -> None:
-        """Process-wide settings while the loop runs (restored when it ends); see docs/agent-cycle.md."""
-        self._old_switch = sys.getswitchinterval()
-        self._gc_was_enabled = gc.isenabled()
-        if self.switch_interval_s:
-            # A thread waiting for the GIL asks for it after this long (default 5 ms): the cycle
-            # thread waits at most about this long when another thread holds the GIL.
-            sys.setswitchinterval(self.switch_interval_s)
-        if self.manage_gc:
-            # No cyclic-GC pauses in the loop: move what exists to the permanent generation and
-            # disable collection while running (reference counting still frees everything acyclic).
-            gc.collect()
-            gc.freeze()
-            gc.disable()
-
-    def _restore_process(self) -> None:
-        if self.manage_gc:
-            gc.unfreeze()
-            if self._gc_was_enabled:
-                gc.enable()
-        if self.switch_interval_s:
-            sys.setswitchinterval(self._old_switch)
-
     def _run(self) -> None:
         if not hasattr(self, "_old_switch"):
             self._prepare_process()
@@ -284,50 +259,6 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
                 pass
         finally:
             self._restore_process()
-
-    def _wait_until(self, deadline_ns: int) -> bool:
-        """Sleep until the spin before ``deadline_ns``, then spin to it. True (at once, without
-        spinning) when a remote trigger woke the sleep; a trigger during the spin waits for the
-        cycle (at most the spin away)."""
-        spin = self.spin_ns if self.spin_ns is not None else self._spin_auto_ns
-        wake = deadline_ns - spin
-        remaining = wake - self.clock_ns()
-        if remaining > 0:
-            if self._doze(remaining / 1e9):
-                return True
-            over = self._oversleep[self.cycles % STATS_WINDOW] = self.clock_ns() - wake
-            if over > self._spin_auto_ns:  # late past the spin: more spin from the next cycle on
-                self._spin_auto_ns = min(SPIN_NS, over + SPIN_MARGIN_NS)
-        while self.clock_ns() < deadline_ns:
-            pass
-        return False
-
-    def _doze(self, seconds: float) -> bool:
-        """Sleep ``seconds``, or until ``trigger_group`` writes the wake eventfd (True). select's
-        timeout has microsecond resolution, and the thread's 1 ns timer slack holds as for a sleep."""
-        fd = self._wake_fd
-        if fd < 0:
-            self._sleep(seconds)
-            # an injected sleep (tests, tools): a trigger queued meanwhile counts as a wake
-            return self.express_reflex and bool(self._triggers)
-        sock = self._trigger_sock
-        ready = select.select((fd,) if sock is None else (fd, sock), (), (), seconds)[0]
-        if not ready:
-            return False
-        if fd in ready:
-            try:
-                os.eventfd_read(fd)
-            except OSError:  # BlockingIOError: read by a wake before; EBADF: closed while stopping
-                pass
-        if sock is not None and sock in ready:
-            self._take_trigger_datagrams()
-        return True
-
-    def _adapt_spin(self) -> None:
-        """The adaptive spin (see SPIN_MIN_NS) from the overshoots of the last sleeps."""
-        over = sorted(self._oversleep)
-        q = over[min(len(over) - 1, int(len(over) * SPIN_QUANTILE))]
-        self._spin_auto_ns = min(SPIN_NS, max(SPIN_MIN_NS, q + SPIN_MARGIN_NS))
 
     def tick(self) -> CycleSnapshot:
         """Run one cycle now (tests and tools; never while the thread runs). Returns its snapshot."""
@@ -543,101 +474,3 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin):
         sink = self.snapshot_sink
         if sink is not None:
             sink(snap)
-
-    # ---- the fast path ---------------------------------------------------------------------------
-
-    def _work(self, changed: Sequence[int]) -> Sequence[Drive]:
-        """The drives to step in a cycle without commands, reflexes or management reports: those
-        whose inputs changed (``changed``: slave positions) and those not at rest, in
-        configuration order. Cycle thread only."""
-        busy = self._busy
-        if not changed:
-            if not busy:
-                return ()
-            idx = busy
-        else:
-            idx = set(busy)
-            of_slave = self._drives_of_slave
-            for pos in changed:
-                idx.update(of_slave.get(pos, ()))
-        drives = self.drives
-        return [drives[k] for k in sorted(idx)]
-
-    def _at_rest(self, d: Drive, targets_before: tuple[int, int, int]) -> bool:
-        """True when a full step of ``d`` (just made, without controller events, its motion idle
-        before it) would repeat itself exactly while its inputs do not change and no command,
-        reflex or report reaches it: the cycle may then skip it. The controller settled (its
-        output depends on the two inputs only), the motion is idle (:attr:`AxisMotion.idle`), the
-        targets did not move (the motion observes them), no command pending, no automatic fault
-        reset running (its backoff reads the clock), no emergency text that may change. Cycle thread only."""
-        if d.pending is not None or not d.ctrl.settled or not d.motion.idle:
-            return False
-        if (d.target_position, d.target_velocity, d.target_torque) != targets_before:
-            return False
-        if d.cfg.policy.auto_reset.enabled and (d.state is State.FAULT or d.auto_attempts):
-            return False
-        return not (d.inputs.error_code and self._error_texts)
-
-    # ---- output --------------------------------------------------------------------------------------
-
-    def _drive_snapshots(self, work: Sequence[Drive] | None = None) -> tuple[DriveSnapshot, ...]:
-        """Every drive's snapshot. A drive whose published values did not change since the last
-        cycle keeps its DriveSnapshot (the same immutable object), and when no drive changed the
-        tuple of the last cycle is returned as it was: building 26-field records for drives at rest
-        was the largest share of the cycle's CPU per drive. Only the drives stepped this cycle
-        (``work``; None: all) are looked at: the others' values are those of the last cycle.
-        Cycle thread only."""
-        changed = False
-        texts = self._error_texts
-        snaps = self._snap_list
-        if len(snaps) != len(self.drives):
-            snaps = self._snap_list = [d.snapshot for d in self.drives]
-        for d in self.drives if work is None else work:
-            i = d.inputs
-            c = d.ctrl
-            m = d.motion
-            key = (d.state, i.statusword, d.controlword, c.goal, c.halt, c.mode, i.modes_of_operation_display,
-                   i.position_actual, i.velocity_actual, i.torque_actual, i.error_code,
-                   texts.get(d.slave) if i.error_code else None, d.al, d.lost, d.absent, d.object_names, i.extra,
-                   d.dc, m.axis_state, m.homed, d.target_position, m.request_id)
-            if d.snapshot is None or key != d.snapshot_key:
-                # positional, in DriveSnapshot's field order (26 keywords cost 2.7 x the call;
-                # tests/unit/test_fast_paths.py pins the order)
-                d.snapshot = DriveSnapshot(
-                    d.axis, d.slave, d.state.value, i.statusword,                      # axis slave state statusword
-                    d.controlword, c.goal.value, c.halt, c.mode,                       # controlword goal halt mode
-                    i.modes_of_operation_display, i.position_actual,                  # mode_display position
-                    i.velocity_actual, i.torque_actual, i.error_code,                  # velocity torque error_code
-                    self._error_text(d.slave, i.error_code),                           # error_text
-                    d.al.state.wire_name if d.al.state in ALState else "none", d.lost,  # al_state lost
-                    d.absent, d.object_names, i.extra, d.dc,                           # absent object_names objects dc
-                    m.axis_state.value, m.homed, d.target_position,                    # axis_state homed target_position
-                    following_error(d), m.request_id)                                 # following_error motion_request_id
-                d.snapshot_key = key
-                snaps[d.index] = d.snapshot
-                changed = True
-        last = self._drive_snaps
-        if changed or len(last) != len(snaps):
-            last = self._drive_snaps = tuple(snaps)  # type: ignore[arg-type]
-        return last
-
-    def _error_text(self, slave: int, error_code: int) -> str:
-        """The text of the bus's last emergency of ``slave`` when it is about this error code."""
-        t = self._error_texts.get(slave) if error_code else None
-        return t[1] if t is not None and t[0] == error_code else ""
-
-    def _update_stats(self) -> None:
-        ps = sorted(self._periods)
-        n = len(ps)
-        self._stats = CycleStats(
-            cycles=self.cycles, cycle_us=self.config.cycle_us,
-            period_p50_us=ps[n // 2] / 1000, period_p99_us=ps[min(n - 1, (n * 99) // 100)] / 1000,
-            period_max_us=self._period_max_ns / 1000, overruns=self.overruns, wkc_errors=self.wkc_errors,
-            expected_wkc=self.bus.expected_wkc, **self._dc_stats())
-
-    def _dc_stats(self) -> dict[str, float]:
-        if self._dc is None:
-            return {}
-        offs = sorted(self._dc_offsets[:min(self.cycles, STATS_WINDOW)] or [0])
-        n = len(offs)
-        return {"dc_offset_p50_us": offs[n // 2] / 1000, "dc_offset_p99_us": offs[min(n - 1, (n * 99) // 100)] / 1000}
