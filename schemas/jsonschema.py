@@ -37,8 +37,8 @@ from .messages import (
     SCHEMA_VERSION,
     CommandRequest,
     Meta,
-    _base_type,
 )
+from .values import _base_type
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
 #: End of input in every regex dialect a validator may use. ECMA-262's ``$`` (what the JSON Schema

@@ -21,8 +21,8 @@ from .messages import (
     OP_ARGS,
     SCHEMA_VERSION,
     Meta,
-    _base_type,
 )
+from .values import _base_type
 
 BEGIN = "<!-- contract:begin -->"
 END = "<!-- contract:end -->"

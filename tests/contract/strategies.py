@@ -8,6 +8,7 @@ from typing import Any
 from hypothesis import strategies as st
 
 from schemas import messages as m
+from schemas.values import _base_type
 
 NAME_FIRST = "abcXYZ019_"
 NAME_REST = NAME_FIRST + ".-"
@@ -56,7 +57,7 @@ def message(cls: type) -> st.SearchStrategy:
     for f in dataclasses.fields(cls):
         if cls is m.CommandRequest and f.name in ("op", "args"):
             continue
-        s = value(m._base_type(cls, f.name), f.metadata, allow_empty=f.default == "")
+        s = value(_base_type(cls, f.name), f.metadata, allow_empty=f.default == "")
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             fields[f.name] = s
         else:
