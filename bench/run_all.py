@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from bench import summary as s
+from bench import summary_fleet as sf
 from bench.common import RESULTS, ROOT, loadavg
 
 
@@ -83,17 +84,17 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               ("--seconds", "4", "--rounds", "1"), False, s.idle_figures, s.idle_headline, s.idle_targets),
     Benchmark("supervisor", "two-phase enable/disable of 4x16 and 32x32 drives; status fan-in", "bench.bench_supervisor",
               (), ("--sizes", "4x16", "--rounds", "1", "--gets", "50"), False,
-              s.supervisor_figures, s.supervisor_headline, s.supervisor_targets),
+              sf.supervisor_figures, sf.supervisor_headline, sf.supervisor_targets),
     Benchmark("canopen", "CAN agent, 8 nodes, 1 ms and 4 ms SYNC, next to a bare python-can SYNC loop",
               "bench.bench_canopen", ("--seconds", "30", "--rt-priority", "10"),
               ("--seconds", "3", "--rt-priority", "10"), True,
               s.canopen_figures, s.canopen_headline, s.canopen_targets),
     Benchmark("security", "mutual TLS + ACL against plain TCP in the same run: 16-drive enable, status fan-in",
               "bench.bench_security", ("--rounds", "50", "--fanin", "8x32", "--fanin-rounds", "12"), ("--quick",), False,
-              s.security_figures, s.security_headline, s.security_targets),
+              sf.security_figures, sf.security_headline, sf.security_targets),
     Benchmark("trust", "the audit trail per 16-drive command and error texts per status, next to the gateway's "
               "own work", "bench.bench_trust", ("--rounds", "2000"), ("--rounds", "200"), False,
-              s.trust_figures, s.trust_headline, s.trust_targets),
+              sf.trust_figures, sf.trust_headline, sf.trust_targets),
     Benchmark("recorder", "flight recorder cost: cycle jitter and CPU with and without it, 16 drives, 1 kHz",
               "bench.bench_recorder", ("--seconds", "20", "--rounds", "3", "--rt-priority", "10"),
               ("--seconds", "3", "--rounds", "1", "--rt-priority", "10"), False,
@@ -112,7 +113,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                "--rt-priority", "10"), True, s.enable_figures, s.enable_headline, s.enable_targets),
     Benchmark("reflex", "cross-host group reflex over namespaced hosts and routers, next to a bare zenoh put "
               "across the same routers", "bench.bench_reflex", ("--rounds", "50", "--bare", "500"),
-              ("--rounds", "8", "--bare", "100"), True, s.reflex_figures, s.reflex_headline, s.reflex_targets),
+              ("--rounds", "8", "--bare", "100"), True, sf.reflex_figures, sf.reflex_headline, sf.reflex_targets),
     Benchmark("motion", "16 axes moving at 1 kHz over ecat-sim: cycle jitter and CPU with motion vs idle vs bare, "
               "query to first target, synchronized arrival spread", "bench.bench_motion",
               ("--seconds", "60", "--rounds", "3", "--rt-priority", "10"),
@@ -120,14 +121,14 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               True, s.motion_figures, s.motion_headline, s.motion_targets),
     Benchmark("replies", "CPU of the command reply path per 16/64-drive command, next to bare msgpack",
               "bench.bench_replies", ("--rounds", "500"), ("--rounds", "50"), False,
-              s.replies_figures, s.replies_headline, s.no_targets),
+              sf.replies_figures, sf.replies_headline, s.no_targets),
     Benchmark("dashboard", "drives-dashboard with 1024 drives in headless chromium: CPU, change-to-page time",
               "bench.bench_dashboard", ("--rounds", "20", "--idle-s", "10"), ("--rounds", "4", "--idle-s", "3"),
               False, s.dashboard_figures, s.dashboard_headline, s.dashboard_targets),
     Benchmark("twin", "drives-twin start to ready (3, 10, 32 simulated hosts of 2 drives) and CPU at rest, next to "
               "the bare router and agents", "bench.bench_twin", ("--hosts", "3,10,32", "--rest-s", "10"),
               ("--hosts", "3,10", "--rest-s", "3", "--settle-s", "2"), False,
-              s.twin_figures, s.twin_headline, s.twin_targets),
+              sf.twin_figures, sf.twin_headline, sf.twin_targets),
 )
 
 

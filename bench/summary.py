@@ -227,138 +227,11 @@ def agent_dc_targets(r: Mapping[str, Any]) -> list[Target]:
     return out
 
 
-# ---- bench_supervisor -----------------------------------------------------------------------------
-
-#: Fan-in: a drive enabled and disabled changes state at least twice (into operation_enabled and
-#: back to switch_on_disabled); intermediate states may share one publication.
-FANIN_CHANGES_PER_DRIVE_MIN = 2
-#: A killed agent is reported gone within the Zenoh link lease (deploy/router.json5).
-LINK_LEASE_S = 3.0
-#: Two-phase enable of 4 x 16 drives: the supervisor's and the network's share (wall time minus the
-#: slowest drive's own transition time) at most this many bare zenoh gets (issue 13).
-SUPERVISOR_ENABLE_SIZE = "4x16"
-SUPERVISOR_ENABLE_OVER_BARE_MAX = 10.0
-
-
-def supervisor_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    sizes = []
-    for s in r["sizes"]:
-        bare = s.get("get_rtt_bare", {})
-        row = {"agents": s["agents"], "drives": s["drives"], "cycle_us": s["cycle_us"],
-               "enable_wall_s_median": s.get("enable_wall_s_median"),
-               "enable_overhead_s_median": s.get("enable_overhead_s_median"),
-               "disable_wall_s_median": s.get("disable_wall_s_median"),
-               "disable_overhead_s_median": s.get("disable_overhead_s_median"),
-               "enable_cpu_ms_median": s.get("enable_cpu_ms_median"),
-               "load_avg_1min_at_start": s.get("load_avg_1min_at_start"),
-               "get_rtt_bare_ms": {k: bare.get(k) for k in ("p50_ms", "p99_ms")},
-               "enable_overhead_over_bare_get_p50": _ratio((s.get("enable_overhead_s_median") or 0) * 1e3 or None,
-                                                           bare.get("p50_ms")),
-               "rounds_ok": sum(1 for x in s.get("rounds", []) if x["enable"]["ok"] and x["disable"]["ok"]),
-               "rounds": len(s.get("rounds", []))}
-        if "departure" in s:
-            row["departure"] = s["departure"]
-        if "fanin" in s:
-            row["fanin"] = {k: s["fanin"].get(k) for k in (
-                "drives_seen", "status_received", "state_changes_seen", "missed_by_seq", "supervisor_missed_by_seq",
-                "cpu_pct_of_one_core", "commands_ok")}
-        sizes.append(row)
-    return {"sizes": sizes}
-
-
-def supervisor_headline(r: Mapping[str, Any]) -> str:
-    parts = []
-    for s in r["sizes"]:
-        bare = s.get("get_rtt_bare", {})
-        text = (f"{_size(s)}: enable wall/overhead {_s(s.get('enable_wall_s_median'))}/"
-                f"{_s(s.get('enable_overhead_s_median'))}, disable {_s(s.get('disable_wall_s_median'))}/"
-                f"{_s(s.get('disable_overhead_s_median'))}, bare get p50 {bare.get('p50_ms')} ms")
-        d = s.get("departure")
-        if d:
-            text += (f"; {d['reported']}/{d['killed_agents']} killed agents reported gone after "
-                     f"{d['first_ms']}-{d['last_ms']} ms")
-        f = s.get("fanin")
-        if f:
-            text += (f"; fan-in {f.get('status_received')} status, {f.get('state_changes_seen')} state changes, "
-                     f"{f.get('missed_by_seq')} missed, watcher {f.get('cpu_pct_of_one_core')} % of a core")
-        parts.append(text)
-    return "; ".join(parts)
-
-
-def _s(v: float | None) -> str:
-    return "-" if v is None else f"{v * 1e3:.1f} ms" if v < 1 else f"{v:.2f} s"
-
-
-def _size(s: Mapping[str, Any]) -> str:
-    """``AxD``, and the transport unless plain TCP."""
-    transport = s.get("transport", "tcp")
-    return f"{s['agents']}x{s['drives'] // max(1, s['agents'])}" + ("" if transport == "tcp" else f" {transport}")
-
-
-def supervisor_targets(r: Mapping[str, Any]) -> list[Target]:
-    out = []
-    for s in r["sizes"]:
-        size = _size(s)
-        rounds = s.get("rounds", [])
-        ok = sum(1 for x in rounds if x["enable"]["ok"] and x["disable"]["ok"])
-        out.append(Target(f"{size}: enable/disable rounds ok", f"{ok}/{len(rounds)}", "all", bool(rounds) and
-                          ok == len(rounds)))
-        if size == SUPERVISOR_ENABLE_SIZE:
-            bare = (s.get("get_rtt_bare") or {}).get("p50_ms")
-            overhead = s.get("enable_overhead_s_median")
-            out.append(at_most(f"{size}: two-phase enable overhead / bare get (p50)",
-                               _ratio(overhead * 1e3 if overhead is not None else None, bare),
-                               SUPERVISOR_ENABLE_OVER_BARE_MAX, " x"))
-        d = s.get("departure")
-        if d is not None:
-            out.append(Target(f"{size}: killed agents reported gone (ms)", d["last_ms"],
-                              f"all {d['killed_agents']} within the {LINK_LEASE_S:g} s link lease",
-                              d["reported"] == d["killed_agents"] and d["last_ms"] is not None
-                              and d["last_ms"] <= LINK_LEASE_S * 1e3))
-        f = s.get("fanin")
-        if f is None:
-            continue
-        need = FANIN_CHANGES_PER_DRIVE_MIN * s["drives"]
-        measured = {k: f.get(k) for k in ("commands_ok", "drives_seen", "state_changes_seen", "missed_by_seq",
-                                          "supervisor_missed_by_seq")}
-        met = (f.get("commands_ok") is True and f.get("drives_seen") == s["drives"]
-               and (f.get("state_changes_seen") or 0) >= need
-               and f.get("missed_by_seq") == 0 and f.get("supervisor_missed_by_seq") == 0)
-        out.append(Target(f"{size}: status fan-in", measured,
-                          f"commands ok, every drive seen, >= {need} state changes, 0 missed", met))
-    return out
-
-
-# ---- bench_trust --------------------------------------------------------------------------------
-
-#: The audit trail may add at most this much to the gateway's own CPU work per command (it runs
-#: on the command and publish threads, never on the cycle).
-AUDIT_RATIO_MAX = 1.0
-
-
-trust_figures = picked("command_existing_us", "command_audit_us", "audit_ratio", "status_encode_us", "error_text_us",
-                       "error_text_ratio", "loadavg_start")
-
-
-def trust_headline(r: Mapping[str, Any]) -> str:
-    return (f"16-drive command: audit {r.get('command_audit_us')} us next to the gateway's "
-            f"{r.get('command_existing_us')} us ({r.get('audit_ratio')}x); error text {r.get('error_text_us')} us "
-            f"per status next to {r.get('status_encode_us')} us encoding ({r.get('error_text_ratio')}x)")
-
-
-def trust_targets(r: Mapping[str, Any]) -> list[Target]:
-    ratio = r.get("audit_ratio")
-    return [at_most("audit trail / existing per-command gateway work", ratio, AUDIT_RATIO_MAX)]
-
-
-# ---- fast paths (issue 13): command latency, the cross-host reflex, the reply path ------------------
+# ---- fast paths (issue 13): command latency (the enable rows; the agent row shows it too) ---------
 
 #: Enable latency beyond the drives' own transition cycles, p50, over a bare zenoh get's p50 in the
 #: same run: at most this for 16 drives and for 64 (one reply per drive).
 ENABLE_BEYOND_OVER_BARE_MAX = {16: 3.0, 64: 4.0}
-#: Cross-host group reflex, fault on h1 -> h2's member leaving operation_enabled (ms).
-REFLEX_P50_MS_MAX = 2.0
-REFLEX_P99_MS_MAX = 3.0
 
 
 def enable_figures(r: Mapping[str, Any]) -> dict[str, Any]:
@@ -388,45 +261,6 @@ def enable_targets(r: Mapping[str, Any]) -> list[Target]:
     return [at_most(f"enable of {r['drives']} drives beyond the transition cycles / bare get (p50)", ratio, limit,
                     " x"),
             Target("enable rounds without failure", en.get("n_failures"), 0, en.get("n_failures") == 0)]
-
-
-def reflex_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    nxt = r.get("next_cycle") or {}
-    return {**{k: r.get(k) for k in ("rounds", "fault_to_reflex", "fault_to_leave", "reflex_to_leave",
-                                     "fault_to_status_in_sup", "bare_put", "ratios", "n_failures")},
-            "next_cycle": {k: nxt.get(k) for k in ("fault_to_reflex", "fault_to_leave", "reflex_to_leave",
-                                                   "n_failures")} if nxt else None}
-
-
-def reflex_headline(r: Mapping[str, Any]) -> str:
-    lv, rf, b = r.get("fault_to_leave") or {}, r.get("fault_to_reflex") or {}, r.get("bare_put") or {}
-    rl = r.get("reflex_to_leave") or {}
-    nl = (r.get("next_cycle") or {}).get("fault_to_leave") or {}
-    return (f"fault on h1 -> h2's member leaves operation_enabled p50/p99 {lv.get('p50_ms')}/{lv.get('p99_ms')} ms "
-            f"(reflex applied {rf.get('p50_ms')}/{rf.get('p99_ms')} ms, then {rl.get('p50_ms')}/{rl.get('p99_ms')} ms "
-            f"to the drive seen leaving), bare put h1 -> h2 across the routers "
-            f"{b.get('p50_ms')}/{b.get('p99_ms')} ms ({r.get('n_failures')} failed rounds)"
-            + (f"; without the express exchange {nl.get('p50_ms')}/{nl.get('p99_ms')} ms" if nl else ""))
-
-
-def reflex_targets(r: Mapping[str, Any]) -> list[Target]:
-    lv = r.get("fault_to_leave") or {}
-    return [at_most("cross-host reflex p50 (ms)", lv.get("p50_ms"), REFLEX_P50_MS_MAX),
-            at_most("cross-host reflex p99 (ms)", lv.get("p99_ms"), REFLEX_P99_MS_MAX),
-            Target("reflex rounds without failure", r.get("n_failures"), 0, r.get("n_failures") == 0)]
-
-
-def replies_figures(r: Mapping[str, Any]) -> dict[str, Any]:
-    return {"drives": r.get("drives"), "loadavg_start": r.get("loadavg_start")}
-
-
-def replies_headline(r: Mapping[str, Any]) -> str:
-    parts = []
-    for n, f in (r.get("drives") or {}).items():
-        parts.append(f"{n} drives: gateway {f['gateway_us']} us ({f['gateway_over_bare']}x bare msgpack), collector "
-                     f"{f['collector_us']} us ({f['collector_over_bare']}x), publish pass {f['publish_pass_us']} us "
-                     f"({f['publish_pass_over_bare']}x)")
-    return "CPU per command: " + "; ".join(parts)
 
 
 # ---- bench_cycle, bench_idle (issue 13: the cycle's CPU per drive, the idle demo) ---------------------
@@ -599,33 +433,6 @@ def canopen_targets(r: Mapping[str, Any]) -> list[Target]:
     missed = v["agent"]["tpdos_missed_pct"]
     return [at_most("4 ms SYNC: jitter p99.9 agent / bare", ratio, CANOPEN_JITTER_RATIO_MAX, " x"),
             Target("4 ms SYNC: TPDOs missed %", missed, f"< {CANOPEN_MISSED_PCT_MAX}", missed < CANOPEN_MISSED_PCT_MAX)]
-security_figures = picked("enable", "fanin", "summary")
-
-
-def security_headline(r: Mapping[str, Any]) -> str:
-    e, f, sm = r.get("enable", {}), r.get("fanin", {}), r.get("summary", {})
-    tcp, tls = e.get("tcp", {}), e.get("tls", {})
-    return (f"enable 16 drives p50 tcp {tcp.get('wall_ms_p50')} / tls {tls.get('wall_ms_p50')} ms "
-            f"({sm.get('enable_wall_p50_ratio')} x); fan-in {f.get('drives')} drives: missed {sm.get('fanin_missed')}, "
-            f"watcher CPU per message {sm.get('fanin_watcher_cpu_per_msg_ratio')} x (min-of-N "
-            f"{sm.get('fanin_watcher_cpu_per_msg_ratio_min_of_n')} x, paired rounds p10-p90 "
-            f"{sm.get('fanin_watcher_cpu_per_msg_ratio_paired_p10_p90')}), router CPU {sm.get('fanin_router_cpu_ratio')} x")
-
-
-def security_targets(r: Mapping[str, Any]) -> list[Target]:
-    sm = r.get("summary", {})
-    limit = sm.get("target_ratio_max", 1.2)
-    out = []
-    for key, name in (("enable_wall_p50_ratio", "TLS+ACL / TCP: 16-drive enable wall p50"),
-                      ("fanin_watcher_cpu_per_msg_ratio", "TLS+ACL / TCP: fan-in watcher CPU per message")):
-        v = sm.get(key)
-        out.append(at_most(name, v, limit))
-    missed = sm.get("fanin_missed", {})
-    out.append(Target("fan-in missed, both transports", missed, 0,
-                      bool(missed) and all(m == 0 for m in missed.values())))
-    return out
-
-
 # ---- flight recorder and dashboard (bench_recorder, bench_dashboard) -------------------------------
 
 #: The recorder may not raise the cycle's CPU by more than this ratio, nor cost more than this share
@@ -678,41 +485,6 @@ def dashboard_targets(r: Mapping[str, Any]) -> list[Target]:
             at_most("dashboard CPU at rest, % of one core", r.get("dashboard_cpu_idle_pct"), DASHBOARD_CPU_PCT_MAX),
             at_most("dashboard CPU per status taken in", r.get("dashboard_cpu_us_per_status"),
                     DASHBOARD_CPU_US_PER_STATUS_MAX, " us")]
-
-
-# ---- bench_twin -----------------------------------------------------------------------------------
-
-#: drives-twin of 10 simulated hosts (2 drives each): ready, every drive answering, within this.
-TWIN_READY_10_S_MAX = 10.0
-#: The twin's own process at rest (link relays, its supervisor, the child monitor), 10 hosts,
-#: percent of one core: what the twin adds to the processes it runs.
-TWIN_OWN_CPU_PCT_MAX = 5.0
-
-twin_figures = picked("axes_per_host", "sizes", "loadavg_start", "loadavg_end")
-
-
-def _twin_size(r: Mapping[str, Any], n: str) -> tuple[Mapping[str, Any], Mapping[str, Any]]:
-    size = (r.get("sizes") or {}).get(n) or {}
-    return size.get("twin") or {}, size.get("bare") or {}
-
-
-def twin_headline(r: Mapping[str, Any]) -> str:
-    parts = []
-    for n in r.get("sizes") or {}:
-        twin, bare = _twin_size(r, n)
-        parts.append(f"{n} hosts: ready {twin.get('ready_s')} s (bare processes {bare.get('ready_s')} s), CPU at rest "
-                     f"{twin.get('cpu_pct_total')} % (bare {bare.get('cpu_pct_total')} %; the twin's own process "
-                     f"{twin.get('cpu_pct_twin_process')} %)")
-    return "; ".join(parts)
-
-
-def twin_targets(r: Mapping[str, Any]) -> list[Target]:
-    twin10, _ = _twin_size(r, "10")
-    left = [(_twin_size(r, n)[0]).get("left_after_stop") for n in r.get("sizes") or {}]
-    return [at_most("drives-twin ready, 10 hosts", twin10.get("ready_s"), TWIN_READY_10_S_MAX, " s"),
-            at_most("the twin's own process at rest, 10 hosts, % of a core", twin10.get("cpu_pct_twin_process"),
-                    TWIN_OWN_CPU_PCT_MAX),
-            at_most("processes left after SIGTERM, every size", max(left) if left and None not in left else None, 0)]
 
 
 # ---- bench_motion ---------------------------------------------------------------------------------

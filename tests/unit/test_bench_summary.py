@@ -11,6 +11,7 @@ import pytest
 
 from bench import run_all
 from bench import summary as s
+from bench import summary_fleet as sf
 
 FAKE = textwrap.dedent('''
     import json, sys
@@ -149,7 +150,7 @@ def _sup(**fanin) -> dict:
     ({"supervisor_missed_by_seq": 1}, False),
 ])
 def test_fanin_target_needs_commands_ok_state_changes_and_nothing_missed(change: dict, met: bool) -> None:
-    t = {x.name: x for x in s.supervisor_targets(_sup(**change))}
+    t = {x.name: x for x in sf.supervisor_targets(_sup(**change))}
     rounds, fanin = t["4x16: enable/disable rounds ok"], t["4x16: status fan-in"]
     assert rounds.met is True and rounds.measured == "1/1"
     assert fanin.met is met
@@ -164,9 +165,9 @@ def test_fanin_target_needs_commands_ok_state_changes_and_nothing_missed(change:
 def test_departure_target_all_killed_agents_within_the_link_lease(departure: dict, met: bool) -> None:
     data = _sup()
     data["sizes"][0]["departure"] = departure
-    gone = {x.name: x for x in s.supervisor_targets(data)}["4x16: killed agents reported gone (ms)"]
+    gone = {x.name: x for x in sf.supervisor_targets(data)}["4x16: killed agents reported gone (ms)"]
     assert gone.met is met
-    assert "killed agents reported gone" in s.supervisor_headline(data)
+    assert "killed agents reported gone" in sf.supervisor_headline(data)
 
 
 def test_a_json_the_row_cannot_read_is_a_failure_without_figures() -> None:
@@ -180,7 +181,7 @@ def test_supervisor_enable_overhead_target_is_ten_bare_gets(overhead_s: float | 
                                                              met: bool | None) -> None:
     data = _sup()
     data["sizes"][0].update(enable_overhead_s_median=overhead_s, get_rtt_bare={"p50_ms": bare_ms, "p99_ms": 1.0})
-    t = {x.name: x for x in s.supervisor_targets(data)}["4x16: two-phase enable overhead / bare get (p50)"]
+    t = {x.name: x for x in sf.supervisor_targets(data)}["4x16: two-phase enable overhead / bare get (p50)"]
     assert t.met is met and t.limit == "<= 10 x"
 
 
@@ -209,10 +210,10 @@ def test_enable_headline_gives_the_time_beyond_the_cycle_when_measured() -> None
 def test_reflex_targets_p50_2ms_p99_3ms(p50: float, p99: float, met: tuple) -> None:
     data = {"fault_to_leave": {"n": 10, "p50_ms": p50, "p99_ms": p99}, "n_failures": 0,
             "fault_to_reflex": {"p50_ms": 1.0, "p99_ms": 2.0}, "bare_put": {"p50_ms": 0.5, "p99_ms": 1.0}}
-    t50, t99, failures = s.reflex_targets(data)
+    t50, t99, failures = sf.reflex_targets(data)
     assert (t50.met, t99.met) == met and failures.met is True
-    assert "bare put" in s.reflex_headline(data)
-    assert s.reflex_targets({"fault_to_leave": {"n": 0}, "n_failures": 3})[0].met is None
+    assert "bare put" in sf.reflex_headline(data)
+    assert sf.reflex_targets({"fault_to_leave": {"n": 0}, "n_failures": 3})[0].met is None
 
 
 def _agent_dc(bare_p99: float, agent_p99: float, offset: dict | None) -> dict:
@@ -244,12 +245,12 @@ def test_twin_targets_read_the_ten_host_size_and_every_stop() -> None:
     run = {"sizes": {"3": {"twin": {"ready_s": 2.0, "cpu_pct_twin_process": 0.5, "left_after_stop": 0}, "bare": {}},
                      "10": {"twin": {"ready_s": 12.5, "cpu_pct_twin_process": 2.0, "left_after_stop": 1},
                             "bare": {"ready_s": 5.0}}}}
-    ready, own, left = s.twin_targets(run)
+    ready, own, left = sf.twin_targets(run)
     assert (ready.measured, ready.met) == (12.5, False)
     assert (own.measured, own.met) == (2.0, True)
     assert (left.measured, left.met) == (1, False)
-    assert [t.met for t in s.twin_targets({"sizes": {"3": {"twin": {}, "bare": {}}}})] == [None, None, None]
-    assert "10 hosts: ready 12.5 s (bare processes 5.0 s)" in s.twin_headline(run)
+    assert [t.met for t in sf.twin_targets({"sizes": {"3": {"twin": {}, "bare": {}}}})] == [None, None, None]
+    assert "10 hosts: ready 12.5 s (bare processes 5.0 s)" in sf.twin_headline(run)
 
 
 def test_motion_row_targets_and_headline():
