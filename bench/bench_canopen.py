@@ -85,7 +85,8 @@ def _bare(args, period_us: int) -> dict:
 
 def _agent(args, period_us: int) -> dict:
     from bus_agent.bus.canopen.bus import CanopenBus
-    from bus_agent.config import AgentConfig, can_config
+    from bus_agent.can_config import can_config
+    from bus_agent.config import AgentConfig
     from bus_agent.cycle.cycle import Cycle
 
     ids = tuple(range(1, args.nodes + 1))

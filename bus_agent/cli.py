@@ -27,8 +27,8 @@ import sys
 import threading
 from typing import Sequence
 
-from bus_agent.config import (CAN_INTERFACES, SIM_PROFILES, ZENOH_MODES, AgentConfig, CanConfig, ConfigError,
-                              ZenohConfig, can_config, load_config)
+from bus_agent.can_config import CAN_INTERFACES, CanConfig, can_config
+from bus_agent.config import SIM_PROFILES, ZENOH_MODES, AgentConfig, ConfigError, ZenohConfig, load_config
 from schemas.keys import is_name
 
 log = logging.getLogger("bus_agent.cli")

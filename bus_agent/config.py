@@ -20,6 +20,8 @@ from bus_agent.bus.mapping import POLICIES, SDO_TYPES, MappingError, MappingPoli
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX
 from bus_agent.motion.config import HomingConfig, MotionConfig, MotionConfigError
 from bus_agent.security.exposure import exposed_endpoints, refusal
+from bus_agent.can_config import CanConfig, can_from_table, validate_can
+from bus_agent.toml_table import ConfigError, Table
 from schemas.keys import InvalidKey, validate_name
 
 log = logging.getLogger(__name__)
@@ -32,18 +34,6 @@ REFLEXES = ("quick_stop", "disable")
 SIM_PROFILES = ("generic", "indy7")
 #: Where the Zenoh gateway runs: a child process (the cycle keeps its GIL) or threads of the agent.
 GATEWAY_MODES = ("process", "thread")
-#: CAN backend: python-can interfaces and PDO policies (bus_agent/bus/canopen, docs/canopen.md):
-#: the EtherCAT backend's policy names (bus_agent.bus.mapping.POLICIES) but ``predefined``.
-CAN_INTERFACES = ("socketcan", "udp_multicast")
-CAN_PDO_POLICIES = tuple(p for p in POLICIES if p != "predefined")
-#: Earlier words for a policy, still read with a deprecation warning.
-CAN_PDO_ALIASES = {"node": "drive"}
-
-
-class ConfigError(ValueError):
-    """An invalid configuration; the message names the key (``drives[2].identity.vendor_id``)."""
-
-
 @dataclass(frozen=True)
 class ZenohConfig:
     mode: str = "peer"
@@ -145,30 +135,6 @@ class RecorderConfig:
     seconds: float = 10.0               # ring length: the last seconds of every cycle
     pre_s: float = 5.0                  # a frozen window: before its trigger
     post_s: float = 1.0                 # ... and after it
-
-
-@dataclass(frozen=True)
-class CanNode:
-    """``[[can.nodes]]``: one CANopen node (slave position = its place in the list)."""
-
-    node_id: int
-    pdo: str = "default"                       # CAN_PDO_POLICIES ("node": alias of "drive")
-    eds: str | None = None                     # EDS file of the drive (names objects; optional)
-    rpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per RPDO 1..4
-    tpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per TPDO 1..4
-    startup_sdos: tuple[tuple[int, int, int, int], ...] = ()  # (index, subindex, value, bytes)
-
-
-@dataclass(frozen=True)
-class CanConfig:
-    """``[can]``: the CANopen backend (``bus-agent --can CHANNEL``)."""
-
-    channel: str
-    interface: str = "socketcan"
-    nodes: tuple[CanNode, ...] = ()
-    heartbeat_ms: int = 200
-    #: 0x1019: 0 = SYNC without data; 2..240 = SYNC carries a counter 1..N (written to every node)
-    sync_counter: int = 0
 
 
 @dataclass(frozen=True)
@@ -277,7 +243,7 @@ def _validate(c: AgentConfig) -> None:
         raise ConfigError("ifname or sim_drives or can: one is required (a NIC name, a number of simulated drives > 0, "
                           "or a [can] table)")
     if c.can is not None:
-        _validate_can(c.can)
+        validate_can(c.can)
     if c.sim_profile not in SIM_PROFILES:
         raise ConfigError(f"sim_profile: {c.sim_profile!r} is not one of {', '.join(SIM_PROFILES)}")
     if not 100 <= c.cycle_us <= 1_000_000:
@@ -330,76 +296,6 @@ def _validate(c: AgentConfig) -> None:
                 raise ConfigError(f"groups.{g}: member {m!r} is on this host but no drive has axis {axis!r}")
 
 
-def _validate_can(c: CanConfig) -> None:
-    if not c.channel:
-        raise ConfigError("can.channel: required (a SocketCAN interface, or a udp_multicast group)")
-    if c.interface not in CAN_INTERFACES:
-        raise ConfigError(f"can.interface: {c.interface!r} is not one of {', '.join(CAN_INTERFACES)}")
-    if not c.nodes:
-        raise ConfigError("can.nodes: at least one node id")
-    if not 1 <= c.heartbeat_ms <= 0xFFFF:
-        raise ConfigError(f"can.heartbeat_ms: {c.heartbeat_ms} must be 1..65535")
-    if isinstance(c.sync_counter, bool) or c.sync_counter != 0 and not 2 <= c.sync_counter <= 240:
-        raise ConfigError(f"can.sync_counter: {c.sync_counter} must be 0 (SYNC without counter) or 2..240 "
-                          "(0x1019: the counter runs 1..N; 1 and 241..255 are reserved)")
-    seen: set[int] = set()
-    for i, n in enumerate(c.nodes):
-        key = f"can.nodes[{i}]"
-        if isinstance(n.node_id, bool) or not isinstance(n.node_id, int) or not 1 <= n.node_id <= 127:
-            raise ConfigError(f"{key}.id: {n.node_id!r} must be a node id 1..127")
-        if n.node_id in seen:
-            raise ConfigError(f"{key}.id: node {n.node_id} listed twice")
-        seen.add(n.node_id)
-        if n.pdo not in CAN_PDO_POLICIES:
-            why = (": 'predefined' assigns fixed EtherCAT PDOs, a CANopen node has no PDO assignment; use 'drive' "
-                   "(its own mapping)" if n.pdo == "predefined" else "")
-            raise ConfigError(f"{key}.pdo: {n.pdo!r} is not one of {', '.join(CAN_PDO_POLICIES)}{why}")
-        if (n.pdo == "explicit") != bool(n.rpdo or n.tpdo):
-            raise ConfigError(f"{key}: rpdo/tpdo are given exactly when pdo = \"explicit\"")
-        for side, pdos in (("rpdo", n.rpdo), ("tpdo", n.tpdo)):
-            if len(pdos) > 4 or any(not isinstance(v, int) or not 0 < v <= 0xFFFFFFFF for p in pdos for v in p):
-                raise ConfigError(f"{key}.{side}: up to 4 PDOs, each a list of mapping entries "
-                                  "(index << 16 | subindex << 8 | bits)")
-        for j, (index, sub, _value, size) in enumerate(n.startup_sdos):
-            if not (0 <= index <= 0xFFFF and 0 <= sub <= 0xFF and size in (1, 2, 4)):
-                raise ConfigError(f"{key}.sdo[{j}]: index 0..0xFFFF, subindex 0..255, size 1, 2 or 4")
-
-
-def can_config(channel: str, interface: str | None, node_ids: tuple[int, ...], sync_counter: int = 0) -> CanConfig:
-    """``--can CHANNEL --can-interface IF --nodes 1,2,3 [--sync-counter N]`` as a CanConfig
-    (defaults for the rest)."""
-    return CanConfig(channel=channel, interface=interface or "socketcan",
-                     nodes=tuple(CanNode(node_id=n) for n in node_ids), sync_counter=sync_counter)
-
-
-def _can(t: _Table) -> CanConfig:
-    nodes = []
-    for i, raw in enumerate(t.get("nodes", list, [])):
-        if isinstance(raw, int) and not isinstance(raw, bool):
-            nodes.append(CanNode(node_id=raw))
-            continue
-        n = _Table(raw, f"can.nodes[{i}]")
-        sdos = []
-        for j, s in enumerate(n.get("sdo", list, [])):
-            st = _Table(s, f"can.nodes[{i}].sdo[{j}]")
-            sdos.append((st.get("index", int), st.get("subindex", int, 0), st.get("value", int), st.get("size", int)))
-            st.done()
-        pdo = n.get("pdo", str, "default")
-        if pdo in CAN_PDO_ALIASES:
-            log.warning("can.nodes[%d].pdo: %r is deprecated, say %r (the same policy, as for EtherCAT drives)",
-                        i, pdo, CAN_PDO_ALIASES[pdo])
-            pdo = CAN_PDO_ALIASES[pdo]
-        nodes.append(CanNode(node_id=n.get("id", int), pdo=pdo, eds=n.get("eds", str, None),
-                             rpdo=tuple(tuple(p) for p in n.get("rpdo", list, [])),
-                             tpdo=tuple(tuple(p) for p in n.get("tpdo", list, [])), startup_sdos=tuple(sdos)))
-        n.done()
-    cfg = CanConfig(channel=t.get("channel", str), interface=t.get("interface", str, "socketcan"),
-                    nodes=tuple(nodes), heartbeat_ms=t.get("heartbeat_ms", int, 200),
-                    sync_counter=t.get("sync_counter", int, 0))
-    t.done()
-    return cfg
-
-
 def _validate_policy(p: DrivePolicy, key: str) -> None:
     if not p.transition_timeout_s > 0:
         raise ConfigError(f"{key}.transition_timeout_s: {p.transition_timeout_s} must be > 0")
@@ -421,57 +317,10 @@ def _validate_policy(p: DrivePolicy, key: str) -> None:
 # ---- TOML -----------------------------------------------------------------------------------
 
 
-class _Table:
-    """A TOML table being consumed: typed getters that name the key; leftovers are errors."""
-
-    def __init__(self, data: Mapping[str, Any], path: str) -> None:
-        if not isinstance(data, Mapping):
-            raise ConfigError(f"{path or 'top level'}: expected a table, got {type(data).__name__}")
-        self.data = dict(data)
-        self.path = path
-
-    def key(self, name: str) -> str:
-        return f"{self.path}.{name}" if self.path else name
-
-    def get(self, name: str, types: type | tuple[type, ...], default: Any = dataclasses.MISSING) -> Any:
-        if name not in self.data:
-            if default is dataclasses.MISSING:
-                raise ConfigError(f"{self.key(name)}: required key missing")
-            return default
-        v = self.data.pop(name)
-        if isinstance(v, bool) and bool not in (types if isinstance(types, tuple) else (types,)):
-            raise ConfigError(f"{self.key(name)}: expected {_tn(types)}, got a boolean")
-        if not isinstance(v, types):
-            raise ConfigError(f"{self.key(name)}: expected {_tn(types)}, got {type(v).__name__} {v!r}")
-        if isinstance(types, tuple) and float in types and isinstance(v, int):
-            v = float(v)
-        return v
-
-    def table(self, name: str) -> "_Table":
-        return _Table(self.get(name, dict, {}), self.key(name))
-
-    def strings(self, name: str) -> tuple[str, ...]:
-        v = self.get(name, list, [])
-        for i, s in enumerate(v):
-            if not isinstance(s, str):
-                raise ConfigError(f"{self.key(name)}[{i}]: expected a string, got {s!r}")
-        return tuple(v)
-
-    def done(self) -> None:
-        if self.data:
-            raise ConfigError(f"{self.key(sorted(self.data)[0])}: unknown key")
-
-
-def _tn(types: type | tuple[type, ...]) -> str:
-    ts = types if isinstance(types, tuple) else (types,)
-    names = {int: "an integer", float: "a number", str: "a string", bool: "a boolean", list: "an array", dict: "a table"}
-    return " or ".join(names.get(t, t.__name__) for t in ts)
-
-
 _NUM = (int, float)
 
 
-def _policy(t: _Table, base: DrivePolicy) -> DrivePolicy:
+def _policy(t: Table, base: DrivePolicy) -> DrivePolicy:
     a = t.table("auto_reset")
     b = base.auto_reset
     auto = AutoReset(
@@ -491,7 +340,7 @@ def _policy(t: _Table, base: DrivePolicy) -> DrivePolicy:
     )
 
 
-def _entries(t: _Table, name: str) -> tuple[tuple[int, int, int], ...]:
+def _entries(t: Table, name: str) -> tuple[tuple[int, int, int], ...]:
     out = []
     for k, e in enumerate(t.get(name, list, [])):
         if not isinstance(e, list) or len(e) != 3 or not all(isinstance(x, int) and not isinstance(x, bool) for x in e):
@@ -500,7 +349,7 @@ def _entries(t: _Table, name: str) -> tuple[tuple[int, int, int], ...]:
     return tuple(out)
 
 
-def _ints(t: _Table, name: str) -> tuple[int, ...]:
+def _ints(t: Table, name: str) -> tuple[int, ...]:
     v = t.get(name, list, [])
     for k, x in enumerate(v):
         if not isinstance(x, int) or isinstance(x, bool):
@@ -508,7 +357,7 @@ def _ints(t: _Table, name: str) -> tuple[int, ...]:
     return tuple(v)
 
 
-def _mapping(t: _Table, key: str) -> MappingPolicy:
+def _mapping(t: Table, key: str) -> MappingPolicy:
     """``[drives.mapping]``: policy = drive | default | predefined | explicit (bus_agent.bus.mapping)."""
     policy = t.get("policy", str, "drive")
     if policy not in POLICIES:
@@ -523,7 +372,7 @@ def _mapping(t: _Table, key: str) -> MappingPolicy:
     return mp
 
 
-def _sdo(t: _Table) -> StartupSdo:
+def _sdo(t: Table) -> StartupSdo:
     """``[[drives.sdo]]``: index, subindex, type, value."""
     index, sub = t.get("index", int), t.get("subindex", int, 0)
     typ, value = t.get("type", str), t.get("value", int)
@@ -537,7 +386,7 @@ def _sdo(t: _Table) -> StartupSdo:
     return sdo
 
 
-def _motion(t: _Table, base: MotionConfig) -> MotionConfig:
+def _motion(t: Table, base: MotionConfig) -> MotionConfig:
     """``[defaults.motion]`` / ``[drives.motion]`` (keys: bus_agent.motion.config.MotionConfig)."""
     m = t.table("motion")
     h = m.table("homing")
@@ -572,7 +421,7 @@ def _motion(t: _Table, base: MotionConfig) -> MotionConfig:
 
 def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     """Build an AgentConfig from parsed TOML (or any mapping of the same shape)."""
-    t = _Table(data, "")
+    t = Table(data, "")
     z = t.table("zenoh")
     zenoh = ZenohConfig(mode=z.get("mode", str, "peer"), listen=z.strings("listen"),
                         connect=z.strings("connect"), scouting=z.get("scouting", bool, False),
@@ -600,7 +449,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     defaults_t.done()
     drives = []
     for i, raw in enumerate(t.get("drives", list, [])):
-        d = _Table(raw, f"drives[{i}]")
+        d = Table(raw, f"drives[{i}]")
         slave = d.get("slave", int)
         ident = None
         if "identity" in d.data:
@@ -621,7 +470,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         if mapping is not None and pdo is not None:
             raise ConfigError(f"drives[{i}]: 'pdo' and 'mapping' both given: use mapping (policy = \"default\", "
                               "rx_pdo, tx_pdo)")
-        sdos = tuple(_sdo(_Table(raw_sdo, f"drives[{i}].sdo[{k}]")) for k, raw_sdo in enumerate(d.get("sdo", list, [])))
+        sdos = tuple(_sdo(Table(raw_sdo, f"drives[{i}].sdo[{k}]")) for k, raw_sdo in enumerate(d.get("sdo", list, [])))
         drives.append(DriveConfig(slave=slave, axis=d.get("axis", str, ""), identity=ident,
                                   mode=d.get("mode", int, int(Mode.CYCLIC_SYNC_POSITION)), pdo=pdo,
                                   policy=_policy(d, defaults), mapping=mapping, sdos=sdos,
@@ -648,7 +497,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         express_reflex=express_reflex,
         dc=dc,
         recorder=recorder,
-        can=_can(t.table("can")) if "can" in t.data else None,
+        can=can_from_table(t.table("can")) if "can" in t.data else None,
     )
     t.done()
     return cfg

@@ -14,7 +14,7 @@ import json
 import sys
 from typing import Sequence
 
-from bus_agent.config import CAN_INTERFACES
+from bus_agent.can_config import CAN_INTERFACES
 
 
 def main(argv: Sequence[str]) -> int:

@@ -37,7 +37,7 @@ from bus_agent.bus.canopen.nmt import (AL_OF_NMT, BROADCAST, HEARTBEAT_COB_BASE,
 from bus_agent.bus.codec import DriveCodec
 from bus_agent.bus.mapping import MappingError, SlaveMapping, describe
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
-from bus_agent.config import CanConfig
+from bus_agent.can_config import CanConfig
 
 log = logging.getLogger(__name__)
 
