@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import socket
 import sys
-import threading
 from typing import Sequence
 
 from bus_agent.can_config import CAN_INTERFACES, CanConfig, can_config
 from bus_agent.config import SIM_PROFILES, ZENOH_MODES, AgentConfig, ConfigError, ZenohConfig, load_config
+from bus_agent.stop_signals import StopSignals
 from schemas.keys import is_name
 
 log = logging.getLogger("bus_agent.cli")
@@ -145,19 +144,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"bus-agent: configuration error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 
-    stop = threading.Event()
-    signals: list[int] = []
-
-    def on_signal(signum: int, _frame: object) -> None:
-        signals.append(signum)
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    stop = StopSignals()  # SIGTERM/SIGINT; the handler takes no lock (a burst of signals must not hang)
 
     from bus_agent.agent import Agent, AgentError  # after arg parsing: `--help` stays fast
 
-    agent = Agent(config, on_failure=lambda _reason: stop.set())
+    agent = Agent(config, on_failure=lambda _reason: stop.request())
     try:
         agent.start()
     except AgentError as exc:
@@ -175,8 +166,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if agent.failed:
         log.error("agent %s: %s; shutting down", config.host, agent.failure)
         code = EXIT_FAILED
-    if signals:
-        log.info("agent %s: signal %s: shutting down", config.host, signal.Signals(signals[0]).name)
+    if stop.signal_name:
+        log.info("agent %s: signal %s: shutting down", config.host, stop.signal_name)
     agent.stop(ordered=True)
     print(f"bus-agent stopped host={config.host}", flush=True)
     return code

@@ -21,15 +21,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import sys
-import threading
 from typing import Sequence
 
 import zenoh
 
 from bus_agent.gateway.zenoh_config import ZenohConfigError, make_zenoh_config
 from bus_agent.security.exposure import exposed_endpoints, refusal
+from bus_agent.stop_signals import StopSignals
 
 log = logging.getLogger("bus_agent.router")
 
@@ -109,9 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RouterConfigError as exc:
         print(f"drives-router: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    stop = threading.Event()
     # Handlers go in before the session opens, so an early SIGTERM still closes it cleanly.
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    stop = StopSignals()
     try:
         try:
             session = zenoh.open(conf)
@@ -123,14 +121,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"connect={','.join(connect) or '-'} identity={args.identity + ' (tls, acl)' if args.pki else '- (insecure)'}",
                   flush=True)
             log.info("router up: listen %s connect %s", listen, connect)
-            while not stop.wait(0.5):
-                pass
+            stop.wait()
             log.info("router stopping")
         finally:
             session.close()
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stop.restore()
     return EXIT_OK
 
 

@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import signal
 import sys
 import tempfile
-import threading
 from typing import Any, Iterator, Sequence
 
 from bus_agent.sim.child import ChildProcess, child_env, free_port
+from bus_agent.stop_signals import StopSignals
 
 
 # One child-process implementation for every test bed (output kept, own session).
@@ -133,9 +132,7 @@ def _agents_main(router: str, hosts: Sequence[str], n_drives: int, cycle_us: int
     from bus_agent.config import AgentConfig, ZenohConfig
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stop = StopSignals()
     agents = []
     try:
         for h in hosts:

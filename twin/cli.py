@@ -36,11 +36,11 @@ import argparse
 import json
 import logging
 import shlex
-import signal
 import sys
 import threading
 from typing import Callable, Sequence
 
+from bus_agent.stop_signals import StopSignals
 from supervisor.fleetfile import FleetFileError
 
 from .plan import BACKENDS, PlanError
@@ -129,13 +129,13 @@ def run_command(twin: Twin, line: str) -> str:
                      "restart-agent, kill-router, restart-router, status, stop)")
 
 
-def _serve_stdin(twin: Twin, stop: threading.Event) -> None:
+def _serve_stdin(twin: Twin, stop: StopSignals) -> None:
     for line in sys.stdin:
-        if stop.is_set():
+        if stop.stopped:
             return
         if line.strip() == "stop":
             print("ok stopping", flush=True)
-            stop.set()
+            stop.request()
             return
         try:
             detail = run_command(twin, line)
@@ -157,16 +157,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE if any(line.startswith(("kept", "could not")) for line in done) else EXIT_OK
     if not args.fleet:
         parser.error("--fleet is required (or --cleanup)")
-    stop = threading.Event()
     died: list[str] = []
+    # Handlers first: a signal during start-up still stops what was started.
+    stop = StopSignals()
 
     def on_exit(msg: str) -> None:
         died.append(msg)
-        stop.set()
+        stop.request()
 
-    # Handlers first: a signal during start-up still stops what was started.
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     try:
         twin = Twin(args.fleet, backend=args.backend, listen=args.listen, ready_timeout_s=args.ready_timeout,
                     on_unexpected_exit=on_exit, log_level=args.log_level, pki=args.pki, identity=args.identity)

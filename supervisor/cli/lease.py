@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
-import threading
 from typing import Any, Callable
 
 from rich.console import Console
 
 from ..results import single
 from .common import EXIT_FAILED, EXIT_OK, UsageError, emit_report, known_targets, open_fleet, positive_s
+from bus_agent.stop_signals import StopSignals
 
 
 def _selectors(args: argparse.Namespace) -> list[str]:
@@ -30,11 +29,10 @@ def _selectors(args: argparse.Namespace) -> list[str]:
 
 
 def _lease(args: argparse.Namespace, console: Console) -> int:
-    stop = threading.Event()
     lost: list[Any] = []
     # Both handled explicitly: a SIGINT that the starting shell ignored (a job started with '&'
     # from a script inherits SIGINT ignored) must still end the lease, as Ctrl-C does.
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    stop = StopSignals()
     try:
         with open_fleet(args) as fleet:
             sels = known_targets(fleet, _selectors(args))
@@ -43,7 +41,7 @@ def _lease(args: argparse.Namespace, console: Console) -> int:
                 return emit_report(args, console, single("lease", res))  # close() releases what was taken
             def on_lost(r: Any) -> None:
                 lost.append(r)
-                stop.set()
+                stop.request()
 
             fleet.on("lease_lost", on_lost)
             held = [str(r) for r in fleet.leases()]
@@ -59,8 +57,7 @@ def _lease(args: argparse.Namespace, console: Console) -> int:
                       if args.json else msg, flush=True)
             return EXIT_FAILED if lost else EXIT_OK
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stop.restore()
 
 
 def _release(args: argparse.Namespace, console: Console) -> int:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -51,3 +53,31 @@ def test_identity_mismatch_stops_start_up(tmp_path):
 def test_bad_endpoint_is_a_start_up_error():
     r = run("--sim", "1", "--host", "badep", "--listen", "127.0.0.1:7447")
     assert r.returncode == 3 and "locator" in r.stderr
+
+
+def test_a_burst_of_sigterm_still_ends_in_an_ordered_stop():
+    """Two stop signals close together (a forwarded SIGTERM and a process-group kill, as
+    `timeout make demo` sends) must not hang the agent: a handler that takes a lock (Event.set)
+    deadlocked when the second signal arrived while the first one's handler held it."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.Popen([sys.executable, "-m", "bus_agent.cli", "--sim", "2", "--host", "burst",
+                          "--listen", "tcp/127.0.0.1:0"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True)
+    try:
+        assert p.stdout is not None
+        lines = []
+        for line in p.stdout:
+            lines.append(line)
+            if line.startswith("bus-agent ready"):
+                break
+        assert any(ln.startswith("bus-agent ready") for ln in lines), "".join(lines)
+        end = time.monotonic() + 0.15  # signals for 150 ms: some land inside a handler
+        while time.monotonic() < end:
+            os.kill(p.pid, signal.SIGTERM)
+        out, _ = p.communicate(timeout=20)
+        assert p.returncode == 0, out
+        assert "bus-agent stopped host=burst" in out and "signal SIGTERM: shutting down" in out
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 
 from bus_agent.sim.drive_model import PROFILES
 from bus_agent.sim.process import add_options, enter_rt, start_logging
+from bus_agent.stop_signals import StopSignals
 
 DEFAULT_CHANNEL = "ff11::7a64:1"  # IPv6 interface-local scope: loopback only (RFC 4291 §2.7)
 
@@ -76,8 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         session = zenoh.open(conf)
         control = SimControl(session, args.name, segment.control_handlers(), len(ids))
 
-    signal.signal(signal.SIGTERM, lambda *_: segment.stop_event.set())
-    signal.signal(signal.SIGINT, lambda *_: segment.stop_event.set())
+    # the node loop looks at stop.stopped: the handler takes no lock (bus_agent.stop_signals)
+    stop = StopSignals()
+    segment.stop_signals = stop
     enter_rt(args, "canopen-sim node loop")
     segment.boot()
     print(f"canopen-sim ready channel={args.channel} interface={args.interface} nodes={','.join(map(str, ids))} "

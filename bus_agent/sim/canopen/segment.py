@@ -17,6 +17,7 @@ import can
 
 from bus_agent.sim.canopen.node import Frame, SimNode
 from bus_agent.sim.drive_model import PROFILES
+from bus_agent.stop_signals import StopSignals
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,8 @@ class Segment:
         self.send_errors = 0
         self.max_lag_s = 0.0
         self.stop_event = threading.Event()
+        #: The process's stop signals (canopen-sim's CLI): the loop ends when one arrived.
+        self.stop_signals: StopSignals | None = None
         self._thread: threading.Thread | None = None
 
     def boot(self) -> None:
@@ -63,7 +66,7 @@ class Segment:
     def run(self) -> None:
         """Receive and tick until :meth:`stop` (the calling thread)."""
         next_tick = self.clock()
-        while not self.stop_event.is_set():
+        while not self.stop_event.is_set() and not (self.stop_signals is not None and self.stop_signals.stopped):
             msg = self.bus.recv(timeout=TICK_S)
             now = self.clock()
             with self.lock:
