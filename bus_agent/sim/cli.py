@@ -80,7 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
     profiles = "\n".join(f"  {name:10} {prof.description}" for name, prof in PROFILES.items())
     p = argparse.ArgumentParser(prog="ecat-sim", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog=f"slave profiles (--profile):\n{profiles}")
+                                epilog=f"slave profiles (--profile):\n{profiles}\n\n"
+                                       "modifiers (profile:modifier, e.g. omron1s:dc-required*16):\n"
+                                       "  dc           DC capable: ESC 0x0008 bit 2, system time 0x0910, SYNC0\n"
+                                       "  dc-required  also refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030) and\n"
+                                       "               raises a sync error (AL 0x001A) when process data stops\n"
+                                       "               arriving in step with SYNC0")
     p.add_argument("--ifname", required=True, help="network interface to serve (one end of a veth pair)")
     p.add_argument("--drives", type=int, default=1, help="number of slaves on the segment (1..1000)")
     p.add_argument("--profile", default="generic",
