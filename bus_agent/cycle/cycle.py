@@ -382,10 +382,13 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
 
         applied = self._apply_inbox(now_ns) if self.state == "running" else False
         self._take_trigger_datagrams()
+        reacting: dict[str, int] = {}  # the remote triggers' reacting drives: their controlwords now
         while self._triggers:
             applied = True
             g, reason = self._triggers.popleft()
             self._reflex(g, None, f"remote: {reason}", now_ns)
+            for axis in self.groups.reacting(g):
+                reacting.setdefault(axis, self._by_axis[axis].controlword)
         for g, reason in origins:
             origin_axis = reason.split("/", 1)[1].split(" ", 1)[0]
             self._reflex(g, origin_axis, reason, now_ns)
@@ -474,3 +477,5 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
         sink = self.snapshot_sink
         if sink is not None:
             sink(snap)
+        if reacting and self.express_reflex:
+            self._express_after_cycle(reacting)
