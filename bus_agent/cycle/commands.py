@@ -296,6 +296,7 @@ class CommandsMixin(CycleBase):
                              events=tuple(events), stats=self._stats, agent_state=self.state)
         if changed and self._express_allowed(reacting):
             bus.exchange()
+            hops.stamp("cy.express")
             self.express_exchanges += 1
         self._express_events += events
         self.latest = snap
@@ -320,6 +321,7 @@ class CommandsMixin(CycleBase):
             return
         if self._express_allowed(reacting):
             self.bus.exchange()
+            hops.stamp("cy.express")
             self.express_exchanges += 1
 
     def _event(self, axis: str, kind: str, detail: str = "", *, from_state: str = "unknown",

@@ -31,6 +31,7 @@ import threading
 import time
 from typing import Sequence
 
+from bus_agent import hops
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
 from bus_agent.cia402.states import decode_statusword
@@ -233,6 +234,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                         now = self.clock_ns()
                         break
                     # woken before the deadline by a remote group trigger: apply it now
+                    hops.stamp("cy.wake")
                     if self._triggers:
                         self._express(self.clock_ns())
                     now = self.clock_ns()
@@ -376,6 +378,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                 d.last_fault_ns = now_ns
             elif d.error_code_sdo and d.sdo_error_code:
                 d.error_code_sdo = 0  # out of fault: the SDO-read 0x603F no longer applies
+        if origins:
+            hops.stamp("cy.fault")
         for g, reason in self._lost_origins:
             origins.append((g, reason))
         self._lost_origins = []
