@@ -4,8 +4,10 @@ same run (one process, no network, min of N so that a loaded machine does not de
 - **gateway**: decode and validate the request (``parse_command``), then build and encode one
   ``CommandReply`` per addressed drive (what ``gw-command`` does per command besides zenoh);
 - **collector**: decode and validate those replies (what a supervisor does with them);
-- **publish pass**: encode one ``DriveStatus`` per drive (what ``gw-publish`` does in every
-  cycle of an enable, competing with the replies for the GIL);
+- **publish pass**: build and encode one ``DriveStatus`` per drive from its fields (what
+  ``gw-publish`` does in every cycle of an enable, competing with the replies for the GIL);
+- **status decode**: decode and validate those statuses (what ``supervisor.Fleet`` and every
+  watcher do with each one);
 - **bare**: ``msgpack.packb``/``unpackb`` of the same maps (the floor of any encoding).
 
 Each request has a new request id, so the per-field memory of accepted strings in
@@ -44,10 +46,10 @@ def best_us(fn: Callable[[], Any], rounds: int, repeats: int = 7) -> float:
     return round(best, 2)
 
 
-def _status(host: str, axis: str, seq: int) -> m.DriveStatus:
-    return m.DriveStatus(host=host, axis=axis, seq=seq, time_ns=time.time_ns(), cycle=seq, state="operation_enabled",
-                         statusword=0x0237, controlword=0x000F, goal="enabled", halt=False, error_code=0, mode=8, mode_display=8,
-                         position=1000 + seq, velocity=3, torque=-2, al_state="op", slave=0)
+def _status(host: str, axis: str, seq: int) -> dict:
+    return dict(host=host, axis=axis, seq=seq, time_ns=time.time_ns(), cycle=seq, state="operation_enabled",
+                statusword=0x0237, controlword=0x000F, goal="enabled", halt=False, error_code=0, mode=8, mode_display=8,
+                position=1000 + seq, velocity=3, torque=-2, al_state="op", slave=0, objects={"digital_inputs": 0})
 
 
 def figures(drives: int, rounds: int) -> dict:
@@ -61,14 +63,15 @@ def figures(drives: int, rounds: int) -> dict:
         payload = m.encode(m.CommandRequest(request_id=rid, op="enable", timeout_s=5.0, supervisor="sup"))
         parsed = parse_command(payload, key, host, axes)
         for a in parsed.axes:
-            m.encode(m.CommandReply(request_id=rid, host=host, op="enable", outcome="done", axis=a,
-                                    state="operation_enabled", elapsed_s=0.0071, cycles=7))
+            m.encode_new(m.CommandReply, dict(request_id=rid, host=host, op="enable", outcome="done", axis=a,
+                                              state="operation_enabled", elapsed_s=0.0071, cycles=7))
 
     replies = [m.encode(m.CommandReply(request_id="sup-1", host=host, op="enable", outcome="done", axis=a,
                                        state="operation_enabled", elapsed_s=0.0071, cycles=7)) for a in axes]
     maps = [m.to_dict(m.decode(r)) for r in replies]
     statuses = [_status(host, a, 1) for a in axes]
-    status_maps = [m.to_dict(s) for s in statuses]
+    status_payloads = [m.encode_new(m.DriveStatus, s)[1] for s in statuses]
+    status_maps = [msgpack.unpackb(s) for s in status_payloads]
 
     def collector() -> None:
         for r in replies:
@@ -76,7 +79,15 @@ def figures(drives: int, rounds: int) -> dict:
 
     def publish() -> None:
         for s in statuses:
-            m.encode(s)
+            m.encode_new(m.DriveStatus, s)
+
+    def status_decode() -> None:
+        for s in status_payloads:
+            m.decode(s, m.DriveStatus)
+
+    def bare_status_decode() -> None:
+        for s in status_payloads:
+            msgpack.unpackb(s, raw=False)
 
     def bare_replies() -> None:
         for d in maps:
@@ -88,10 +99,12 @@ def figures(drives: int, rounds: int) -> dict:
 
     out = {"gateway_us": best_us(gateway, rounds), "collector_us": best_us(collector, rounds),
            "publish_pass_us": best_us(publish, rounds), "bare_msgpack_replies_us": best_us(bare_replies, rounds),
-           "bare_msgpack_status_us": best_us(bare_status, rounds)}
+           "bare_msgpack_status_us": best_us(bare_status, rounds), "status_decode_us": best_us(status_decode, rounds),
+           "bare_msgpack_status_decode_us": best_us(bare_status_decode, rounds)}
     out["gateway_over_bare"] = round(out["gateway_us"] / out["bare_msgpack_replies_us"], 2)
     out["collector_over_bare"] = round(out["collector_us"] / out["bare_msgpack_replies_us"], 2)
     out["publish_pass_over_bare"] = round(out["publish_pass_us"] / out["bare_msgpack_status_us"], 2)
+    out["status_decode_over_bare"] = round(out["status_decode_us"] / out["bare_msgpack_status_decode_us"], 2)
     return out
 
 

@@ -156,7 +156,7 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         for req in list(self._pending):
             for axis in req.axes:
                 if axis not in req.replies:
-                    req.add(self._reply(req, rt.Outcome(axis, "failed", reason="agent stopped before the outcome")))
+                    req.add(*self._reply(req, rt.Outcome(axis, "failed", reason="agent stopped before the outcome")))
         self._pending.clear()
         for decl in self._other_decls:
             _undeclare(decl)
@@ -226,7 +226,7 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
                 key = keys.drive_status(self.host, d.axis)
                 if key_expr(key).intersects(qke):
                     seq = self._status_seq.get(d.axis, 0)
-                    query.reply(key, m.encode(self._status_msg(snap, d, holders.get(d.axis, ""), seq)),
+                    query.reply(key, self._status_encoded(snap, d, holders.get(d.axis, ""), seq)[1],
                                 encoding=MSGPACK)
 
     def _on_agent_query(self, query: zenoh.Query) -> None:
@@ -432,8 +432,8 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         publish an ``outcome`` event (for outcomes the gateway decided itself)."""
         if outcome.axis in req.replies or outcome.axis not in req.axes:
             return
-        reply = self._reply(req, outcome)
-        req.add(reply)
+        reply, payload = self._reply(req, outcome)
+        req.add(reply, payload)
         if event and outcome.axis:
             detail = f"{req.op} {reply.outcome}" + (f": {reply.reason}" if reply.reason else "")
             self._emit(rt.CycleEvent(outcome.axis, "outcome", detail=detail, to_state=reply.state,
@@ -443,18 +443,24 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
             log.info("agent %s: command %s op %s from %s finished: %s", self.host, req.request_id, req.op,
                      req.requester, ", ".join(f"{a or 'agent'}={r.outcome}" for a, r in sorted(req.replies.items())))
 
-    def _reply(self, req: Request, o: rt.Outcome) -> m.CommandReply:
+    def _reply(self, req: Request, o: rt.Outcome) -> tuple[m.CommandReply, bytes]:
+        """The reply for outcome ``o`` of ``req`` and its encoding (validated once)."""
         outcome = o.outcome if o.outcome in m.OUTCOMES else "failed"
         key = f"{req.op}.{outcome}"
         self._command_counts[key] = self._command_counts.get(key, 0) + 1
-        return m.CommandReply(
-            request_id=req.request_id, host=self.host, op=req.op,
-            outcome=outcome, axis=o.axis,
-            state=o.state if o.state in m.DRIVE_STATES else "unknown", error_code=o.error_code & 0xFFFF,
-            reason=o.reason[:400], elapsed_s=o.elapsed_s or (time.monotonic_ns() - req.received_ns) / 1e9,
-            cycles=o.cycles, lease_holder=self.leases.holder(o.axis) if o.axis else "",
-            duration_s=min(max(o.duration_s, 0.0), 1e6),
-        )
+        fields = {
+            "request_id": req.request_id, "host": self.host, "op": req.op, "outcome": outcome, "axis": o.axis,
+            "state": o.state if o.state in m.DRIVE_STATES else "unknown", "error_code": o.error_code & 0xFFFF,
+            "reason": o.reason[:400], "elapsed_s": o.elapsed_s or (time.monotonic_ns() - req.received_ns) / 1e9,
+            "cycles": o.cycles, "lease_holder": self.leases.holder(o.axis) if o.axis else "",
+            "duration_s": min(max(o.duration_s, 0.0), 1e6),
+        }
+        try:
+            return m.encode_new(m.CommandReply, fields)
+        except m.SchemaError as exc:  # still one terminal answer for the axis: failed, saying why
+            log.error("agent %s: reply to %s for %r not encodable: %s", self.host, req.request_id, o.axis, exc)
+            return m.encode_new(m.CommandReply, {**fields, "outcome": "failed", "cycles": 0, "elapsed_s": 0.0,
+                                                 "reason": f"reply not encodable: {exc}"[:400]})
 
     def _emit(self, ev: rt.CycleEvent) -> None:
         snap = self._latest

@@ -136,9 +136,8 @@ class PublisherMixin(GatewayBase):
         if not (changed or moved or heartbeat):
             return
         self._status_seq[axis] = self._status_seq.get(axis, 0) + 1
-        msg = self._status_msg(snap, d, holder, self._status_seq[axis])
         try:
-            payload = m.encode(msg)
+            msg, payload = self._status_encoded(snap, d, holder, self._status_seq[axis])
         except m.SchemaError as exc:
             log.error("drive %s/%s: status not publishable: %s", self.host, axis, exc)
             return
@@ -149,17 +148,22 @@ class PublisherMixin(GatewayBase):
         self._last_motion[axis] = motion
         self._last_motion_pub_s[axis] = now
 
-    def _status_msg(self, snap: rt.CycleSnapshot, d: rt.DriveSnapshot, holder: str, seq: int) -> m.DriveStatus:
-        return m.DriveStatus(
-            host=self.host, axis=d.axis, seq=seq, time_ns=snap.time_ns, cycle=snap.cycle,
-            state=d.state if d.state in m.DRIVE_STATES else "unknown", statusword=d.statusword,
-            controlword=d.controlword, goal=d.goal, halt=d.halt, mode=d.mode, mode_display=d.mode_display,
-            position=d.position, velocity=d.velocity, torque=d.torque, error_code=d.error_code,
-            error_text=(d.error_text or describe(d.error_code))[:200], al_state=d.al_state, lost=d.lost, lease_holder=holder, slave=d.slave,
-            axis_state=d.axis_state, homed=d.homed, target_position=d.target_position,
-            following_error=max(-2**31, min(2**31 - 1, d.following_error)), motion_request_id=d.motion_request_id[:128],
-            absent=list(d.absent), objects=dict(zip(d.object_names, d.objects)),
-        )
+    def _status_encoded(self, snap: rt.CycleSnapshot, d: rt.DriveSnapshot, holder: str,
+                        seq: int) -> tuple[m.DriveStatus, bytes]:
+        """The status message of drive ``d`` and its encoding, validated once
+        (:func:`schemas.messages.encode_new`); raises :class:`schemas.messages.SchemaError`."""
+        return m.encode_new(m.DriveStatus, {
+            "host": self.host, "axis": d.axis, "seq": seq, "time_ns": snap.time_ns, "cycle": snap.cycle,
+            "state": d.state if d.state in m.DRIVE_STATES else "unknown", "statusword": d.statusword,
+            "controlword": d.controlword, "goal": d.goal, "halt": d.halt, "mode": d.mode,
+            "mode_display": d.mode_display, "position": d.position, "velocity": d.velocity, "torque": d.torque,
+            "error_code": d.error_code, "error_text": (d.error_text or describe(d.error_code))[:200],
+            "al_state": d.al_state, "lost": d.lost, "lease_holder": holder, "slave": d.slave,
+            "absent": list(d.absent), "objects": dict(zip(d.object_names, d.objects)),
+            "axis_state": d.axis_state, "homed": d.homed, "target_position": d.target_position,
+            "following_error": max(-2**31, min(2**31 - 1, d.following_error)),
+            "motion_request_id": d.motion_request_id[:128],
+        })
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
         if not ev.axis:
@@ -176,14 +180,14 @@ class PublisherMixin(GatewayBase):
         if ev.kind == "fault" and ev.error_code and describe(ev.error_code) not in detail:
             detail = f"{detail}: {describe(ev.error_code)}" if detail else describe(ev.error_code)
         try:
-            msg = m.Event(
-                host=self.host, axis=ev.axis, seq=self._event_seq[ev.axis], time_ns=time_ns, cycle=cycle,
-                kind=ev.kind, detail=detail[:400],
-                from_state=ev.from_state if ev.from_state in m.DRIVE_STATES else "unknown",
-                to_state=ev.to_state if ev.to_state in m.DRIVE_STATES else "unknown",
-                error_code=ev.error_code, request_id=ev.request_id[:128], requester=ev.requester[:128],
-            )
-            pub.put(m.encode(msg))
+            _, payload = m.encode_new(m.Event, {
+                "host": self.host, "axis": ev.axis, "seq": self._event_seq[ev.axis], "time_ns": time_ns,
+                "cycle": cycle, "kind": ev.kind, "detail": detail[:400],
+                "from_state": ev.from_state if ev.from_state in m.DRIVE_STATES else "unknown",
+                "to_state": ev.to_state if ev.to_state in m.DRIVE_STATES else "unknown",
+                "error_code": ev.error_code, "request_id": ev.request_id[:128], "requester": ev.requester[:128],
+            })
+            pub.put(payload)
             hops.stamp("pub.event")
         except m.SchemaError as exc:
             log.error("drive %s/%s: event not publishable: %s", self.host, ev.axis, exc)

@@ -173,6 +173,7 @@ class Request:
         self.received_ns = time.monotonic_ns()
         self.deadline_s = now_s + req.timeout_s + OUTCOME_GRACE_S
         self.replies: dict[str, m.CommandReply] = {}
+        self.payloads: dict[str, bytes] = {}  # each reply encoded once, for every query waiting on it
         self.waiting: list[tuple[zenoh.Query, set[str]]] = []
         self.requester = "anonymous"
 
@@ -188,8 +189,11 @@ class Request:
         self.waiting.append((query, set(self.axes)))
         self.flush()
 
-    def add(self, reply: m.CommandReply) -> None:
-        self.replies.setdefault(reply.axis, reply)
+    def add(self, reply: m.CommandReply, payload: bytes) -> None:
+        """The reply for ``reply.axis`` and its encoding (the first one given stays)."""
+        if reply.axis not in self.replies:
+            self.replies[reply.axis] = reply
+            self.payloads[reply.axis] = payload
         self.flush()
 
     def flush(self) -> None:
@@ -198,7 +202,7 @@ class Request:
             for axis in [a for a in remaining if a in self.replies]:
                 remaining.discard(axis)
                 try:
-                    query.reply(self.reply_keys[axis], m.encode(self.replies[axis]), encoding=MSGPACK)
+                    query.reply(self.reply_keys[axis], self.payloads[axis], encoding=MSGPACK)
                     hops.stamp("gw.reply")
                 except Exception as exc:  # the querier may be gone; the others still get theirs
                     log.warning("reply to %s (%s) failed: %s", self.reply_keys[axis], self.request_id, exc)

@@ -13,6 +13,7 @@ import math
 
 import pytest
 
+from schemas import compiled
 from schemas import messages as m
 
 VALID = dict(request_id="r-1", host="h1", op="enable", outcome="done", axis="x1", state="operation_enabled",
@@ -68,10 +69,10 @@ def test_repeats_encode_to_the_same_bytes_and_normalise_the_same() -> None:
 def test_the_memory_is_bounded_and_stays_correct_when_it_overflows() -> None:
     n = m._SEEN_MAX * 2 + 3
     for i in range(n):
-        assert m.decode(m.encode(m.CommandReply(**{**VALID, "request_id": f"r-{i}"})), m.CommandReply).request_id == f"r-{i}"
-    _, rows = m._plan(m.CommandReply)
-    fast = {r[0]: r[6] for r in rows}
-    assert len(fast["request_id"].seen) <= m._SEEN_MAX
+        assert m.decode(m.encode(m.CommandReply(**{**VALID, "host": f"h-{i}"})), m.CommandReply).host == f"h-{i}"
+    m._plan(m.CommandReply)
+    assert 0 < len(compiled.SEEN["command_reply"]["host"]) <= m._SEEN_MAX
+    assert "not a legal name" in _error({**VALID, "host": "h/1"})
     assert "longer than 128" in _error({**VALID, "request_id": "y" * 129})
 
 
@@ -81,3 +82,24 @@ def test_strict_commands_still_refuse_unknown_fields_after_warm_up() -> None:
         m.decode(m.encode(req), m.CommandRequest)
     with pytest.raises(m.SchemaError, match="unknown field"):
         m.from_dict({**m.to_dict(req), "extra": 1}, m.CommandRequest)
+
+
+def test_encode_new_gives_what_the_constructor_and_encode_give() -> None:
+    from tests.contract.test_messages import EXAMPLES
+    for msg in EXAMPLES:
+        cls = type(msg)
+        fields = {f: getattr(msg, f) for f in m._plan(cls)[0] - {"v", "type"}}
+        built, payload = m.encode_new(cls, fields)
+        assert built == msg and payload == m.encode(msg)
+        assert m.decode(payload, cls) == msg and m.decode(payload, cls).__dict__ == msg.__dict__
+
+
+def test_encode_new_refuses_by_name_and_builds_nothing() -> None:
+    with pytest.raises(m.SchemaError, match=r"command_reply\.error_code: 65536 out of range"):
+        m.encode_new(m.CommandReply, {**VALID, "error_code": 0x10000})
+    with pytest.raises(m.SchemaError, match=r"command_reply\.host: required field missing"):
+        m.encode_new(m.CommandReply, {k: v for k, v in VALID.items() if k != "host"})
+    with pytest.raises(m.SchemaError, match="unknown field.*'colour'"):
+        m.encode_new(m.CommandReply, {**VALID, "colour": "red"})
+    with pytest.raises(m.SchemaError, match="not a message type"):
+        m.encode_new(dict, {})
