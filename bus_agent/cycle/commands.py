@@ -9,7 +9,7 @@ their reflex goal in the same cycle.
 from __future__ import annotations
 
 import logging
-from typing import Sequence
+from typing import Iterable, Sequence
 
 from bus_agent import hops
 from bus_agent.bus.base import ALState
@@ -294,15 +294,35 @@ class CommandsMixin(CycleBase):
                 changed = True
         snap = CycleSnapshot(cycle=self.cycles, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
                              events=tuple(events), stats=self._stats, agent_state=self.state)
-        if changed and getattr(bus, "express_exchange", False) and not any(
-                d.motion.plan is not None for d in self.drives if not d.lost and d.axis not in reacting):
+        if changed and self._express_allowed(reacting):
             bus.exchange()
+            hops.stamp("cy.express")
             self.express_exchanges += 1
         self._express_events += events
         self.latest = snap
         sink = self.snapshot_sink
         if sink is not None:
             sink(snap)
+
+    def _express_allowed(self, reacting: Iterable[str]) -> bool:
+        """An extra exchange may go out now: the bus has one (not CANopen, whose exchange sends a
+        SYNC) and no drive but the ``reacting`` ones follows a trajectory (see :meth:`_express`)."""
+        if not getattr(self.bus, "express_exchange", False):
+            return False
+        reacting = set(reacting)
+        return not any(d.motion.plan is not None for d in self.drives if not d.lost and d.axis not in reacting)
+
+    def _express_after_cycle(self, reacting: dict[str, int]) -> None:
+        """Remote triggers taken by the cycle itself (they came during the spin or the cycle's
+        work, not in the sleep): their reflex outputs go out in an extra exchange right after the
+        cycle, not with the next scheduled frame a period later. ``reacting``: the reacting
+        axes and their controlwords before the cycle; nothing is sent when none changed."""
+        if not any(self._by_axis[a].controlword != cw for a, cw in reacting.items() if not self._by_axis[a].lost):
+            return
+        if self._express_allowed(reacting):
+            self.bus.exchange()
+            hops.stamp("cy.express")
+            self.express_exchanges += 1
 
     def _event(self, axis: str, kind: str, detail: str = "", *, from_state: str = "unknown",
                to_state: str = "unknown", error_code: int = 0, request_id: str = "") -> None:

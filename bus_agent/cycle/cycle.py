@@ -31,6 +31,7 @@ import threading
 import time
 from typing import Sequence
 
+from bus_agent import hops
 from bus_agent.bus.base import ALState
 from bus_agent.cia402.controller import Goal
 from bus_agent.cia402.states import decode_statusword
@@ -233,6 +234,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                         now = self.clock_ns()
                         break
                     # woken before the deadline by a remote group trigger: apply it now
+                    hops.stamp("cy.wake")
                     if self._triggers:
                         self._express(self.clock_ns())
                     now = self.clock_ns()
@@ -376,16 +378,21 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                 d.last_fault_ns = now_ns
             elif d.error_code_sdo and d.sdo_error_code:
                 d.error_code_sdo = 0  # out of fault: the SDO-read 0x603F no longer applies
+        if origins:
+            hops.stamp("cy.fault")
         for g, reason in self._lost_origins:
             origins.append((g, reason))
         self._lost_origins = []
 
         applied = self._apply_inbox(now_ns) if self.state == "running" else False
         self._take_trigger_datagrams()
+        reacting: dict[str, int] = {}  # the remote triggers' reacting drives: their controlwords now
         while self._triggers:
             applied = True
             g, reason = self._triggers.popleft()
             self._reflex(g, None, f"remote: {reason}", now_ns)
+            for axis in self.groups.reacting(g):
+                reacting.setdefault(axis, self._by_axis[axis].controlword)
         for g, reason in origins:
             origin_axis = reason.split("/", 1)[1].split(" ", 1)[0]
             self._reflex(g, origin_axis, reason, now_ns)
@@ -474,3 +481,5 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
         sink = self.snapshot_sink
         if sink is not None:
             sink(snap)
+        if reacting and self.express_reflex:
+            self._express_after_cycle(reacting)

@@ -110,7 +110,7 @@ class GatewayProcess:
     # -- cycle thread: store, extend, set; nothing else
 
     def on_snapshot(self, snap: rt.CycleSnapshot) -> None:
-        if self._outcomes:
+        if self._outcomes or snap.events:
             hops.stamp("cy.sink")
         last, self._latest = self._latest, snap
         if snap.events:
@@ -245,7 +245,7 @@ class GatewayProcess:
             if not closing:
                 self._wake.wait(self.filter.period_s)
                 self._wake.clear()
-            if self._outcomes:
+            if self._outcomes or self._events:
                 hops.stamp("cy.woke")
             try:
                 self._forward(final=closing)
@@ -272,7 +272,7 @@ class GatewayProcess:
         outs = [outcomes.popleft() for _ in range(len(outcomes))]
         if self._try_send(encode_update(snap, evs, outs)):
             self.forwarded += 1
-            if outs:
+            if outs or evs:
                 hops.stamp("cy.forwarded")
 
     def _log_events(self) -> None:

@@ -47,7 +47,8 @@ class CycleProxy:
     ``submit`` is a round trip to the cycle process (at most ``SUBMIT_TIMEOUT_S``; no answer =
     refused); ``trigger_group`` is one message; ``snapshot_sink``/``event_sink`` are called from
     the reader thread with forwarded snapshots and events; outcomes reach each command's
-    ``on_outcome`` from the reader thread too.
+    ``on_outcome`` from the reader thread too. ``bad_sink`` gets each forwarded snapshot first,
+    before the sinks wake the publish thread (the gateway publishes a fault or loss from there).
     """
 
     def __init__(self, conn: Connection, axes: Sequence[str]) -> None:
@@ -56,6 +57,7 @@ class CycleProxy:
         self.snapshot_sink: Callable[[rt.CycleSnapshot], None] | None = None
         self.event_sink: Callable[[list[tuple[rt.CycleEvent, int, int]]], None] | None = None
         self.group_sink: Callable[[str, str], None] | None = None  # the cycle process does not forward it
+        self.bad_sink: Callable[[rt.CycleSnapshot], None] | None = None
         self.latest: rt.CycleSnapshot | None = None
         #: Group triggers as datagrams straight to the cycle thread; None: Msg.TRIGGER to bridge-in.
         self.trigger_sock: socket.socket | None = None
@@ -144,7 +146,7 @@ class CycleProxy:
         kind = msg[0]
         if kind is Msg.UPDATE:
             _, snap_t, events_t, outcomes_t = msg
-            if outcomes_t:
+            if outcomes_t or events_t:
                 hops.stamp("gw.update")
             # Outcomes first, before decoding the snapshot (64 drives: a fraction of a millisecond)
             # and before the sinks wake the publish thread, whose pass (a status put per changed
@@ -160,6 +162,11 @@ class CycleProxy:
                                        else tuple(e for e, _, _ in events))
                 self.latest = snap
                 self.state = snap.agent_state
+                if self.bad_sink is not None:
+                    # Before the sinks: they wake the publish thread, which (at real-time priority)
+                    # took the GIL and the publish lock from here and held a fault's status up
+                    # behind its own pass by a few hundred microseconds (bench_reflex's hops).
+                    self.bad_sink(snap)
             if events and self.event_sink is not None:
                 self.event_sink(events)
             if snap_t is not None and self.snapshot_sink is not None and self.latest is not None:
@@ -223,6 +230,12 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     ending: list[str] = []
     gws: list[Any] = []   # the gateway, once declared
 
+    def publish_bad(snap: rt.CycleSnapshot) -> None:
+        for gw in gws:
+            gw.publish_bad_now(snap)
+
+    proxy.bad_sink = publish_bad
+
     def reader() -> None:
         name_thread("bridge-reader")
         set_thread_fifo(settings.get("rt_priority", 0), f"bridge-reader of {host}")
@@ -244,10 +257,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
                     gw.agent_state_override = "stopping"
                 continue
             try:
-                proxy.dispatch(msg)
-                if msg[0] is Msg.UPDATE and msg[1] is not None and proxy.latest is not None:
-                    for gw in gws:
-                        gw.publish_bad_now(proxy.latest)  # a fault or loss out first, from here
+                proxy.dispatch(msg)  # a fault or loss goes out first, from here (bad_sink)
             except Exception:
                 log.exception("gateway %s: bridge message %s failed", host, msg[0].name)
         done.set()

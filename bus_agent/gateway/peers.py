@@ -14,6 +14,7 @@ import time
 
 import zenoh
 
+from bus_agent import hops
 from bus_agent import runtime as rt
 from bus_agent.gateway.base import AGENT_SUPERVISOR, BAD_STATES, LEASE_REACTION_OPS, GatewayBase, RemoteMember
 from bus_agent.gateway.leases import EndedLease, LeaseDecision, LeaseResult
@@ -132,6 +133,7 @@ class PeersMixin(GatewayBase):
         """A remote group member's status, on zenoh's callback thread: a member turning bad
         triggers the group at once (``trigger_group`` is thread-safe and only queues), rather
         than after whatever the command thread is doing (replies, validation, lease timers)."""
+        hops.stamp("gw.remote")
         try:
             st = m.decode(sample.payload.to_bytes(), m.DriveStatus)
         except m.SchemaError as exc:
@@ -162,6 +164,7 @@ class PeersMixin(GatewayBase):
     def _remote_member(self, r: RemoteMember, bad: bool, reason: str) -> None:
         """Trigger ``r``'s group once per change to bad. Hold ``_remotes_lock``."""
         if bad and not r.bad:
+            hops.stamp("gw.trigger")
             self.cycle.trigger_group(r.group, reason)
             log.warning("agent %s: group %s member %s/%s: %s -> trigger", self.host, r.group, r.host, r.axis, reason)
         r.bad = bad

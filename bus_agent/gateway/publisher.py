@@ -130,6 +130,7 @@ class PublisherMixin(GatewayBase):
             holders = self._lease_holders
             for d in bad:
                 self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, False)
+            hops.stamp("pub.bad")
         finally:
             self._pub_lock.release()
 

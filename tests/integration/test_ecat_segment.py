@@ -330,3 +330,25 @@ def test_fault_injection_over_zenoh(ecat_segment):
             sim_inject(session, segment, 1, "fault", error_code="bad", timeout_s=2.0)
     finally:
         session.close()
+
+
+def test_drives_without_sync0_run_on_the_sm2_event(ecat_segment):
+    """Without SYNC0 a simulated drive is SM-synchronous (0x1C32:01 = 1): the frame that writes
+    its outputs starts its application cycle, so the master's next frame, however soon, reads
+    the answer to a new controlword. The free-run timer is set to 50 ms here: a drive stepped by
+    the timer would answer within the 6 ms allowed below about one time in eight."""
+    ifname, _control = ecat_segment(2, "generic", "--step-us", "50000")
+    with _opened(ifname, 2) as m:
+        assert [struct.unpack("<H", s.sdo_read(0x1C32, 1))[0] for s in m.slaves] == [1, 1]
+        _to_op(m)
+        for cw, pattern in ((0x0006, 0x0021), (0x0007, 0x0023), (0x000F, 0x0027), (0x0006, 0x0021)):
+            _set_controlword(m, cw)
+            sent = time.monotonic()
+            _cycle(m)  # the SM2 event
+            seen = None
+            while seen is None and time.monotonic() - sent < 0.006:
+                time.sleep(0.002)
+                _cycle(m)
+                if all(sw & 0x006F == pattern for sw in _statuswords(m)):
+                    seen = time.monotonic() - sent
+            assert seen is not None, f"controlword 0x{cw:04X}: statusword {_statuswords(m)} not 0x{pattern:04X} in 6 ms"

@@ -387,3 +387,25 @@ def test_triggers_as_datagrams_wake_the_cycle_thread_itself() -> None:
         cyc.stop()
         theirs.close()
     assert ours.fileno() == -1  # closed with the bus
+
+
+def test_a_trigger_taken_by_the_cycle_goes_out_right_after_it() -> None:
+    """A trigger that came during the spin or the cycle's work is taken by the cycle; its reflex
+    goes out in an express exchange right after that cycle, not with the next scheduled frame:
+    the drive has the quick stop before the next deadline. Without express it waits for it."""
+    for express in (True, False):
+        cyc, bus, clock, snaps, exchanges = _enabled_cycle(express)
+        clock.ns += PERIOD_NS
+        cyc.trigger_group("arm", "h2/axis0 fault 0x7305")  # queued before the cycle ran (the spin)
+        cyc.tick()
+        assert cyc.express_exchanges == int(express) and len(exchanges) == 1 + int(express)
+        assert any(e.kind == "reflex" for e in snaps[-1].events)
+        # the drive model already holds the quick stop (0x6040 bits 0x0087 == 0x0002) only with express
+        has_it = int(bus.model(0).read(0x6040, 0)) & 0x0087 == 0x0002
+        assert has_it == express
+        clock.ns += PERIOD_NS
+        cyc.tick()
+        assert cyc.express_exchanges == int(express)  # one extra frame, once
+        if express:
+            assert snaps[-1].drives[0].state == State.QUICK_STOP_ACTIVE.value
+        assert snaps[-1].drives[1].state == "operation_enabled"  # not a member

@@ -270,8 +270,8 @@ class SdoServer:
 
     def _sync_parameter(self, index: int, sub: int) -> bytes:
         """0x1C32/0x1C33 (SM output/input sync parameter, ETG.1020): sub 1 sync mode (0 free run,
-        2 DC SYNC0), sub 2 cycle time (ns)."""
-        mode, cycle_ns = self.sync_info() if self.sync_info is not None else (0, 0)
+        1 SM event, 2 DC SYNC0), sub 2 cycle time (ns)."""
+        mode, cycle_ns = self.sync_info() if self.sync_info is not None else (1, 0)
         if sub == 0:
             return bytes([2])
         if sub == 1:

@@ -116,8 +116,9 @@ class DcClock:
         return (now - s[0]) // s[1] + 1 if now >= s[0] else 0
 
     def sync_mode(self) -> int:
-        """0x1C32:01 / 0x1C33:01: 0 free run, 1 SM event, 2 DC SYNC0."""
-        return SYNC_MODE_SYNC0 if self.sync0 is not None else SYNC_MODE_FREE_RUN
+        """0x1C32:01 / 0x1C33:01: 0 free run, 1 SM event, 2 DC SYNC0. Without SYNC0 the
+        simulated drives run on the SM2 event (the segment starts their round on it)."""
+        return SYNC_MODE_SYNC0 if self.sync0 is not None else SYNC_MODE_SM
 
     def status(self) -> dict:
         return {"sync0": self.sync0_running(), "sync0_cycle_ns": self.sync0[1] if self.sync0 else 0,

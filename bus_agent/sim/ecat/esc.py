@@ -17,7 +17,7 @@ from bus_agent.bus.base import AL_ERROR_FLAG, ALState
 from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
-from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_SYS_TIME, DcClock
+from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_MODE_SM, DcClock
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
 from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START,
                                     PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii)
@@ -266,6 +266,8 @@ class Esc:
                 self.mem[a:b] = self.ro[a:b]
         if dc_before is not None and self.dc is not None:
             self.dc.written(ado, reg_end, dc_before)
+            if ado <= REG_ACTIVATION < reg_end:
+                self.on_change("sync")  # SYNC0 on or off: SM-synchronous or not (the segment's plans)
         if ado < 0x0012 and reg_end > 0x0010:
             self.on_change("address")
         if ado <= Reg.AL_CONTROL < reg_end:
@@ -451,7 +453,7 @@ class Esc:
     def _sync_info(self) -> tuple[int, int]:
         """(0x1C32:01 sync mode, SYNC0 cycle ns)."""
         if self.dc is None:
-            return 0, 0
+            return SYNC_MODE_SM, 0
         return self.dc.sync_mode(), self.dc.sync0[1] if self.dc.sync0 else 0
 
     def _needs_sync0(self) -> bool:

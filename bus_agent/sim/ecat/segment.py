@@ -56,6 +56,11 @@ _RWS = {Cmd.APRW, Cmd.FPRW, Cmd.BRW}
 _AUTO_INC = {Cmd.APRD, Cmd.APWR, Cmd.APRW, Cmd.ARMW, Cmd.BRD, Cmd.BWR, Cmd.BRW}
 
 
+#: After a round started by an SM2 event, the free-run timer's next round comes this many periods
+#: later (it runs only when no outputs arrive, or when the master cycles slower than the models).
+SM_FALLBACK_PERIODS = 1.5
+
+
 class Segment:
     """``n`` ESCs with drive models, position 0 nearest to the master."""
 
@@ -71,6 +76,10 @@ class Segment:
         self.frames = 0
         self._cursor = 0
         self._round_due = 0.0
+        #: Outputs arrived for a slave in SM-synchronous mode (0x1C32:01 = 1): its application runs
+        #: on that SM2 event, so the next round starts as soon as the frame is answered.
+        self._sm_event = False
+        self._round_sm = False
         start = time.monotonic()
         for esc in self.escs:
             esc.last_step = start
@@ -144,7 +153,7 @@ class Segment:
                 if plan is None:
                     plan = self._plan(cmd, adp | (ado << 16), length, buf, data_off)
                     self._plans[key] = plan
-                writes, reads, wkc, written = plan
+                writes, reads, wkc, written, sm_event = plan
                 for dst, src in writes:
                     dst[:] = src
                 for dst, src in reads:
@@ -152,6 +161,8 @@ class Segment:
                 for esc in written:
                     esc.out_time = now
                     esc.out_count += 1
+                if sm_event:
+                    self._sm_event = True
             else:
                 wkc = self._register_datagram(cmd, adp, ado, buf, data_off, length)
                 if cmd in _AUTO_INC:
@@ -196,7 +207,10 @@ class Segment:
                 written.append(esc)
             if not esc.wkc_fault:
                 wkc += int(did_read) + ((2 if cmd == Cmd.LRW else 1) if did_write else 0)
-        return tuple(writes), tuple(reads), wkc, tuple(written)
+        # Without SYNC0 a slave is SM-synchronous: an output write is its SM2 event. A slave on
+        # SYNC0 takes its outputs on its own clock (the round's grid).
+        sm_event = any(esc.dc is None or esc.dc.sync0 is None for esc in written)
+        return tuple(writes), tuple(reads), wkc, tuple(written), sm_event
 
     def _register_datagram(self, cmd: int, adp: int, ado: int, buf: memoryview, off: int, length: int) -> int:
         data = buf[off: off + length]
@@ -267,12 +281,24 @@ class Segment:
 
     def step_some(self, now: float, period: float, budget: int) -> bool:
         """Step at most ``budget`` drives of the current round (outputs in OP, model by its
-        own elapsed time, EMCY, inputs). A round starts every ``period``. Returns True while
-        the round is unfinished, so the frame loop polls instead of sleeping: frames never
-        wait behind more than ``budget`` model steps."""
+        own elapsed time, EMCY, inputs). Returns True while the round is unfinished, so the
+        frame loop polls instead of sleeping: frames never wait behind more than ``budget``
+        model steps.
+
+        A round starts on an SM2 event (a frame wrote the outputs of an SM-synchronous slave:
+        drives without SYNC0 run their application on it, as real ones in that mode do, so a new
+        controlword is obeyed right after the frame that carried it), or else every ``period``
+        on a grid (free run: SAFE-OP, no frames, slaves on SYNC0). After an SM2 round the timer
+        waits :data:`SM_FALLBACK_PERIODS` periods, so that a master cycling at ``period``
+        drives the rounds alone and no round is run twice for one frame."""
         if self._cursor == 0:
-            if now < self._round_due:
+            if self._sm_event:
+                self._sm_event = False
+                self._round_sm = True
+            elif now < self._round_due:
                 return False
+            else:
+                self._round_sm = False
         end = min(self._cursor + budget, len(self.escs))
         for esc in self.escs[self._cursor:end]:
             dt = now - esc.last_step
@@ -280,6 +306,9 @@ class Segment:
             self._step_one(esc, dt if dt < 0.1 else 0.1)
         if end >= len(self.escs):
             self._cursor = 0
+            if self._round_sm:
+                self._round_due = now + SM_FALLBACK_PERIODS * period
+                return False
             # On a grid: one period after this round was *due*. Due one period after it started,
             # the next round fell a few us after the next frame, which wakes the loop, and then
             # waited for the frame after: the models stepped after about 60 % of 1 ms frames
