@@ -10,7 +10,9 @@ agent with its own Zenoh session, all through one router process):
 - ``enable``: two-phase enable of every drive (``**``: one fan-out query per phase), and
   ``disable`` of every drive; per step the supervisor's wall time, the slowest drive's own time
   (``CommandReply.elapsed_s``: receipt to goal, i.e. the drive's transition cycles), and the
-  difference: the supervisor's and the network's share (``overhead_s``);
+  difference: the supervisor's and the network's share (``overhead_s``); per enable the CPU
+  time of each party (``cpu_ms``, and per thread name of the gateways and the supervisor) and
+  the drive statuses the supervisor's ``Fleet`` took in while the enable ran (``statuses``);
 - ``get_rtt_bare``: a bare zenoh get round trip in the same run (p50/p99) to a queryable in its
   own idle process, for scale; ``get_rtt_drive_status``: the same to one agent's status
   queryable (an agent process busy with its cycles);
@@ -247,15 +249,21 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
             rounds = []
             groups = {"router": [router.pid], "agents": [p.pid for p in procs if p.name.startswith("agents")]}
             groups["gateways"] = [c for pid in groups["agents"] for c in child_pids(pid)]
+            threads_of = {"gateways": groups["gateways"], "supervisor": [os.getpid()]}
             for _ in range(args.rounds):
                 cpu = {g: cpu_s(pids) for g, pids in groups.items()}
+                by_thread = {g: threads_ns(pids) for g, pids in threads_of.items()}
                 cpu["supervisor"] = time.process_time()
+                n_status = fleet.status_count
                 en = fleet.enable("**", timeout_s=10)
                 cpu["supervisor"] = time.process_time() - cpu["supervisor"]
+                n_status = fleet.status_count - n_status
                 for g, pids in groups.items():
                     cpu[g] = cpu_s(pids) - cpu[g]
+                by_thread = {g: _ms_delta(threads_ns(threads_of[g]), before) for g, before in by_thread.items()}
                 dis = fleet.command("disable", "**", timeout_s=10)
-                rounds.append({"enable": {**report_figures(en), "cpu_ms": {g: round(1e3 * v, 2) for g, v in cpu.items()}},
+                rounds.append({"enable": {**report_figures(en), "cpu_ms": {g: round(1e3 * v, 2) for g, v in cpu.items()},
+                                          "cpu_ms_by_thread": by_thread, "statuses": n_status},
                                "disable": step_figures(dis)})
                 if not (en.ok and dis.ok):
                     print(f"  round failed: {en.reason} {dis.failures[:3]}", file=sys.stderr)
@@ -268,6 +276,11 @@ def run_size(n_agents: int, n_drives: int, args: argparse.Namespace, fanin: bool
                 # (a loaded machine), so it shows what a change costs or saves
                 out["enable_cpu_ms_median"] = {g: round(statistics.median(r["enable"]["cpu_ms"][g] for r in ok_rounds), 2)
                                                for g in ok_rounds[0]["enable"]["cpu_ms"]}
+                out["enable_statuses_median"] = statistics.median(r["enable"]["statuses"] for r in ok_rounds)
+                out["enable_cpu_ms_by_thread_median"] = {
+                    g: {t: round(statistics.median(r["enable"]["cpu_ms_by_thread"][g].get(t, 0.0) for r in ok_rounds), 2)
+                        for t in ok_rounds[0]["enable"]["cpu_ms_by_thread"][g]}
+                    for g in ok_rounds[0]["enable"]["cpu_ms_by_thread"]}
                 out["disable_wall_s_median"] = statistics.median(r["disable"]["wall_s"] for r in ok_rounds)
                 out["disable_overhead_s_median"] = statistics.median(r["disable"]["overhead_s"] for r in ok_rounds)
             if fanin:
@@ -295,6 +308,21 @@ def cpu_split(pin: bool) -> tuple[set[int], set[int]] | None:
 def cpu_s(pids: list[int]) -> float:
     """CPU time of the processes' live threads (schedstat: ns, not the 10 ms ticks of /stat)."""
     return sum(sum(thread_cpu_ns(pid).values()) for pid in pids) / 1e9
+
+
+def threads_ns(pids: list[int]) -> dict[str, int]:
+    """CPU time (ns) per thread name over the processes ``pids`` (see ``thread_cpu_ns``)."""
+    out: dict[str, int] = {}
+    for pid in pids:
+        for name, ns in thread_cpu_ns(pid).items():
+            out[name] = out.get(name, 0) + ns
+    return out
+
+
+def _ms_delta(after: dict[str, int], before: dict[str, int]) -> dict[str, float]:
+    """Per thread name, the CPU ms between two ``threads_ns`` readings (threads over 0.05 ms)."""
+    delta = {t: (ns - before.get(t, 0)) / 1e6 for t, ns in after.items()}
+    return {t: round(v, 2) for t, v in sorted(delta.items(), key=lambda kv: -kv[1]) if v >= 0.05}
 
 
 def child_pids(pid: int) -> list[int]:

@@ -32,6 +32,8 @@ def supervisor_figures(r: Mapping[str, Any]) -> dict[str, Any]:
                "disable_wall_s_median": s.get("disable_wall_s_median"),
                "disable_overhead_s_median": s.get("disable_overhead_s_median"),
                "enable_cpu_ms_median": s.get("enable_cpu_ms_median"),
+               "enable_cpu_ms_by_thread_median": s.get("enable_cpu_ms_by_thread_median"),
+               "enable_statuses_median": s.get("enable_statuses_median"),
                "load_avg_1min_at_start": s.get("load_avg_1min_at_start"),
                "get_rtt_bare_ms": {k: bare.get(k) for k in ("p50_ms", "p99_ms")},
                "enable_overhead_over_bare_get_p50": _ratio((s.get("enable_overhead_s_median") or 0) * 1e3 or None,
@@ -175,7 +177,9 @@ def replies_headline(r: Mapping[str, Any]) -> str:
     for n, f in (r.get("drives") or {}).items():
         parts.append(f"{n} drives: gateway {f['gateway_us']} us ({f['gateway_over_bare']}x bare msgpack), collector "
                      f"{f['collector_us']} us ({f['collector_over_bare']}x), publish pass {f['publish_pass_us']} us "
-                     f"({f['publish_pass_over_bare']}x)")
+                     f"({f['publish_pass_over_bare']}x)"
+                     + (f", status decode {f['status_decode_us']} us ({f['status_decode_over_bare']}x)"
+                        if "status_decode_us" in f else ""))
     return "CPU per command: " + "; ".join(parts)
 
 

@@ -133,7 +133,7 @@ AL_STATE = Meta(str, {"choices": AL_STATES})
 
 @dataclass(frozen=True)
 class DriveStatus:
-    """Published on ``drives/@v1/<host>/drive/<axis>/status`` on change and as a heartbeat."""
+    """Published on ``drives/@v1/<host>/drive/<axis>/status`` on change and as a heartbeat. A change of what the agent asked alone (``controlword``, ``goal``, ``halt``, ``mode``) waits for the drive's answer (the next statusword change) to go out with it, at most 3 agent cycles; ``seq`` counts publications."""
 
     TYPE: ClassVar[str] = "drive_status"
     STRICT: ClassVar[bool] = False  # published/replied state: readers ignore fields they do not know

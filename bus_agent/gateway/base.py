@@ -35,6 +35,14 @@ LEASE_REACTION_OPS: dict[str, tuple[str, ...]] = {
 CHANGE_FIELDS = ("state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                  "error_code", "error_text", "al_state", "lost", "axis_state", "homed", "motion_request_id")
 MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following_error", "objects")
+#: What the agent asks of a drive (0x6040, the goal, the halt bit, 0x6060): a change of these
+#: alone is answered by the drive within a cycle or two (0x6041, 0x6061), and the status waits
+#: for that answer to go out with it, at most :data:`HOLD_CYCLES` cycles (docs/agent-gateway.md).
+ASKED_FIELDS = ("controlword", "goal", "halt", "mode")
+#: Positions of ASKED_FIELDS in the change tuple the publisher compares (CHANGE_FIELDS + holder).
+ASKED_INDEX = frozenset(CHANGE_FIELDS.index(f) for f in ASKED_FIELDS)
+#: The longest a change of ASKED_FIELDS alone waits for the drive's answer, in agent cycles.
+HOLD_CYCLES = 3
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
@@ -137,6 +145,9 @@ class GatewayBase:
         self._last_fields: dict[str, tuple] = {}
         self._last_motion: dict[str, tuple] = {}
         self._last_motion_pub_s: dict[str, float] = {}
+        self._status_keys: dict[str, str] = {}  # axis -> its status key, built once
+        self._held_until: dict[str, float] = {}  # axis -> when its held change goes out at the latest
+        self._hold_s = HOLD_CYCLES * settings.cycle_us / 1e6
         self._published: dict[str, m.DriveStatus] = {}
         self._next_heartbeat_s = 0.0
         self._next_agent_s = 0.0

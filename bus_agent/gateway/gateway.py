@@ -223,11 +223,18 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
             qke = query.key_expr
             holders = self._lease_holders
             for d in snap.drives:
-                key = keys.drive_status(self.host, d.axis)
+                key = self._status_key(d.axis)
                 if key_expr(key).intersects(qke):
                     seq = self._status_seq.get(d.axis, 0)
                     query.reply(key, self._status_encoded(snap, d, holders.get(d.axis, ""), seq)[1],
                                 encoding=MSGPACK)
+
+    def _status_key(self, axis: str) -> str:
+        """The status key of ``axis`` (built and checked once: every status get asks for all)."""
+        key = self._status_keys.get(axis)
+        if key is None:
+            key = self._status_keys[axis] = keys.drive_status(self.host, axis)
+        return key
 
     def _on_agent_query(self, query: zenoh.Query) -> None:
         with query:

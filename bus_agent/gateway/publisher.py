@@ -10,17 +10,28 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import operator
 import os
 import time
 
 from bus_agent import hops
 from bus_agent import runtime as rt
 from bus_agent.cycle.realtime import name_thread, set_thread_fifo
-from bus_agent.gateway.base import BAD_STATES, CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
+from bus_agent.gateway.base import ASKED_INDEX, BAD_STATES, CHANGE_FIELDS, COMMANDS_FIRST_MAX_S, MOTION_FIELDS, GatewayBase
 from schemas import messages as m
 from schemas.error_codes import describe
 
 log = logging.getLogger("bus_agent.gateway.gateway")
+
+
+# The fields compared per drive in every pass (all drives, every snapshot): one C call each.
+_change_fields = operator.attrgetter(*CHANGE_FIELDS)
+_motion_fields = operator.attrgetter(*MOTION_FIELDS)
+
+
+def _only_asked(last: tuple, fields: tuple) -> bool:
+    """True when every field that differs between two change tuples is one of ASKED_FIELDS."""
+    return all(i in ASKED_INDEX for i, (a, b) in enumerate(zip(last, fields)) if a != b)
 
 
 class PublisherMixin(GatewayBase):
@@ -31,7 +42,8 @@ class PublisherMixin(GatewayBase):
         self._publish_fifo = set_thread_fifo(self.s.rt_priority, f"gw-publish of {self.host}")
         while not self._stop.is_set():
             now = time.monotonic()
-            wait = max(0.0, min(self._next_heartbeat_s, self._next_agent_s) - now)
+            held = self._held_until
+            wait = max(0.0, min(self._next_heartbeat_s, self._next_agent_s, *held.values()) - now)
             self._wake.wait(wait)
             self._wake.clear()
             if self._stop.is_set():
@@ -128,13 +140,22 @@ class PublisherMixin(GatewayBase):
         pub = self._status_pubs.get(axis)
         if pub is None:
             return
-        fields = tuple(getattr(d, f) for f in CHANGE_FIELDS) + (holder,)
-        motion = tuple(getattr(d, f) for f in MOTION_FIELDS)
-        changed = fields != self._last_fields.get(axis)
+        fields = _change_fields(d) + (holder,)
+        motion = _motion_fields(d)
+        last = self._last_fields.get(axis)
+        changed = fields != last
         moved = (motion != self._last_motion.get(axis)
                  and now - self._last_motion_pub_s.get(axis, 0.0) >= self.s.motion_period_s)
         if not (changed or moved or heartbeat):
+            self._held_until.pop(axis, None)  # a held change undone meanwhile: nothing to publish
             return
+        if changed and not (moved or heartbeat) and last is not None and _only_asked(last, fields):
+            # What the agent asked changed, the drive has not answered yet: the status waits for
+            # the answer (the next statusword) to carry both, bounded; the publish loop wakes then.
+            until = self._held_until.setdefault(axis, now + self._hold_s)
+            if now < until:
+                return
+        self._held_until.pop(axis, None)
         self._status_seq[axis] = self._status_seq.get(axis, 0) + 1
         try:
             msg, payload = self._status_encoded(snap, d, holder, self._status_seq[axis])

@@ -340,3 +340,41 @@ def test_remote_group_member_fault_triggers(net):
         pub.undeclare()
     finally:
         gateway.close()
+
+
+def test_a_change_of_what_was_asked_alone_waits_for_the_drives_answer_bounded(net):
+    """Controlword and goal changed, statusword not yet: no status until the drive answers, then
+    one status carrying both; a change nobody answers goes out alone once the bound passed
+    (HOLD_CYCLES cycles; 1 s cycles here, so the hold is long enough to be seen under load)."""
+    agent_s, client = net
+    cycle = FakeCycle()
+    ticker = Ticker(cycle)
+    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0, cycle_us=1_000_000)
+    ticker.t.start()
+    got: list = []
+    sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
+    try:
+        wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
+                 what="first status published and the subscriber matched")
+        n = len(got)
+        cycle.set("x2", controlword=0x0006, goal="enabled")
+        wait_for(lambda: "x2" in gateway._held_until, what="the asked change held")
+        assert got[n:] == []
+        cycle.set("x2", state="ready_to_switch_on", statusword=0x0231)
+        wait_for(lambda: len(got) > n, what="the answer's status")
+        assert [(s.state, s.statusword, s.controlword, s.goal) for s in got[n:]] == [
+            ("ready_to_switch_on", 0x0231, 0x0006, "enabled")]
+        n = len(got)
+        cycle.set("x2", controlword=0x0007)                       # the drive never answers this one
+        wait_for(lambda: len(got) > n, timeout_s=20.0, what="the held change, out after the bound")
+        assert [(s.state, s.controlword) for s in got[n:]] == [("ready_to_switch_on", 0x0007)]
+        assert "x2" not in gateway._held_until
+        cycle.set("x2", state="fault", error_code=0x2310)         # a drive's own change: never held
+        wait_for(lambda: any(s.state == "fault" for s in got), what="the fault at once")
+        seqs = [s.seq for s in got]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # no gap: nothing was dropped
+    finally:
+        sub.undeclare()
+        ticker.stop.set()
+        ticker.t.join()
+        gateway.close()
