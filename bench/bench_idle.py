@@ -123,6 +123,7 @@ def phase_spin(args) -> dict:
     n = int(args.seconds * 1000)
     cyc = Cycle(SimBus(args.drives), cfg, record_periods=n + 2000, rt_priority=args.rt_priority)
     cyc.spin_ns = {"spin_fixed": SPIN_NS, "spin_auto": None, "spin_none": 0}[args.phase]
+    cyc.spin_at_rest = True  # the spin itself: its drives are off (the demo spins only while one is on)
     cyc.start()
     try:
         time.sleep(1.0)  # warm-up: the adaptive spin has measured its first sleeps

@@ -96,6 +96,7 @@ class Agent:
             self.bus = self.bus or make_bus(cfg)
             self.cycle = Cycle(self.bus, cfg, rt_priority=cfg.rt_priority)
             self.cycle.express_reflex = cfg.express_reflex
+            self.cycle.spin_at_rest = cfg.spin_at_rest
             self.cycle.open()
         except (BusError, ConfigError, ValueError, OSError) as exc:
             self._abort()

@@ -154,6 +154,7 @@ class AgentConfig:
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
     express_reflex: bool = True         # [cycle] express_reflex: a remote trigger wakes the cycle (Cycle._express)
+    spin_at_rest: bool = False          # [cycle] spin_at_rest: spin before deadlines with every drive off too
     dc: DcConfig = DcConfig()           # [dc]: distributed clocks (SYNC0, the cycle kept in step)
     recorder: RecorderConfig = RecorderConfig()
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
@@ -434,6 +435,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     cy = t.table("cycle")
     rt_priority = cy.get("rt_priority", int, 0)
     express_reflex = cy.get("express_reflex", bool, True)
+    spin_at_rest = cy.get("spin_at_rest", bool, False)
     cy.done()
     dct = t.table("dc")
     dc = DcConfig(mode=dct.get("mode", str, "auto"), sync0_cycle_ns=dct.get("sync0_cycle_ns", int, 0),
@@ -495,6 +497,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         gateway=t.get("gateway", str, "process"),
         rt_priority=rt_priority,
         express_reflex=express_reflex,
+        spin_at_rest=spin_at_rest,
         dc=dc,
         recorder=recorder,
         can=can_from_table(t.table("can")) if "can" in t.data else None,

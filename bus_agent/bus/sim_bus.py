@@ -83,6 +83,8 @@ class _Slave:
     since_outputs_s: float = 0.0
     outputs: DriveOutputs = field(default_factory=DriveOutputs)
     inputs: DriveInputs = field(default_factory=DriveInputs)
+    inputs_al: ALState | None = None  # the AL state in which ``inputs`` were last taken (None: not since)
+    outputs_set: bool = False     # set_outputs since the outputs were last applied
 
 
 def _resolve_profiles(profile: str | DriveProfile | Sequence[str | DriveProfile], n: int) -> list[DriveProfile]:
@@ -104,6 +106,8 @@ class SimBus:
 
     backend = "sim"
     express_exchange = True
+    #: Skip the step of a steady drive model (see exchange); False: step every model (tests compare).
+    skip_steady = True
 
     def __init__(self, n_drives: int, profile: str | DriveProfile | Sequence[str | DriveProfile] = "generic",
                  segment_name: str = "sim", clock: Callable[[], float] = time.monotonic,
@@ -230,28 +234,43 @@ class SimBus:
             self._last_t = now
             self._changed = []
             wkc = 0
+            skip_steady = self.skip_steady
             for pos, sl in enumerate(self._slaves):
                 if not sl.plugged:
                     continue  # no power, no time: the model is power-cycled when plugged back
-                sl.model.step(dt)
+                model = sl.model
+                # A steady model (DriveModel.steady: the step would change nothing) whose inputs
+                # were taken in this AL state: no step, no new inputs (the outputs still go in:
+                # a change there is seen by the next exchange's steady()). The idle demo's cost.
+                rest = skip_steady and sl.inputs_al is sl.al_state and model.steady()
+                if not rest:
+                    model.step(dt)
                 if sl.al_state is ALState.OP and sl.watchdog_armed:
                     sl.since_outputs_s += dt
                     if self._sm_watchdog_s is not None and sl.since_outputs_s > self._sm_watchdog_s:
                         self._al_error(pos, sl, ALState.SAFEOP, AL_SM_WATCHDOG)
                 if sl.wkc_fault:
+                    sl.inputs_al = None
                     continue  # datagram lost for this slave: nothing read, nothing written
                 if sl.al_state is ALState.OP:
-                    sl.model.apply_outputs(sl.outputs)
+                    if not rest or sl.outputs_set:  # steady: the last apply changed nothing, nor would this
+                        model.apply_outputs(sl.outputs)
+                        sl.outputs_set = False
                     sl.watchdog_armed = True
                     sl.since_outputs_s = 0.0
                     wkc += WKC_PER_SLAVE_OP
-                    self._take_inputs(pos, sl)
+                    if not rest:
+                        self._take_inputs(pos, sl)
                 elif sl.al_state is ALState.SAFEOP:
                     wkc += WKC_PER_SLAVE_SAFEOP
-                    self._take_inputs(pos, sl)
+                    if not rest:
+                        self._take_inputs(pos, sl)
+                else:
+                    sl.inputs_al = None
             return wkc
 
     def _take_inputs(self, pos: int, sl: _Slave) -> None:
+        sl.inputs_al = sl.al_state
         new = sl.model.inputs()
         if new != sl.inputs:  # equal inputs keep their record (and the cycle its work for it)
             sl.inputs = new
@@ -267,8 +286,11 @@ class SimBus:
         return self._slave(position).inputs
 
     def set_outputs(self, position: int, outputs: DriveOutputs) -> None:
-        """RxPDO for the next exchange. Cycle-safe."""
-        self._slave(position).outputs = outputs
+        """RxPDO for the next exchange (change a record only through this call: a steady drive's
+        unchanged outputs are not applied again). Cycle-safe."""
+        sl = self._slave(position)
+        sl.outputs = outputs
+        sl.outputs_set = True
 
     def read_al_status(self) -> list[SlaveALStatus]:
         """AL status (0x0130/0x0134) of every slave; an unplugged slave reads as NONE."""

@@ -82,6 +82,8 @@ class CycleBase:
         #: Apply a remote group trigger at once in an express exchange (see ``Cycle._express``)
         #: rather than at the next deadline; False: the next cycle applies it, as before.
         self.express_reflex = True
+        #: The sleep before this cycle found the trigger socket empty when it timed out.
+        self._socket_watched = False
         #: eventfd the cycle thread's sleep waits on; ``trigger_group`` writes it (-1: plain sleep,
         #: e.g. with an injected clock, or before ``start``).
         self._wake_fd = -1
@@ -142,6 +144,12 @@ class CycleBase:
         #: spins the fixed SPIN_NS (jitter first), a normal one adapts (CPU first: the demo, a
         #: laptop); bench/bench_idle.py compares them (docs/agent-cycle.md, Timing).
         self.spin_ns: int | None = SPIN_NS if rt_priority else None
+        #: False: the spin is made only while a period's jitter can matter (some drive in
+        #: :data:`~bus_agent.cycle.drive.ARMED_STATES`, asked to go up, or moving; SYNC0 running);
+        #: with every drive off the loop only sleeps (``[cycle] spin_at_rest``).
+        self.spin_at_rest = False
+        #: Indices of the drives that make the spin matter (maintained for the drives stepped).
+        self._armed: set[int] = set()
         self._spin_auto_ns = SPIN_NS       # until the first sleeps are measured
         self._oversleep = array("q", bytes(8 * STATS_WINDOW))
         #: Optional full record of periods (ns) for benchmarks: ``record_periods`` slots.

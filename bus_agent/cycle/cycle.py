@@ -37,7 +37,7 @@ from bus_agent.cia402.controller import Goal
 from bus_agent.cia402.states import decode_statusword
 from bus_agent.cycle.base import INBOX_MAX, SPIN_MIN_NS, SPIN_NS, STATS_EVERY, STATS_WINDOW
 from bus_agent.cycle.commands import CommandsMixin
-from bus_agent.cycle.drive import DOWN_STATES, FAULT_STATES, UPWARD_GOALS, Drive
+from bus_agent.cycle.drive import ARMED_STATES, DOWN_STATES, FAULT_STATES, UPWARD_GOALS, Drive
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
 from bus_agent.cycle.motion import MotionMixin
 from bus_agent.cycle.nmt import NmtMixin
@@ -385,7 +385,10 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
         self._lost_origins = []
 
         applied = self._apply_inbox(now_ns) if self.state == "running" else False
-        self._take_trigger_datagrams()
+        if self._socket_watched:
+            self._socket_watched = False  # the sleep before this cycle found the socket empty
+        else:
+            self._take_trigger_datagrams()  # no sleep (late, tick()): look (a failed recv, ~2 us)
         reacting: dict[str, int] = {}  # the remote triggers' reacting drives: their controlwords now
         while self._triggers:
             applied = True
@@ -405,7 +408,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
             self._all_op_wanted = None  # an NMT command may change the wanted AL states
 
         self.drives_stepped += len(work)
-        busy = self._busy
+        busy, armed = self._busy, self._armed
         for d in work:
             if d.lost:
                 # Outputs of a lost slave: disable voltage and hold; applied if it comes back.
@@ -417,6 +420,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                 d.controlword = 0
                 bus.set_outputs(d.slave, o)
                 busy.add(d.index)
+                armed.discard(d.index)
                 continue
             self._auto_reset(d, now_ns)
             out = d.ctrl.step(d.inputs.statusword, d.inputs.modes_of_operation_display, now_s)
@@ -424,6 +428,10 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
             d.state = d.ctrl.state if d.ctrl.state is not None else decode_statusword(d.inputs.statusword)
             targets = (d.target_position, d.target_velocity, d.target_torque)
             idle = d.motion.idle
+            if d.state in ARMED_STATES or not idle or d.ctrl.goal in UPWARD_GOALS:
+                armed.add(d.index)
+            else:
+                armed.discard(d.index)
             self._motion_step(d, out.hold_target, now_ns)
             o = d.out
             o.controlword = d.controlword = out.controlword | d.motion.controlword_bits

@@ -21,6 +21,10 @@ UPWARD_GOALS = (Goal.READY, Goal.SWITCHED_ON, Goal.ENABLED)
 FAULT_STATES = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 #: States in which a drive counts as down for the ordered shutdown.
 DOWN_STATES = (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT)
+#: Power stage on (CiA 402: high voltage applied from Switched on; torque in the rest): while a
+#: drive is in one of these, the period's jitter matters and the cycle spins before its deadlines.
+ARMED_STATES = frozenset((State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE,
+                          State.FAULT_REACTION_ACTIVE))
 VALID_MODES = frozenset(int(m) for m in Mode)
 MODE_UNWRITTEN = -129  # no i8: the first cycle writes 0x6060 by SDO
 CSX_MODES = (int(Mode.CYCLIC_SYNC_POSITION), int(Mode.CYCLIC_SYNC_VELOCITY), int(Mode.CYCLIC_SYNC_TORQUE))

@@ -46,7 +46,10 @@ class TimingMixin(CycleBase):
         """Sleep until the spin before ``deadline_ns``, then spin to it. True (at once, without
         spinning) when a remote trigger woke the sleep; a trigger during the spin waits for the
         cycle (at most the spin away)."""
-        spin = self.spin_ns if self.spin_ns is not None else self._spin_auto_ns
+        if self._armed or self.spin_at_rest or self._dc is not None:
+            spin = self.spin_ns if self.spin_ns is not None else self._spin_auto_ns
+        else:
+            spin = 0  # every drive off and no SYNC0: nothing the period's jitter could move
         wake = deadline_ns - spin
         remaining = wake - self.clock_ns()
         if remaining > 0:
@@ -70,6 +73,9 @@ class TimingMixin(CycleBase):
         sock = self._trigger_sock
         ready = select.select((fd,) if sock is None else (fd, sock), (), (), seconds)[0]
         if not ready:
+            # The socket was empty just now: the cycle need not look (a datagram arriving in the
+            # spin or the cycle wakes the next sleep at once, which applies it then).
+            self._socket_watched = True
             return False
         if fd in ready:
             try:

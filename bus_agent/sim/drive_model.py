@@ -79,6 +79,9 @@ log = logging.getLogger(__name__)
 
 
 _POWERED = frozenset({State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
+#: States in which a step with an unchanged controlword changes nothing: no torque (the rest path
+#: of ``_motion``), no automatic transition, no timer (see :meth:`DriveModel.steady`).
+_STEADY = frozenset({State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.FAULT})
 _POSITION_WINDOW = 10  # increments: target reached (statusword bit 10) in position modes
 _VELOCITY_WINDOW = 10  # increments/s: target reached in velocity modes
 
@@ -102,6 +105,11 @@ class DriveModel:
         self.serial = serial
         self.pdo_config_locked = False
         self._emcy: list[Emcy] = []
+        #: Counts every change from outside a step (object writes, outputs that differ, faults,
+        #: power cycles); :meth:`steady` compares it with its value at the last step.
+        self._mutations = 0
+        self._steady_mark = -1
+        self._steady_home: int | None = None
         self._reset_power_on()
 
     # ---------------------------------------------------------------- lifecycle
@@ -146,6 +154,7 @@ class DriveModel:
         """Power off and on: every value back to its default, state Not ready (transition 0)."""
         log.info("drive model serial=%d: power cycle", self.serial)
         self._emcy.clear()
+        self._mutations += 1
         self._reset_power_on()
 
     @property
@@ -203,6 +212,7 @@ class DriveModel:
                 raise SdoAbort(ABORT_VALUE_RANGE, f"mode {value} not in 0x6502=0x{self.profile.supported_modes:08X}")
             self._request_mode(value)
         self._values[(index, subindex)] = value
+        self._mutations += 1
 
     def _check_pdo_config_write(self, entry: ObjectEntry, value: int) -> None:
         if self.pdo_config_locked:
@@ -244,15 +254,17 @@ class DriveModel:
         """RxPDO: 0x6040, 0x607A, 0x60FF, 0x6071, 0x6060. A mode outside 0x6502 is ignored
         (0x6061 keeps the old value); the controlword is evaluated at the next step."""
         v = self._values
-        v[(0x6040, 0)] = outputs.controlword & 0xFFFF
-        v[(0x607A, 0)] = _clamp_int(outputs.target_position, "i32")
-        v[(0x60FF, 0)] = _clamp_int(outputs.target_velocity, "i32")
-        v[(0x6071, 0)] = _clamp_int(outputs.target_torque, "i16")
+        new = (outputs.controlword & 0xFFFF, _clamp_int(outputs.target_position, "i32"),
+               _clamp_int(outputs.target_velocity, "i32"), _clamp_int(outputs.target_torque, "i16"))
+        if new != (v[(0x6040, 0)], v[(0x607A, 0)], v[(0x60FF, 0)], v[(0x6071, 0)]):
+            v[(0x6040, 0)], v[(0x607A, 0)], v[(0x60FF, 0)], v[(0x6071, 0)] = new
+            self._mutations += 1
         mode = outputs.modes_of_operation
         if mode != v[(0x6060, 0)]:
             if self._mode_supported(mode):
                 v[(0x6060, 0)] = mode
                 self._request_mode(mode)
+                self._mutations += 1
             elif mode != 0:
                 log.debug("drive model serial=%d: PDO mode %d not supported, ignored", self.serial, mode)
 
@@ -300,6 +312,7 @@ class DriveModel:
         if not isinstance(error_code, int) or not 0 < error_code <= 0xFFFF:
             raise ValueError(f"error code must be 1..0xFFFF, got {error_code!r}")
         reg = error_register_for(error_code)
+        self._mutations += 1
         self._values[(0x603F, 0)] = error_code
         self._values[(0x1001, 0)] = reg
         self._emcy.append(Emcy(error_code, reg))
@@ -341,6 +354,7 @@ class DriveModel:
         reset_edge = reset_bit and not self._prev_fault_reset_bit
         self._prev_fault_reset_bit = reset_bit
         self._steps_in_state += 1
+        before = self._state
         self._transition(cw, reset_edge)
         if self._mode_pending is not None:
             if self._mode_delay <= 0:
@@ -350,6 +364,17 @@ class DriveModel:
                 self._mode_delay -= 1
         self._motion(cw, dt_s)
         self._update_statusword()
+        steady = before is self._state and self._state in _STEADY and self._mode_pending is None and self.rest_fast_path
+        self._steady_mark = self._mutations if steady else -1
+        self._steady_home = self.home_switch_position
+
+    def steady(self) -> bool:
+        """True when the next :meth:`step` would change nothing (the caller may skip it): the last
+        step ended in a state without torque, timer or automatic transition (``_STEADY``) that it
+        did not change, no mode change is pending, and nothing changed the drive since (no object
+        write, no different outputs, no fault, no power cycle, the same home switch). A step
+        there only counts ``_steps_in_state``, which those states do not read."""
+        return self._steady_mark == self._mutations and self._steady_home == self.home_switch_position
 
     def _transition(self, cw: int, reset_edge: bool) -> None:
         s = self._state

@@ -276,6 +276,7 @@ def test_the_spin_adapts_to_how_late_the_sleep_wakes():
         cyc._adapt_spin()
         return late
 
+    cyc.spin_at_rest = True                             # the spin itself (the drive is off here)
     assert cyc.spin_ns is None                          # adaptive by default
     assert cyc._spin_auto_ns == SPIN_NS                 # until sleeps were measured
     clock.over = 20_000
@@ -292,6 +293,52 @@ def test_the_spin_adapts_to_how_late_the_sleep_wakes():
     deadline = clock.ns + 1_000_000
     cyc._wait_until(deadline)
     assert 0 <= clock.ns - deadline < 5_000
+
+
+def test_the_loop_spins_only_while_a_drive_is_switched_on_asked_up_or_moving():
+    """Every drive off (and no SYNC0): the wait before a deadline only sleeps, so a late wake-up
+    shows; from an enable command on (goal up, then Switched on, Operation enabled) it spins
+    again, and after a disable it stops; ``spin_at_rest`` spins always."""
+    from bus_agent.bus.sim_bus import SimBus
+    from bus_agent.config import AgentConfig
+    from bus_agent.cycle.cycle import Cycle
+    from bus_agent.runtime import DriveCommand
+
+    clock = _TickingClock()
+    cyc = Cycle(SimBus(2, clock=lambda: clock.ns / 1e9), AgentConfig(host="h1", sim_drives=2), clock_ns=clock,
+                sleep=clock.sleep, manage_gc=False, switch_interval_s=None)
+    cyc.spin_ns = 150_000
+    cyc.open()
+    clock.over = 40_000  # every sleep wakes 40 us late
+
+    def late() -> int:
+        deadline = clock.ns + 1_000_000
+        cyc._wait_until(deadline)
+        return clock.ns - deadline
+
+    def run(cmd: str) -> list[bool]:
+        done: list = []
+        assert cyc.submit(DriveCommand(request_id=cmd, op=cmd, axes=("axis1",), on_outcome=done.append))
+        spun = []
+        for _ in range(300):
+            cyc.tick()
+            spun.append(late() < 5_000)
+            if done:
+                break
+        assert [o.outcome for o in done] == ["done"], done
+        return spun
+
+    for _ in range(5):
+        cyc.tick()
+    assert late() >= 40_000                              # both drives off: no spin
+    assert all(run("enable"))                            # from the command on: the spin
+    assert late() < 5_000 and cyc._armed == {1}          # axis1 in Operation enabled
+    run("disable")
+    cyc.tick()
+    assert late() >= 40_000 and not cyc._armed          # off again
+    cyc.spin_at_rest = True
+    assert late() < 5_000
+    cyc.stop(ordered=False)
 
 
 def test_the_cycle_thread_gets_its_name_and_timer_slack():

@@ -240,3 +240,65 @@ def test_close_is_idempotent_and_stops_drives() -> None:
     assert bus.model(0).state is State.FAULT_REACTION_ACTIVE
     with pytest.raises(BusError, match="INIT"):
         bus.sdo_read(0, 0x1000, 0, 4)
+
+
+def test_skipping_steady_models_changes_nothing_a_master_can_see() -> None:
+    """SimBus.skip_steady (a steady model is not stepped, its inputs not re-read; the idle demo's
+    cost): random outputs, modes, SDO writes, faults, resets, AL changes, unplug/plug, WKC faults
+    and home-switch moves through two buses, one skipping and one not: after every exchange the
+    same WKC, inputs, changed-inputs report, drive states and object values."""
+    import random
+
+    rng = random.Random(402)
+    (fast, cf), (full, cl) = started(3), started(3)
+    full.skip_steady = False
+    words = (0x0000, 0x0006, 0x0007, 0x000F, 0x0080, 0x0002, 0x010F, 0x000B)
+    skipped = 0
+    for step in range(8000):
+        r = rng.random()
+        pos = rng.randrange(3)
+        if r < 0.08:
+            out = DriveOutputs(controlword=rng.choice(words), target_position=rng.randint(-200, 200),
+                               target_velocity=rng.choice((0, 0, 300)), target_torque=0,
+                               modes_of_operation=rng.choice((8, 8, 9, 1, 0)))
+            for b in (fast, full):
+                b.set_outputs(pos, out)
+        elif r < 0.085:
+            for b in (fast, full):
+                b.inject_fault(pos, 0x7305)
+        elif r < 0.09:
+            data = struct.pack("<h", rng.choice((2, 6, 1)))
+            for b in (fast, full):
+                if b._slaves[pos].plugged:
+                    b.sdo_write(pos, 0x605A, 0, data)
+        elif r < 0.092:
+            state = rng.choice((ALState.SAFEOP, ALState.OP, ALState.PREOP))
+            for b in (fast, full):
+                b.request_al_state(pos, state)
+        elif r < 0.0935:
+            on = rng.random() < 0.5
+            for b in (fast, full):
+                b.set_wkc_fault(pos, on)
+        elif r < 0.094:
+            for b in (fast, full):
+                b.unplug(pos)
+        elif r < 0.096:
+            for b in (fast, full):
+                b.plug(pos)
+                b.recover(pos)
+        elif r < 0.097:
+            where = rng.choice((None, -50, 0, 50))
+            for b in (fast, full):
+                b.model(pos).home_switch_position = where
+        skipped += sum(1 for k in range(3) if fast._slaves[k].plugged and fast._slaves[k].inputs_al is
+                       fast._slaves[k].al_state and fast.model(k).steady())
+        cf.t += 0.001
+        cl.t += 0.001
+        assert fast.exchange() == full.exchange(), step
+        assert fast.inputs_changed() == full.inputs_changed(), step
+        for k in range(3):
+            assert fast.inputs(k) == full.inputs(k), (step, k)
+            assert fast.model(k).state is full.model(k).state, (step, k)
+            assert fast.model(k)._values == full.model(k)._values, (step, k)
+        assert [s.state for s in fast.read_al_status()] == [s.state for s in full.read_al_status()], step
+    assert skipped > 4000  # the fast path was taken, most of the time
