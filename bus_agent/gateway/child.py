@@ -59,6 +59,8 @@ class CycleProxy:
         self.group_sink: Callable[[str, str], None] | None = None  # the cycle process does not forward it
         self.bad_sink: Callable[[rt.CycleSnapshot], None] | None = None
         self.latest: rt.CycleSnapshot | None = None
+        # The last snapshot tuple read and its snapshot: unchanged drives keep their objects.
+        self._previous: tuple[Any, rt.CycleSnapshot] | None = None
         #: Group triggers as datagrams straight to the cycle thread; None: Msg.TRIGGER to bridge-in.
         self.trigger_sock: socket.socket | None = None
         self.state = "running"
@@ -159,7 +161,8 @@ class CycleProxy:
             events = [decode_event(e) for e in events_t]
             if snap_t is not None:
                 snap = decode_snapshot(snap_t, () if self.event_sink is not None
-                                       else tuple(e for e, _, _ in events))
+                                       else tuple(e for e, _, _ in events), self._previous)
+                self._previous = (snap_t, snap)
                 self.latest = snap
                 self.state = snap.agent_state
                 if self.bad_sink is not None:

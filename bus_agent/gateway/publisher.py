@@ -140,6 +140,9 @@ class PublisherMixin(GatewayBase):
         pub = self._status_pubs.get(axis)
         if pub is None:
             return
+        settled = self._settled.get(axis)
+        if settled is not None and settled[0] is d and settled[1] == holder and not heartbeat:
+            return  # the very object of a drive with nothing left to publish (wire.decode_snapshot)
         fields = _change_fields(d) + (holder,)
         motion = _motion_fields(d)
         last = self._last_fields.get(axis)
@@ -148,7 +151,10 @@ class PublisherMixin(GatewayBase):
                  and now - self._last_motion_pub_s.get(axis, 0.0) >= self.s.motion_period_s)
         if not (changed or moved or heartbeat):
             self._held_until.pop(axis, None)  # a held change undone meanwhile: nothing to publish
+            if motion == self._last_motion.get(axis):  # no motion publication pending either
+                self._settled[axis] = (d, holder)
             return
+        self._settled.pop(axis, None)
         if changed and not (moved or heartbeat) and last is not None and _only_asked(last, fields):
             # What the agent asked changed, the drive has not answered yet: the status waits for
             # the answer (the next statusword) to carry both, bounded; the publish loop wakes then.
@@ -168,6 +174,7 @@ class PublisherMixin(GatewayBase):
         self._last_fields[axis] = fields
         self._last_motion[axis] = motion
         self._last_motion_pub_s[axis] = now
+        self._settled[axis] = (d, holder)
 
     def _status_encoded(self, snap: rt.CycleSnapshot, d: rt.DriveSnapshot, holder: str,
                         seq: int) -> tuple[m.DriveStatus, bytes]:

@@ -102,9 +102,18 @@ def _drive_snapshot(fields: Sequence[Any]) -> rt.DriveSnapshot:
     return d
 
 
-def decode_snapshot(t: Sequence[Any], events: tuple[rt.CycleEvent, ...] = ()) -> rt.CycleSnapshot:
+def decode_snapshot(t: Sequence[Any], events: tuple[rt.CycleEvent, ...] = (),
+                    previous: tuple[Sequence[Any], rt.CycleSnapshot] | None = None) -> rt.CycleSnapshot:
+    """The snapshot of ``encode_snapshot``'s tuple ``t``. ``previous``: the last tuple and its
+    snapshot; a drive whose fields did not change keeps the previous DriveSnapshot object (a
+    tuple comparison instead of a new object), so readers can tell an unchanged drive by identity."""
     cycle, time_ns, agent_state, stats, drives = t
-    return rt.CycleSnapshot(cycle=cycle, time_ns=time_ns, drives=tuple(map(_drive_snapshot, drives)),
+    if previous is not None and len(previous[0][4]) == len(drives):
+        old_t, old = previous[0][4], previous[1].drives
+        built = tuple(old[i] if d == old_t[i] else _drive_snapshot(d) for i, d in enumerate(drives))
+    else:
+        built = tuple(map(_drive_snapshot, drives))
+    return rt.CycleSnapshot(cycle=cycle, time_ns=time_ns, drives=built,
                             events=events, stats=rt.CycleStats(*stats), agent_state=agent_state)
 
 

@@ -53,6 +53,19 @@ def test_snapshot_round_trip_keeps_every_field():
     assert back == dataclasses.replace(s, events=())
 
 
+def test_an_unchanged_drive_keeps_its_snapshot_object_and_a_changed_one_is_read_anew():
+    first_t = encode_snapshot(snapshot(1, drives=(drive("a0", 0), drive("a1", 1))))
+    first = decode_snapshot(first_t)
+    s2 = snapshot(2, drives=(drive("a0", 0), drive("a1", 1, state="ready_to_switch_on", statusword=0x0231)))
+    second = decode_snapshot(encode_snapshot(s2), (), (first_t, first))
+    assert second == dataclasses.replace(s2, events=())
+    assert second.drives[0] is first.drives[0] and second.drives[1] is not first.drives[1]
+    assert second.drives[1].state == "ready_to_switch_on"
+    three = snapshot(3, drives=(drive("a0", 0), drive("a1", 1), drive("a2", 2)))  # the drive list changed
+    back = decode_snapshot(encode_snapshot(three), (), (first_t, first))
+    assert back == dataclasses.replace(three, events=()) and back.drives[0] is not first.drives[0]
+
+
 def test_event_outcome_and_command_round_trip():
     ev = rt.CycleEvent("a1", "transition", "cw 0x000F", from_state="switched_on", to_state="operation_enabled",
                        error_code=0, request_id="r1")

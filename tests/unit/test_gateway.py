@@ -378,3 +378,28 @@ def test_a_change_of_what_was_asked_alone_waits_for_the_drives_answer_bounded(ne
         ticker.stop.set()
         ticker.t.join()
         gateway.close()
+
+
+def test_a_moving_drive_is_published_at_the_motion_rate_though_its_snapshot_object_stays(net):
+    """A position change inside the motion period waits, and goes out once the period passed,
+    while the cycle hands over the very same drive object pass after pass."""
+    agent_s, client = net
+    cycle = FakeCycle()
+    ticker = Ticker(cycle)
+    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0, motion_period_s=0.2)
+    ticker.t.start()
+    got: list = []
+    sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
+    try:
+        wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
+                 what="first status published and the subscriber matched")
+        cycle.set("x2", position=100)
+        wait_for(lambda: any(s.position == 100 for s in got), what="the first move")
+        cycle.set("x2", position=200)                       # inside the motion period: waits
+        wait_for(lambda: any(s.position == 200 for s in got), what="the second move, after the motion period")
+        assert [s.position for s in got if s.position in (100, 200)] == [100, 200]
+    finally:
+        sub.undeclare()
+        ticker.stop.set()
+        ticker.t.join()
+        gateway.close()
