@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import socket
 import threading
@@ -213,20 +214,32 @@ def test_status_heartbeat_republishes_an_unchanged_status(gw):
         sub.undeclare()
 
 
-def test_status_on_change_and_get(net):
-    """With the heartbeat an hour away, only the on-change path can publish the fault."""
+@contextlib.contextmanager
+def watching_x2(net, **settings):
+    """A ticking gateway whose heartbeat is an hour away and the x2 statuses a client receives,
+    from after the first one (published and the subscriber matched)."""
     agent_s, client = net
     cycle = FakeCycle()
     ticker = Ticker(cycle)
-    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0)
+    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0, **settings)
     ticker.t.start()
-    got = []
+    got: list = []
     sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
     try:
-        # the start-up publication is behind us (the next heartbeat is an hour away) and the
-        # publisher sees the subscriber
         wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
                  what="first status published and the subscriber matched")
+        yield gateway, cycle, got
+    finally:
+        sub.undeclare()
+        ticker.stop.set()
+        ticker.t.join()
+        gateway.close()
+
+
+def test_status_on_change_and_get(net):
+    """With the heartbeat an hour away, only the on-change path can publish the fault."""
+    with watching_x2(net) as (gateway, cycle, got):
+        client = net[1]
         n = len(got)
         cycle.set("x2", state="fault", error_code=0x2310)
         wait_for(lambda: any(s.state == "fault" for s in got[n:]), what="on-change status")
@@ -236,11 +249,6 @@ def test_status_on_change_and_get(net):
         replies = list(client.get(keys.drive_status(HOST, "*"), timeout=2.0))
         st = {m.decode(r.ok.payload).axis: m.decode(r.ok.payload) for r in replies}
         assert set(st) == set(AXES) and st["x2"].state == "fault" and st["x2"].error_code == 0x2310
-    finally:
-        sub.undeclare()
-        ticker.stop.set()
-        ticker.t.join()
-        gateway.close()
 
 
 def test_cycle_events_published_with_seq(gw):
@@ -346,16 +354,7 @@ def test_a_change_of_what_was_asked_alone_waits_for_the_drives_answer_bounded(ne
     """Controlword and goal changed, statusword not yet: no status until the drive answers, then
     one status carrying both; a change nobody answers goes out alone once the bound passed
     (HOLD_CYCLES cycles; 1 s cycles here, so the hold is long enough to be seen under load)."""
-    agent_s, client = net
-    cycle = FakeCycle()
-    ticker = Ticker(cycle)
-    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0, cycle_us=1_000_000)
-    ticker.t.start()
-    got: list = []
-    sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
-    try:
-        wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
-                 what="first status published and the subscriber matched")
+    with watching_x2(net, cycle_us=1_000_000) as (gateway, cycle, got):
         n = len(got)
         cycle.set("x2", controlword=0x0006, goal="enabled")
         wait_for(lambda: "x2" in gateway._held_until, what="the asked change held")
@@ -373,33 +372,14 @@ def test_a_change_of_what_was_asked_alone_waits_for_the_drives_answer_bounded(ne
         wait_for(lambda: any(s.state == "fault" for s in got), what="the fault at once")
         seqs = [s.seq for s in got]
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # no gap: nothing was dropped
-    finally:
-        sub.undeclare()
-        ticker.stop.set()
-        ticker.t.join()
-        gateway.close()
 
 
 def test_a_moving_drive_is_published_at_the_motion_rate_though_its_snapshot_object_stays(net):
     """A position change inside the motion period waits, and goes out once the period passed,
     while the cycle hands over the very same drive object pass after pass."""
-    agent_s, client = net
-    cycle = FakeCycle()
-    ticker = Ticker(cycle)
-    gateway = make_gateway(agent_s, cycle, heartbeat_s=3600.0, motion_period_s=0.2)
-    ticker.t.start()
-    got: list = []
-    sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
-    try:
-        wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
-                 what="first status published and the subscriber matched")
+    with watching_x2(net, motion_period_s=0.2) as (gateway, cycle, got):
         cycle.set("x2", position=100)
         wait_for(lambda: any(s.position == 100 for s in got), what="the first move")
         cycle.set("x2", position=200)                       # inside the motion period: waits
         wait_for(lambda: any(s.position == 200 for s in got), what="the second move, after the motion period")
         assert [s.position for s in got if s.position in (100, 200)] == [100, 200]
-    finally:
-        sub.undeclare()
-        ticker.stop.set()
-        ticker.t.join()
-        gateway.close()
