@@ -190,22 +190,41 @@ class Request:
         self.flush()
 
     def add(self, reply: m.CommandReply, payload: bytes) -> None:
-        """The reply for ``reply.axis`` and its encoding (the first one given stays)."""
-        if reply.axis not in self.replies:
-            self.replies[reply.axis] = reply
-            self.payloads[reply.axis] = payload
-        self.flush()
+        """The reply for ``reply.axis`` and its encoding (the first one given stays), sent to
+        every query waiting for that axis: one axis per call, so a 64-drive command's replies
+        cost 64 sends, not a walk over every waiting axis per reply."""
+        axis = reply.axis
+        if axis in self.replies:
+            return
+        self.replies[axis] = reply
+        self.payloads[axis] = payload
+        done = False
+        for query, remaining in self.waiting:
+            if axis in remaining:
+                remaining.discard(axis)
+                self._send(query, axis)
+                done = done or not remaining
+        if done:
+            self._finish_answered()
 
     def flush(self) -> None:
-        still = []
+        """Send every waiting query the replies it still lacks; finish the answered ones."""
         for query, remaining in self.waiting:
             for axis in [a for a in remaining if a in self.replies]:
                 remaining.discard(axis)
-                try:
-                    query.reply(self.reply_keys[axis], self.payloads[axis], encoding=MSGPACK)
-                    hops.stamp("gw.reply")
-                except Exception as exc:  # the querier may be gone; the others still get theirs
-                    log.warning("reply to %s (%s) failed: %s", self.reply_keys[axis], self.request_id, exc)
+                self._send(query, axis)
+        self._finish_answered()
+
+    def _send(self, query: zenoh.Query, axis: str) -> None:
+        try:
+            query.reply(self.reply_keys[axis], self.payloads[axis], encoding=MSGPACK)
+            hops.stamp("gw.reply")
+        except Exception as exc:  # the querier may be gone; the others still get theirs
+            log.warning("reply to %s (%s) failed: %s", self.reply_keys[axis], self.request_id, exc)
+
+    def _finish_answered(self) -> None:
+        still = []
+        for query, remaining in self.waiting:
             if remaining:
                 still.append((query, remaining))
             else:
