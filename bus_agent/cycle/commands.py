@@ -292,12 +292,13 @@ class CommandsMixin(CycleBase):
                 o.controlword = d.controlword = cw
                 bus.set_outputs(d.slave, o)
                 changed = True
-        snap = CycleSnapshot(cycle=self.cycles, time_ns=self._wall_ns(), drives=self._drive_snapshots(),
-                             events=tuple(events), stats=self._stats, agent_state=self.state)
+        time_ns = self._wall_ns()  # the reflex's time: when it was applied, before the frame
         if changed and self._express_allowed(reacting):
-            bus.exchange()
+            bus.exchange()  # first: the snapshot can wait a frame's round trip, the drive not
             hops.stamp("cy.express")
             self.express_exchanges += 1
+        snap = CycleSnapshot(cycle=self.cycles, time_ns=time_ns, drives=self._drive_snapshots(),
+                             events=tuple(events), stats=self._stats, agent_state=self.state)
         self._express_events += events
         self.latest = snap
         sink = self.snapshot_sink

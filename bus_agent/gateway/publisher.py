@@ -130,7 +130,6 @@ class PublisherMixin(GatewayBase):
             holders = self._lease_holders
             for d in bad:
                 self._maybe_publish_status(snap, d, holders.get(d.axis, ""), now, False)
-            hops.stamp("pub.bad")
         finally:
             self._pub_lock.release()
 
@@ -169,7 +168,7 @@ class PublisherMixin(GatewayBase):
             log.error("drive %s/%s: status not publishable: %s", self.host, axis, exc)
             return
         pub.put(payload)
-        hops.stamp("pub.status")
+        hops.stamp("pub.bad" if d.lost or d.state in BAD_STATES else "pub.status")
         self._published[axis] = msg
         self._last_fields[axis] = fields
         self._last_motion[axis] = motion

@@ -114,8 +114,10 @@ def test_default_mapping_fits_frames_and_round_trips() -> None:
     assert inputs == DriveInputs(0x1637, -42, 1000, -7, 8, 0x8611)
     assert not frames.store_tpdo(0x186, b"\0" * 8)                  # another node's
     assert not frames.store_tpdo(0x185, b"\0\0")                    # too short: nothing changes
+    assert not frames.store_tpdo(0x185, struct.pack("<HiB", 0x1637, -42, 8))  # the same again: at rest
+    assert frames.store_tpdo(0x185, struct.pack("<HiB", 0x1637, -41, 8))      # changed
     frames.decode_into(inputs)
-    assert inputs.statusword == 0x1637
+    assert inputs.statusword == 0x1637 and inputs.position_actual == -41
     assert frames.codec.absent_inputs == () and frames.codec.extra_names == ()
 
 
@@ -339,3 +341,40 @@ def test_the_can_example_configuration_loads() -> None:
 
     cfg = load_config(Path(__file__).resolve().parents[2] / "deploy" / "agent.can.example.toml")
     assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "drive", "explicit"]
+
+
+def test_the_bus_reports_which_nodes_inputs_changed() -> None:
+    """CanopenBus.inputs_changed (the cycle's fast path on CAN): a node whose TPDOs repeat the
+    same data is not reported and its inputs are not decoded again; a changed TPDO is; a missing
+    one changes nothing. The network is a stand-in that records the frames sent."""
+    from bus_agent.bus.canopen.bus import CanopenBus
+
+    class Net:
+        def __init__(self) -> None:
+            self.sent: list[tuple[int, bytes]] = []
+
+        def send_message(self, cob: int, data: bytes) -> None:
+            self.sent.append((cob, bytes(data)))
+
+    bus = CanopenBus("test", [5, 6])
+    bus._network = Net()
+    for node, nid in zip(bus._nodes, (5, 6)):
+        node.frames = pdo.PdoFrames(pdo.default_mapping(nid))
+
+    def tpdos(k: int, sw: int, position: int) -> None:
+        node = bus._nodes[k]
+        base = 0x180 + node.cfg.node_id
+        for cob, data in ((base, struct.pack("<HiB", sw, position, 8)), (base + 0x100, struct.pack("<ihH", 0, 0, 0))):
+            node.tpdo_seq[cob] = node.tpdo_seq.get(cob, 0) + 1
+            node.tpdo_data[cob] = data
+
+    tpdos(0, 0x0237, 10)
+    tpdos(1, 0x0237, 20)
+    assert bus.exchange() == 2 and bus.inputs_changed() == [0, 1]   # first frames: both decoded
+    tpdos(0, 0x0237, 10)
+    tpdos(1, 0x0237, 21)
+    assert bus.exchange() == 2 and bus.inputs_changed() == [1]      # node 5 at rest
+    assert bus.inputs(1).position_actual == 21 and bus.inputs(0).position_actual == 10
+    tpdos(0, 0x0233, 10)
+    assert bus.exchange() == 1 and bus.inputs_changed() == [0]      # node 6 silent: nothing changes
+    assert bus.inputs(0).statusword == 0x0233 and bus.inputs(1).position_actual == 21

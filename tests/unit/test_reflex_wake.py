@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 
 from bus_agent.bus.sim_bus import SimBus
 from bus_agent.cia402.states import State
@@ -361,7 +362,9 @@ def test_no_express_frame_on_a_bus_without_express_exchange() -> None:
 def test_triggers_as_datagrams_wake_the_cycle_thread_itself() -> None:
     """Cycle.trigger_socket (the gateway process's triggers): the cycle thread's sleep waits on
     the socket and reads ``group NUL reason`` itself; a datagram that comes while the cycle runs
-    is read there. Real threads and clock, a 200 ms period."""
+    (here: sent from the snapshot sink, at the cycle's end) wakes the sleep after it at once, so
+    it goes out in an express exchange well before the next deadline. Real threads and clock, a
+    200 ms period."""
     import socket
 
     bus = SimBus(2, sm_watchdog_s=1.0)
@@ -383,6 +386,23 @@ def test_triggers_as_datagrams_wake_the_cycle_thread_itself() -> None:
         ev = [e for e in snap.events if e.kind == "reflex"]
         assert ev and ev[0].axis == "axis0" and "h2/axis0 fault 0x7305 (é)" in ev[0].detail
         assert snap.cycle == before.cycle and cyc.express_exchanges == 1
+        # a datagram during the cycle's work: the sleep after it wakes at once
+        sent: list[int] = []
+
+        def send_in_cycle(s) -> None:
+            snaps.put(s)
+            if not sent and not any(e.kind == "reflex" for e in s.events):
+                sent.append(time.monotonic_ns())
+                theirs.send(b"arm\0h2/axis0 lost")
+
+        while not snaps.empty():
+            snaps.get_nowait()
+        cyc.snapshot_sink = send_in_cycle
+        snap = snaps.get(timeout=5)
+        while not any(e.kind == "reflex" for e in snap.events):
+            snap = snaps.get(timeout=5)
+        assert time.monotonic_ns() - sent[0] < 100_000_000  # not the next deadline, 200 ms on
+        assert "h2/axis0 lost" in [e.detail for e in snap.events if e.kind == "reflex"][0]
     finally:
         cyc.stop()
         theirs.close()

@@ -168,6 +168,7 @@ class PdoFrames:
         self.tpdo_cob_ids: tuple[int, ...] = tuple(self._tx)
         self.rpdo_cob_ids: tuple[int, ...] = tuple(cob for cob, _s in self._rx)
         self._image = bytearray(self.codec.in_size)
+        self._stored: set[int] = set()
 
     def rpdo_frames(self, outputs: DriveOutputs) -> list[tuple[int, bytes]]:
         """(COB-ID, data) of every RPDO for ``outputs``."""
@@ -175,8 +176,9 @@ class PdoFrames:
         return [(cob, image[span]) for cob, span in self._rx]
 
     def store_tpdo(self, cob_id: int, data: bytes | bytearray) -> bool:
-        """Put one TPDO into the image; False (nothing changes) when it is not one of this
-        node's TPDOs or shorter than its mapping."""
+        """Put one TPDO into the image; True when the image changed. False (nothing changes) when
+        it is not one of this node's TPDOs, shorter than its mapping, or the same data again (a
+        drive at rest: nothing to decode, its inputs stay; ``CanopenBus.inputs_changed``)."""
         spec = self._tx.get(cob_id)
         if spec is None:
             return False
@@ -184,7 +186,12 @@ class PdoFrames:
         n = len(data)
         if n < size:
             return False
-        self._image[span] = data if n == size else data[:size]
+        new = data if n == size else data[:size]
+        image = self._image
+        if image[span] == new and cob_id in self._stored:
+            return False
+        image[span] = new
+        self._stored.add(cob_id)  # the first frame of each TPDO is decoded even if all zero
         return True
 
     def decode_into(self, inputs: DriveInputs) -> None:
