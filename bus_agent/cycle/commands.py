@@ -314,10 +314,11 @@ class CommandsMixin(CycleBase):
         return not any(d.motion.plan is not None for d in self.drives if not d.lost and d.axis not in reacting)
 
     def _express_after_cycle(self, reacting: dict[str, int]) -> None:
-        """Remote triggers taken by the cycle itself (they came during the spin or the cycle's
-        work, not in the sleep): their reflex outputs go out in an extra exchange right after the
-        cycle, not with the next scheduled frame a period later. ``reacting``: the reacting
-        axes and their controlwords before the cycle; nothing is sent when none changed."""
+        """Reflexes applied by the cycle itself: a local member's fault or loss, or remote
+        triggers that came during the spin or the cycle's work (not in the sleep). Their outputs
+        go out in an extra exchange right after the cycle, not with the next scheduled frame a
+        period later. ``reacting``: the reacting axes and their controlwords before the cycle;
+        nothing is sent when none changed."""
         if not any(self._by_axis[a].controlword != cw for a, cw in reacting.items() if not self._by_axis[a].lost):
             return
         if self._express_allowed(reacting):

@@ -389,7 +389,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
             self._socket_watched = False  # the sleep before this cycle found the socket empty
         else:
             self._take_trigger_datagrams()  # no sleep (late, tick()): look (a failed recv, ~2 us)
-        reacting: dict[str, int] = {}  # the remote triggers' reacting drives: their controlwords now
+        reacting: dict[str, int] = {}  # the reflexes' reacting drives: their controlwords now
         while self._triggers:
             applied = True
             g, reason = self._triggers.popleft()
@@ -399,6 +399,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
         for g, reason in origins:
             origin_axis = reason.split("/", 1)[1].split(" ", 1)[0]
             self._reflex(g, origin_axis, reason, now_ns)
+            for axis in self.groups.reacting(g, origin_axis):
+                reacting.setdefault(axis, self._by_axis[axis].controlword)
             if self.group_sink is not None:
                 self.group_sink(g, reason)
         if applied or origins:

@@ -225,6 +225,8 @@ def test_group_reflex_in_the_same_cycle():
         assert snap.drives[1].goal == "quick_stop"
         assert snap.drives[1].controlword & 0x0087 == 0x0002
         assert snap.drives[2].goal == "enabled"  # not in the group
+        # ... and it went out in an express exchange right after that cycle, not with the next frame
+        assert hh.cycle.express_exchanges == 1 and int(hh.bus.model(1).read(0x6040, 0)) & 0x0087 == 0x0002
         assert hh.group_triggers and hh.group_triggers[0][0] == "arm"
         hh.until(lambda s: hh.state(1) in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED), 3000)
         assert hh.state(2) == State.OPERATION_ENABLED
