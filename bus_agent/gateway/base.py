@@ -146,9 +146,9 @@ class GatewayBase:
         self._last_motion: dict[str, tuple] = {}
         self._last_motion_pub_s: dict[str, float] = {}
         self._status_keys: dict[str, str] = {}  # axis -> its status key, built once
-        self._held_until: dict[str, float] = {}
+        self._held_until: dict[str, float] = {}  # axis -> when its held change goes out at the latest
         # axis -> (drive snapshot, lease holder) last seen with nothing left to publish
-        self._settled: dict[str, tuple[rt.DriveSnapshot, str]] = {}  # axis -> when its held change goes out at the latest
+        self._settled: dict[str, tuple[rt.DriveSnapshot, str]] = {}
         self._hold_s = HOLD_CYCLES * settings.cycle_us / 1e6
         self._published: dict[str, m.DriveStatus] = {}
         self._next_heartbeat_s = 0.0
