@@ -23,8 +23,11 @@ router puts its ``time.time_ns()`` every 10 ms (express), a subscriber in h2 con
 router takes the difference on arrival. The baseline of the express exchange (``next_cycle``):
 a second bed whose agents have ``[cycle] express_reflex = false``, the same rounds.
 
-    python -m bench.bench_reflex [--rounds N] [--drives N] [--bare N] [--rt-priority N] [--no-next-cycle]
-                                 [--out PATH]
+    python -m bench.bench_reflex [--rounds N] [--drives N] [--bare N] [--rt-priority N] [--no-router-rt]
+                                 [--no-next-cycle] [--out PATH]
+
+The agents run at ``--rt-priority`` (default 10) and each host's router at their helper priority
+(9), as docs/deployment.md says to deploy them (``--no-router-rt``: routers under SCHED_OTHER).
 
 Writes ``bench/results/bench_reflex.json`` (ms percentiles, ratios to the bare put, load).
 """
@@ -199,9 +202,16 @@ def _bed(args: Any, express: bool, bare_puts: int) -> tuple[dict, list[int]]:
     """One bed: the agents with ``[cycle] express_reflex`` as given; the bare puts first (if any)."""
     from tests.system.multihost import MultiHostRun, Proc
 
+    from bus_agent.cycle.realtime import helper_priority
+
+    # Each host's router beside its real-time agent at the agent's helper priority, as
+    # docs/deployment.md says to run it: under SCHED_OTHER it waited about a millisecond behind
+    # the agents' real-time threads right after a fault (docs/benchmarks.md).
+    rt = args.rt_priority
     bed = MultiHostRun(hosts=2, drives=args.drives, groups={"xg": list(GROUP)}, prefix=f"zr{os.getpid() % 100000}",
-                       agent_args=["--rt-priority", str(args.rt_priority)] if args.rt_priority else [],
-                       agent_toml="" if express else "\n[cycle]\nexpress_reflex = false\n")
+                       agent_args=["--rt-priority", str(rt)] if rt else [],
+                       agent_toml="" if express else "\n[cycle]\nexpress_reflex = false\n",
+                       router_args=["--rt-priority", str(helper_priority(rt))] if rt and args.router_rt else [])
     me = [sys.executable, "-m", "bench.bench_reflex"]
     bare: list[int] = []
     try:
@@ -238,7 +248,7 @@ def run(args: Any) -> dict:
     start = loadavg()
     res, bare = _bed(args, True, args.bare)
     out: dict[str, Any] = {"rounds": args.rounds, "drives_per_host": args.drives, "group": list(GROUP),
-                           "rt_priority": args.rt_priority, **_figures(res), "bare_put": _ms(bare)}
+                           "rt_priority": args.rt_priority, "router_rt": bool(args.rt_priority and args.router_rt), **_figures(res), "bare_put": _ms(bare)}
     leave, b = out["fault_to_leave"], out["bare_put"]
     if leave.get("n") and b.get("n"):
         out["ratios"] = {"leave_p50_over_bare_p50": round(leave["p50_ms"] / b["p50_ms"], 2),
@@ -261,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bare", type=int, default=500, help="bare puts timed (default 500)")
     p.add_argument("--rt-priority", type=int, default=10,
                    help="SCHED_FIFO priority of the agents' cycle threads (0: off; default 10)")
+    p.add_argument("--no-router-rt", dest="router_rt", action="store_false",
+                   help="routers under normal scheduling (default: SCHED_FIFO at the agents' helper priority)")
     p.add_argument("--no-next-cycle", dest="next_cycle", action="store_false",
                    help="skip the baseline bed with [cycle] express_reflex = false")
     p.add_argument("--child", choices=("bare_sub", "bare_pub", "reflex"), help=_suppress())

@@ -3,6 +3,7 @@
     drives-router                                             # listens on tcp/127.0.0.1:7447
     drives-router --config deploy/router.json5                # TLS, ACL, ... from the file
     drives-router --listen tcp/10.213.7.1:7447 --connect tcp/10.213.7.2:7447 --pki /etc/zenoh-drives/pki --identity r1
+    drives-router --rt-priority 9                             # beside a real-time bus agent (see below)
 
 One router per host: the host's bus agents and supervisors connect to it, and routers connect
 to each other with explicit ``--connect`` endpoints (see docs/deployment.md). The session is
@@ -11,6 +12,12 @@ lease, background reconnection). ``--listen`` / ``--connect`` replace the file's
 lists when given. Once the session is open it prints one line,
 ``drives-router ready zid=<zid> listen=<eps> connect=<eps>``; SIGTERM or SIGINT closes the
 session and exits 0.
+
+``--rt-priority N`` puts the whole router (every zenoh runtime thread: they inherit it) under
+SCHED_FIFO ``N``. On a host whose bus agent runs at real-time priority, a fault's status and the
+group reflexes pass through this router; under SCHED_OTHER it waited behind the agent's
+real-time threads, busy right after a fault, for about a millisecond (docs/benchmarks.md,
+bench_reflex). Give it the agent's helper priority: the cycle's priority minus one.
 
 Exit codes: 0 stopped cleanly; 2 bad command line or configuration; 3 the session did not open
 (e.g. the listen address is in use or not on this host).
@@ -21,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from typing import Sequence
 
@@ -94,8 +102,21 @@ def _parser() -> argparse.ArgumentParser:
                    "compiled from DIR/principals.toml, default deny (see docs/security.md)")
     p.add_argument("--identity", metavar="NAME", help="this router's principal in --pki (role router)")
     p.add_argument("--insecure", action="store_true", help="allow a non-loopback listen endpoint without --pki")
+    p.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                   help="SCHED_FIFO priority 1..99 of the router's threads (needs root/CAP_SYS_NICE; default 0 = "
+                   "off; beside a real-time agent: its cycle priority minus one)")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
+
+
+def set_process_fifo(priority: int) -> None:
+    """SCHED_FIFO ``priority`` for the calling thread, before zenoh starts its runtime threads
+    (they inherit the policy). Raises :class:`RouterConfigError` when refused."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        raise RouterConfigError(f"--rt-priority {priority}: SCHED_FIFO refused ({exc.strerror}; needs root or "
+                                "CAP_SYS_NICE)") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -103,8 +124,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
+        if not 0 <= args.rt_priority <= 99:
+            raise RouterConfigError(f"--rt-priority {args.rt_priority} must be 0 (off) or a SCHED_FIFO priority 1..99")
         conf, listen, connect = build_config(args.config, args.listen, args.connect, pki=args.pki,
                                              identity=args.identity, insecure=args.insecure)
+        if args.rt_priority:
+            set_process_fifo(args.rt_priority)
     except RouterConfigError as exc:
         print(f"drives-router: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -118,7 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_STARTUP
         try:
             print(f"drives-router ready zid={session.info.zid()} listen={','.join(listen) or '-'} "
-                  f"connect={','.join(connect) or '-'} identity={args.identity + ' (tls, acl)' if args.pki else '- (insecure)'}",
+                  f"connect={','.join(connect) or '-'} identity={args.identity + ' (tls, acl)' if args.pki else '- (insecure)'}"
+                  f"{f' rt_priority={args.rt_priority}' if args.rt_priority else ''}",
                   flush=True)
             log.info("router up: listen %s connect %s", listen, connect)
             stop.wait()

@@ -132,7 +132,7 @@ class MultiHostRun:
 
     def __init__(self, hosts: int = 2, drives: int = 3, groups: dict[str, list[str]] | None = None,
                  prefix: str | None = None, pki: str | None = None, agent_args: Sequence[str] = (),
-                 agent_toml: str = "") -> None:
+                 agent_toml: str = "", router_args: Sequence[str] = ()) -> None:
         self.prefix = prefix or f"zm{os.getpid() % 100000}"
         #: A drives-pki directory holding router certificates ``r-<host>`` (SAN: the host's
         #: address), agent certificates ``<host>`` and testbed certificates ``sim-<host>`` (each
@@ -145,6 +145,8 @@ class MultiHostRun:
         #: Extra ``bus-agent`` options for every agent (benchmarks: ``--rt-priority N``).
         self.agent_args = list(agent_args)
         self.agent_toml = agent_toml  # appended to every agent's configuration file (tables after [groups])
+        #: Extra ``drives-router`` options for every router (benchmarks: ``--rt-priority N``).
+        self.router_args = list(router_args)
         self.bed: MultiHostBed = multihost_plan(self.prefix, hosts, extra=("sup",))
         self.workdir = tempfile.mkdtemp(prefix="multihost-")
         self.procs: list[Proc] = []
@@ -185,7 +187,7 @@ class MultiHostRun:
                 connect += ["--connect", self.router_endpoint(other)]
             self.routers[h] = self.spawn(Proc, f"router {h}", h, [
                 py, "-m", "bus_agent.router", "--listen", self.router_endpoint(h), *connect,
-                *(self.security(f"r-{h}") or ["--insecure"])],
+                *(self.security(f"r-{h}") or ["--insecure"]), *self.router_args],
                 ready_marker="drives-router ready")
         for h in hosts:
             self.sims[h].expect_ready(ready_timeout_s)

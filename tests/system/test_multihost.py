@@ -12,6 +12,7 @@ The tests run in file order on one bed; each states what it needs from the previ
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -186,11 +187,34 @@ def test_drives_router_relays_between_clients_and_stops_cleanly_on_sigterm(tmp_p
         router.kill()
 
 
+def test_drives_router_rt_priority_puts_every_zenoh_thread_under_sched_fifo():
+    """--rt-priority: the router's threads (zenoh's runtime threads inherit the policy) run under
+    SCHED_FIFO at that priority; it still relays and stops cleanly (root)."""
+    require_root()
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("drives-router", [sys.executable, "-m", "bus_agent.router", "--listen", ep, "--rt-priority", "7"],
+                  ready_marker="drives-router ready")
+    try:
+        router.expect_ready(20)
+        assert "rt_priority=7" in router.lines[0]
+        a = zenoh.open(make_zenoh_config("client", (), (ep,)))
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{router.popen.pid}/task")]
+            policies = {tid: (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority) for tid in tids}
+            assert len(tids) > 3 and set(policies.values()) == {(os.SCHED_FIFO, 7)}, policies
+        finally:
+            a.close()
+        assert router.stop() == 0
+    finally:
+        router.kill()
+
+
 @pytest.mark.parametrize("argv, code, match", [
     (["--listen", "nonsense"], 2, "not a zenoh locator"),
     (["--config", "/nonexistent/router.json5"], 2, "router config"),
     (["--insecure", "--listen", "tcp/192.0.2.254:7447"], 3, "cannot open"),  # TEST-NET address: not on this host
     (["--listen", "tcp/192.0.2.254:7447"], 2, "--insecure"),  # off loopback without --pki: refused first
+    (["--rt-priority", "100"], 2, "must be 0 (off) or a SCHED_FIFO priority 1..99"),
 ])
 def test_drives_router_bad_input_is_a_clear_error(argv, code, match):
     proc = subprocess.run([sys.executable, "-m", "bus_agent.router", *argv], capture_output=True, text=True,
