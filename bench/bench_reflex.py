@@ -40,6 +40,7 @@ import queue
 import shutil
 import struct
 import sys
+import tempfile
 import threading
 import time
 from typing import Any
@@ -198,8 +199,24 @@ def _last_json(proc: Any, timeout_s: float) -> dict:
     raise RuntimeError(f"{proc.name} gave no result (exit {proc.popen.poll()}):\n{proc.output()}")
 
 
+#: The hops of a reflex (bus_agent.hops), from h1's cycle seeing the fault to h2's express frame.
+REFLEX_HOPS = ("cy.fault", "cy.sink.ev", "cy.woke.ev", "cy.forwarded.ev", "gw.update.ev", "pub.bad", "gw.remote",
+               "gw.trigger", "cy.wake", "cy.express")
+
+
+def reflex_hops(directory: str) -> dict:
+    """Where a reflex's time goes: p50 of each hop's first stamp (ms after h1's cycle saw the
+    fault) over the rounds, from every process's stamps in ``directory``."""
+    from bus_agent import hops
+
+    stamps = [s for s in hops.read(directory) if s[1] in REFLEX_HOPS]
+    return hops.breakdown(hops.rounds(stamps, "cy.fault", "cy.express"))
+
+
 def _bed(args: Any, express: bool, bare_puts: int) -> tuple[dict, list[int]]:
-    """One bed: the agents with ``[cycle] express_reflex`` as given; the bare puts first (if any)."""
+    """One bed: the agents with ``[cycle] express_reflex`` as given; the bare puts first (if any).
+    With the express exchange every process stamps the hops (``hops`` in the result)."""
+    from bus_agent import hops
     from tests.system.multihost import MultiHostRun, Proc
 
     from bus_agent.cycle.realtime import helper_priority
@@ -214,6 +231,11 @@ def _bed(args: Any, express: bool, bare_puts: int) -> tuple[dict, list[int]]:
                        router_args=["--rt-priority", str(helper_priority(rt))] if rt and args.router_rt else [])
     me = [sys.executable, "-m", "bench.bench_reflex"]
     bare: list[int] = []
+    hop_dir = tempfile.mkdtemp(prefix="bench-reflex-hops-")
+    old_env = os.environ.get(hops.ENV)
+    if express:
+        os.environ[hops.ENV] = hop_dir  # the bed's processes inherit it
+    result: dict = {}
     try:
         bed.start()
         if bare_puts:
@@ -229,16 +251,25 @@ def _bed(args: Any, express: bool, bare_puts: int) -> tuple[dict, list[int]]:
         reflex = bed.spawn(Proc, "reflex", "sup", [
             *me, "--child", "reflex", "--connect", bed.router_endpoint("h1"), "--drives", str(args.drives),
             "--rounds", str(args.rounds), "--control", os.path.join(bed.workdir, "h1.sock")], ready_marker="reflex ready")
-        return _last_json(reflex, 120 + args.rounds * 15), bare
+        result = _last_json(reflex, 120 + args.rounds * 15)
     except BaseException:
         print(bed.diagnostics(), file=sys.stderr)
         raise
     finally:
-        bed.close()
+        if old_env is None:
+            os.environ.pop(hops.ENV, None)
+        else:
+            os.environ[hops.ENV] = old_env
+        bed.close()  # the processes write their stamps as they stop
+    if express:
+        result["hops"] = reflex_hops(hop_dir)
+    shutil.rmtree(hop_dir, ignore_errors=True)
+    return result, bare
 
 
 def _figures(res: dict) -> dict:
-    return {"fault_to_reflex": _ms(res["fault_to_reflex_ns"]), "fault_to_leave": _ms(res["fault_to_leave_ns"]),
+    return {**({"hops": res["hops"]} if "hops" in res else {}),
+            "fault_to_reflex": _ms(res["fault_to_reflex_ns"]), "fault_to_leave": _ms(res["fault_to_leave_ns"]),
             "reflex_to_leave": _ms(res["reflex_to_leave_ns"]),
             "fault_to_status_in_sup": _ms(res["fault_to_status_here_ns"]),
             "failures": res["failures"][:10], "n_failures": len(res["failures"])}

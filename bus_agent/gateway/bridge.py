@@ -110,8 +110,8 @@ class GatewayProcess:
     # -- cycle thread: store, extend, set; nothing else
 
     def on_snapshot(self, snap: rt.CycleSnapshot) -> None:
-        if self._outcomes or snap.events:
-            hops.stamp("cy.sink")
+        if self._outcomes or snap.events:  # a command's outcome; else events (a reflex's path)
+            hops.stamp("cy.sink" if self._outcomes else "cy.sink.ev")
         last, self._latest = self._latest, snap
         if snap.events:
             self._events.extend((ev, snap.cycle, snap.time_ns) for ev in snap.events)
@@ -246,7 +246,7 @@ class GatewayProcess:
                 self._wake.wait(self.filter.period_s)
                 self._wake.clear()
             if self._outcomes or self._events:
-                hops.stamp("cy.woke")
+                hops.stamp("cy.woke" if self._outcomes else "cy.woke.ev")
             try:
                 self._forward(final=closing)
             except Exception:
@@ -273,7 +273,7 @@ class GatewayProcess:
         if self._try_send(encode_update(snap, evs, outs)):
             self.forwarded += 1
             if outs or evs:
-                hops.stamp("cy.forwarded")
+                hops.stamp("cy.forwarded" if outs else "cy.forwarded.ev")
 
     def _log_events(self) -> None:
         """Without a gateway nobody sees the drives: the log is the only record of the stop."""

@@ -149,7 +149,7 @@ class CycleProxy:
         if kind is Msg.UPDATE:
             _, snap_t, events_t, outcomes_t = msg
             if outcomes_t or events_t:
-                hops.stamp("gw.update")
+                hops.stamp("gw.update" if outcomes_t else "gw.update.ev")
             # Outcomes first, before decoding the snapshot (64 drives: a fraction of a millisecond)
             # and before the sinks wake the publish thread, whose pass (a status put per changed
             # drive, an event put per event) would otherwise hold the GIL while the command thread
