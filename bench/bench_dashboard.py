@@ -24,7 +24,8 @@ from bench.common import bench_parser, loadavg, percentile, proc_cpu_s, quantile
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas.messages import DriveStatus
-from supervisor.fleet import Fleet, zenoh_config
+from supervisor.fleet import Fleet
+from supervisor.session import zenoh_config
 from supervisor.testbed import headless_chromium, start_agents, start_dashboard, start_router
 
 

@@ -20,7 +20,8 @@ import zenoh
 
 from schemas import keys
 from schemas.messages import Event, SchemaError, decode
-from supervisor.fleet import DEFAULT_CONNECT, Fleet, FleetError
+from supervisor.fleet import Fleet, FleetError
+from supervisor.session import DEFAULT_CONNECT
 from supervisor.fleetfile import FleetFileError, load as load_fleet
 from supervisor.recordings import fetch_recording
 

@@ -16,12 +16,9 @@ call back into the Fleet (never on a Zenoh thread, where that could deadlock).
 from __future__ import annotations
 
 import itertools
-import json
 import logging
 import os
 import queue
-import re
-import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -39,6 +36,7 @@ from schemas.messages import (
 )
 
 from .fleetfile import ExpectedFleet, load as load_fleet
+from .session import DEFAULT_CONNECT, default_name, zenoh_config  # the session settings (re-exported)
 from .commands import FleetCommands
 from .results import CommandResult, DriveResult
 from .selectors import (
@@ -56,7 +54,6 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 DEFAULT_LEASE_TTL_S = 3.0
 #: Two agent instances seen under one host name within this window are a conflict (agents
 #: publish their status every second).
@@ -94,35 +91,6 @@ class Selection:
 
     def __len__(self) -> int:
         return len(self.drives)
-
-
-def default_name() -> str:
-    """A legal supervisor name from the host name and process id."""
-    base = re.sub(r"[^A-Za-z0-9_.\-]", "_", socket.gethostname())[:40] or "host"
-    return f"sup-{base.lstrip('.-') or 'host'}-{os.getpid()}"
-
-
-def zenoh_config(mode: str, connect: Sequence[str], listen: Sequence[str] = (),
-                 connect_timeout_ms: int = 2000, *, pki: str | None = None,
-                 identity: str | None = None) -> zenoh.Config:
-    """A session config for the supervisor: multicast scouting off, explicit endpoints; with
-    ``pki``/``identity``, mutual TLS as that principal (``bus_agent.gateway.zenoh_config``).
-    Raises ValueError on a bad mode or identity."""
-    if mode not in ("client", "peer"):
-        raise ValueError(f"mode {mode!r}: use 'client' or 'peer'")
-    if pki is not None or identity is not None:
-        from bus_agent.gateway.zenoh_config import make_zenoh_config
-
-        return make_zenoh_config(mode, listen if mode == "peer" else (), connect,
-                                 connect_timeout_ms=connect_timeout_ms, pki=pki, identity=identity)
-    conf: dict[str, Any] = {
-        "mode": mode,
-        "connect": {"endpoints": list(connect), "timeout_ms": connect_timeout_ms},
-        "scouting": {"multicast": {"enabled": False}},
-    }
-    if mode == "peer":
-        conf["listen"] = {"endpoints": list(listen)}
-    return zenoh.Config.from_json5(json.dumps(conf))
 
 
 Listener = Callable[..., None]

@@ -16,7 +16,8 @@ from typing import Any, Callable, Iterator, Sequence
 
 from rich.console import Console
 
-from ..fleet import DEFAULT_CONNECT, Fleet, NoAgentError
+from ..fleet import Fleet, NoAgentError
+from ..session import DEFAULT_CONNECT
 from ..fleetfile import FLEET_ENV, load as load_fleet
 from ..results import CommandResult, Report
 from ..selectors import SelectorError, parse_selector

@@ -21,7 +21,8 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
-from supervisor.fleet import Fleet, zenoh_config
+from supervisor.fleet import Fleet
+from supervisor.session import zenoh_config
 from supervisor.testbed import (CHROMEDRIVER, CHROMIUM, Proc, headless_chromium, start_cli_agent, start_dashboard,
                                start_router)
 

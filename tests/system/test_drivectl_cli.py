@@ -12,7 +12,8 @@ import pytest
 import zenoh
 
 from bus_agent.sim.child import wait_for
-from supervisor.fleet import Fleet, zenoh_config
+from supervisor.fleet import Fleet
+from supervisor.session import zenoh_config
 from supervisor.testbed import Proc, _env, free_port, start_cli_agent, start_router
 
 pytestmark = pytest.mark.timeout(180)

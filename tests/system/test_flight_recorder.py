@@ -17,7 +17,8 @@ from bus_agent.cia402.states import State, decode_statusword
 from bus_agent.sim.control import sim_inject
 from schemas import keys
 from schemas import messages as m
-from supervisor.fleet import Fleet, zenoh_config
+from supervisor.fleet import Fleet
+from supervisor.session import zenoh_config
 from supervisor.recordings import fetch_recording, read_csv
 from supervisor.testbed import Proc, _env, start_cli_agent, start_router
 

@@ -18,7 +18,8 @@ from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas import keys
 from schemas.messages import Event, decode
-from supervisor.fleet import Fleet, zenoh_config
+from supervisor.fleet import Fleet
+from supervisor.session import zenoh_config
 from supervisor.testbed import Proc, _env, start_cli_agent, start_router
 from supervisor.watch import status_rows
 
