@@ -320,8 +320,12 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         log.info("agent %s: command %s op %s axes %s from %s: %s%s", self.host, rid or "-", op,
                  ",".join(axes) or "-", requester, outcome, f": {reason}" if reason else "")
         detail = f"{op} {outcome} from {requester}" + (f": {reason}" if reason else "")
-        for axis in axes or ("",):
-            self._emit(rt.CycleEvent(axis, "command", detail=detail, request_id=rid, requester=requester))
+        # One event per addressed drive, queued together with one wake-up of the publish thread.
+        snap = self._latest
+        cycle, now_ns = (snap.cycle if snap else 0), time.time_ns()
+        self._events.extend((rt.CycleEvent(axis, "command", detail=detail, request_id=rid, requester=requester),
+                             cycle, now_ns) for axis in axes or ("",))
+        self._wake.set()
 
     def _key_axes(self, key: str, agent: bool) -> tuple[str, ...]:
         """The axes a refused query's key addresses (for its audit event)."""
