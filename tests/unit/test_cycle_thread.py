@@ -64,7 +64,9 @@ class SlowRecoverBus(SimBus):
 
 
 def test_blocking_recovery_does_not_stall_the_other_drives():
-    bus = SlowRecoverBus(3)
+    # SM watchdog 250 ms: below one blocking recover call (300 ms), so a recover on the cycle
+    # thread still trips it; above a host's scheduling stall (a CI run once lost 100 ms here)
+    bus = SlowRecoverBus(3, sm_watchdog_s=0.25)
     cyc = Cycle(bus, AgentConfig(host="h1", sim_drives=3, groups={"g": ("h1/axis1", "h1/axis2")}))
     events: list = []
     lock = threading.Lock()
