@@ -29,6 +29,19 @@ class Target:
     note: str = ""
 
 
+def target_dict(t: Target) -> dict[str, Any]:
+    """A target as the summary's JSON has it: ``name``, ``measured``, ``limit``, ``target_met``
+    (true, false, or null when the run cannot tell) and ``note``."""
+    d = asdict(t)
+    d["target_met"] = d.pop("met")
+    return d
+
+
+def target_met(t: Mapping[str, Any]) -> bool | None:
+    """A summary target's verdict (``target_met``; ``met`` in summaries written before it)."""
+    return t["target_met"] if "target_met" in t else t.get("met")
+
+
 def at_most(name: str, measured: float | None, limit: float, unit: str = "", note: str = "") -> Target:
     """Target ``measured <= limit`` (undecided when nothing was measured)."""
     return Target(name, measured, f"<= {limit:g}{unit}", None if measured is None else measured <= limit, note)
@@ -61,7 +74,7 @@ def build_row(name: str, what: str, status: str, data: Mapping[str, Any] | None,
     if status in (OK, STALE) and data is not None:
         try:
             read = {"figures": figures(data), "headline": headline(data) if headline is not None else "",
-                    "targets": [asdict(t) for t in targets(data)]}
+                    "targets": [target_dict(t) for t in targets(data)]}
         except (KeyError, TypeError, ValueError, ZeroDivisionError) as exc:
             # a JSON this row cannot read says so instead of showing half its figures
             row["status"] = f"failed: JSON not readable ({type(exc).__name__}: {exc})"
@@ -82,7 +95,8 @@ def overall(rows: list[dict[str, Any]]) -> dict[str, int]:
         if r["status"] != OK:
             continue
         for t in r.get("targets", []):
-            out["met" if t["met"] is True else "not_met" if t["met"] is False else "undecided"] += 1
+            met = target_met(t)
+            out["met" if met is True else "not_met" if met is False else "undecided"] += 1
     return out
 
 
@@ -370,7 +384,7 @@ def idle_targets(r: Mapping[str, Any]) -> list[Target]:
 
 
 def _fmt_target(t: Mapping[str, Any]) -> str:
-    verdict = {True: "met", False: "**not met**", None: "undecided"}[t["met"]]
+    verdict = {True: "met", False: "**not met**", None: "undecided"}[target_met(t)]
     measured = t["measured"]
     if isinstance(measured, dict):
         measured = ", ".join(f"{k} {v}" for k, v in measured.items())

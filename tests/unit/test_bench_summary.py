@@ -68,7 +68,7 @@ def test_only_this_invocations_runs_show_figures(fake: Path, monkeypatch: pytest
     summary = run_all.collect(quick=False, only=None, summarize_only=False, out=fake)
     rows = rows_of(summary)
     assert rows["good"]["status"] == "ok"
-    assert rows["good"]["figures"] == {"value": 7} and rows["good"]["targets"][0]["met"] is True
+    assert rows["good"]["figures"] == {"value": 7} and rows["good"]["targets"][0]["target_met"] is True
     assert rows["good"]["loadavg"] == [1.5, 1, 1] and rows["good"]["run"]["finished"].endswith("Z")
     assert rows["bad"]["status"] == "failed (exit 3)"
     assert rows["silent"]["status"] == "failed: exit 0 but no JSON written by this run"
@@ -89,7 +89,7 @@ def test_rows_not_run_are_stale_with_their_time_and_do_not_count(fake: Path, mon
     rows = rows_of(summary)
     assert rows["old"]["status"] == "stale" and rows["old"]["time"] == "2026-11-22T02:22:00"
     assert rows["old"]["run"]["json_written"].endswith("Z")
-    assert rows["old"]["targets"][0]["met"] is False  # shown, but not counted
+    assert rows["old"]["targets"][0]["target_met"] is False  # shown, but not counted
     assert rows["never"]["status"] == "not run" and "figures" not in rows["never"]
     assert rows["new"]["status"] == "ok"
     assert summary["targets"] == {"met": 1, "not_met": 0, "undecided": 0}
