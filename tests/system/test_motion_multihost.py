@@ -26,9 +26,13 @@ pytestmark = [pytest.mark.timeout(180)]
 
 HOSTS = ("h1", "h2")
 CYCLE_S = 0.001
-#: A cycle thread's scheduling delay on a loaded 2-core machine (the figures are printed; on a
-#: quiet machine they are within a cycle or two).
-SCHEDULING_SLACK_S = 0.010
+#: A host's scheduling stalls on the shared 2-core machine (both hosts, their simulators and
+#: routers on 2 vCPUs): the figures are printed, and on a quiet machine they are within a cycle
+#: or two, but a CI run once saw one host arrive 43 ms after the other. The test checks the
+#: mechanism, not the timing (bench_motion measures the arrival spread): a host that started on
+#: receipt of the commit instead of at the committed time would be START_MARGIN_S (250 ms) off,
+#: and the durations are checked equal, so 50 ms still tells a broken synchronization apart.
+SCHEDULING_SLACK_S = 0.050
 TARGETS = {"h1/axis0": 30_000.0, "h1/axis1": -15_000.0, "h2/axis0": 45_000.0, "h2/axis1": 5_000.0}
 
 
