@@ -56,6 +56,15 @@ RECOVER_TIMEOUT_US = MGMT_TIMEOUT_US
 #: keeps its last known status for this long before it reads NONE. A frame that comes back
 #: without the slave's working counter (the slave is silent) reads NONE at once.
 NO_FRAME_GRACE_S = 0.05
+#: SOEM's config_map sizes each slave's process data from the PDO objects it uploads by SDO
+#: itself, and counts an entry whose upload got no answer as 0 bits, without an error. A size
+#: that disagrees with the mapping read here is such a lost answer (a stalled slave or link):
+#: start() goes back to INIT and config_init and tries again, this many times in all, before it
+#: reports the mismatch.
+START_ATTEMPTS = 3
+#: Uploads of the PDO mapping in PRE-OP: a transfer without an answer (not an abort) is tried
+#: again, this many times in all. Reads only: they change nothing on the slave.
+MAPPING_READ_ATTEMPTS = 3
 # ESC registers (ETG.1000.4 Table 31 ff.)
 _REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
 _REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
@@ -63,6 +72,10 @@ _REG_FMMU0 = 0x0600          # 16 bytes per FMMU
 _REG_SM0 = 0x0800            # 8 bytes per SyncManager
 _AL_CONTROL_REG = 0x0120
 _AL_STATUS_REG = 0x0130      # 0x0130 AL status, 0x0134 AL status code
+
+
+class ProcessDataSizeError(BusError):
+    """The process data SOEM sized for a slave disagrees with the slave's PDO mapping."""
 
 
 def _al_state(value: int) -> ALState:
@@ -171,7 +184,8 @@ class PysoemBus(PysoemDc):
 
         def read(index: int, sub: int, size: int) -> bytes:
             return bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True),
-                                   f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}"))
+                                   f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}",
+                                   attempts=MAPPING_READ_ATTEMPTS))
 
         current = read_mapping(read)
         policy = setup.policy
@@ -203,16 +217,27 @@ class PysoemBus(PysoemDc):
             self._preop_values[(position, 0x6502)] = e
         return current
 
-    def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False) -> Any:
+    def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False, attempts: int = 1) -> Any:
         """One SDO transfer; its failure as a BusError naming ``what``, the abort code and its
-        meaning (with ``hint``: what to do instead)."""
-        try:
-            return transfer()
-        except self._pysoem.SdoError as e:
-            code = e.abort_code & 0xFFFFFFFF
-            raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})" + (f": {abort_hint(code)}" if hint else "")) from None
-        except Exception as e:
-            raise BusError(f"{what} failed: {e}") from None
+        meaning (with ``hint``: what to do instead). A transfer that got no answer (not an
+        abort, which is the slave's definite no) is made again up to ``attempts`` times in all:
+        only for transfers that may be repeated (uploads)."""
+        for attempt in range(1, attempts + 1):
+            try:
+                return transfer()
+            except self._pysoem.SdoError as e:
+                code = e.abort_code & 0xFFFFFFFF
+                raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"
+                               + (f": {abort_hint(code)}" if hint else "")) from None
+            except Exception as e:
+                # pysoem's WkcError says nothing by itself: the mailbox exchange got no answer
+                why = str(e) or (f"{type(e).__name__}: no answer from the slave's mailbox"
+                                 if type(e).__name__ == "WkcError" else type(e).__name__)
+                if attempt < attempts:
+                    log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)
+                    continue
+                raise BusError(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
+        raise AssertionError("unreachable")
 
     def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
@@ -232,9 +257,52 @@ class PysoemBus(PysoemDc):
         PRE-OP, build its codec, then SAFE-OP and OP, each with a deadline. ``mapping_override``
         maps slave positions to a :class:`SlaveSetup` (default: policy ``drive``, no SDOs).
         Returns the expected working counter. Raises BusError naming the slave (and the object,
-        abort code or AL status code)."""
+        abort code or AL status code).
+
+        A process-data size that disagrees with the mapping (see :data:`START_ATTEMPTS`) sends
+        the segment back to INIT and config_init for another try; the slaves found then must be
+        the ones found by open()."""
         if not self._opened:
             raise BusError(f"{self.ifname}: start() before open()")
+        for attempt in range(1, START_ATTEMPTS + 1):
+            try:
+                return self._start_once(mapping_override)
+            except ProcessDataSizeError as e:
+                if attempt == START_ATTEMPTS:
+                    raise BusError(f"{e} ({START_ATTEMPTS} attempts from INIT)") from None
+                log.warning("%s: %s; SOEM's own reading of the PDO mapping lost an answer: from INIT "
+                            "again (attempt %d of %d)", self.ifname, e, attempt + 1, START_ATTEMPTS)
+                self._reopen()
+        raise AssertionError("unreachable")
+
+    def _reopen(self) -> None:
+        """Every slave to INIT, the master closed, then open() again; the same slaves (name and
+        identity per position) must answer."""
+        before = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        m = self._master
+        try:
+            self.request_al_state(None, ALState.INIT)
+            m.state_check(int(ALState.INIT), 50_000)
+        except Exception as e:
+            log.warning("%s: INIT request before another start failed: %s", self.ifname, e)
+        finally:
+            try:
+                m.close()
+            except Exception:
+                pass
+            self._master = None
+            self._opened = False
+        self.open()
+        after = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        if after != before:
+            raise BusError(f"{self.ifname}: the segment changed during start-up: {len(before)} slave(s) "
+                           f"{before} before, {len(after)} {after} now")
+
+    def _start_once(self, mapping_override: Mapping[int, object] | None) -> int:
+        """One try of :meth:`start`; raises ProcessDataSizeError on a size mismatch."""
+        self._codecs = []
+        self._mappings = {}
+        self._preop_values = {}
         pysoem = self._pysoem
         m = self._master
         setups: dict[int, SlaveSetup] = {}
@@ -274,7 +342,7 @@ class PysoemBus(PysoemDc):
             except MappingError as e:
                 raise BusError(f"slave {pos} ({s.name!r}): {e}") from None
             if len(s.output) != codec.out_size or len(s.input) != codec.in_size:
-                raise BusError(f"slave {pos} ({s.name!r}): process data is {len(s.output)} bytes out / "
+                raise ProcessDataSizeError(f"slave {pos} ({s.name!r}): process data is {len(s.output)} bytes out / "
                                f"{len(s.input)} in, its PDO mapping says {codec.out_size}/{codec.in_size} "
                                f"({describe(mp)})")
             self._codecs.append(codec)

@@ -70,9 +70,16 @@ def _statuswords(m) -> list[int]:
     return [TX_STRUCT.unpack(bytes(s.input))[0] for s in m.slaves]
 
 
-def _cycle(m) -> int:
-    m.send_processdata()
-    return m.receive_processdata(2000)
+def _cycle(m, lost_frames: bool = False) -> int:
+    """One process-data exchange; its working counter. A frame that does not come back within
+    SOEM's 2 ms (-1, a stall of the shared machine) is sent again, up to 3 times in all, unless
+    the caller looks for lost frames."""
+    for _ in range(1 if lost_frames else 3):
+        m.send_processdata()
+        wkc = m.receive_processdata(2000)
+        if wkc != -1:
+            break
+    return wkc
 
 
 def _enable(m) -> None:
@@ -281,11 +288,11 @@ def test_unplug_plug_wkc_fault_and_frame_faults(ecat_segment):
         _wait(lambda: _cycle(m) == 9 and s.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE, 3.0,
               "slave 1 back in OP")
         assert control.request("drop_frames", count=2)["ok"]
-        assert [_cycle(m) for _ in range(3)] == [-1, -1, 9]
+        assert [_cycle(m, lost_frames=True) for _ in range(3)] == [-1, -1, 9]
         # 50 ms: long after SOEM gave up (2 ms), short of the 100 ms SM watchdog (which would
         # take the slaves to SAFE-OP, where outputs no longer count in the working counter)
         assert control.request("delay_frames", count=1, delay_ms=50)["ok"]
-        assert _cycle(m) == -1  # answered long after SOEM gave up: ignored
+        assert _cycle(m, lost_frames=True) == -1  # answered long after SOEM gave up: ignored
         time.sleep(0.06)
         _wait(lambda: _cycle(m) == 9, 1.0, "cycles after the late answer")
         assert not control.request("drop_frames", ratio=3)["ok"]
@@ -335,9 +342,10 @@ def test_fault_injection_over_zenoh(ecat_segment):
 def test_drives_without_sync0_run_on_the_sm2_event(ecat_segment):
     """Without SYNC0 a simulated drive is SM-synchronous (0x1C32:01 = 1): the frame that writes
     its outputs starts its application cycle, so the master's next frame, however soon, reads
-    the answer to a new controlword. The free-run timer is set to 50 ms here: a drive stepped by
-    the timer would answer within the 6 ms allowed below about one time in eight."""
-    ifname, _control = ecat_segment(2, "generic", "--step-us", "50000")
+    the answer to a new controlword. The free-run timer is set to 200 ms here: a drive stepped by
+    the timer would answer within the 20 ms allowed below fewer than one time in ten (a host
+    stall of a few ms does not fail the test)."""
+    ifname, _control = ecat_segment(2, "generic", "--step-us", "200000")
     with _opened(ifname, 2) as m:
         assert [struct.unpack("<H", s.sdo_read(0x1C32, 1))[0] for s in m.slaves] == [1, 1]
         _to_op(m)
@@ -346,9 +354,9 @@ def test_drives_without_sync0_run_on_the_sm2_event(ecat_segment):
             sent = time.monotonic()
             _cycle(m)  # the SM2 event
             seen = None
-            while seen is None and time.monotonic() - sent < 0.006:
+            while seen is None and time.monotonic() - sent < 0.020:
                 time.sleep(0.002)
                 _cycle(m)
                 if all(sw & 0x006F == pattern for sw in _statuswords(m)):
                     seen = time.monotonic() - sent
-            assert seen is not None, f"controlword 0x{cw:04X}: statusword {_statuswords(m)} not 0x{pattern:04X} in 6 ms"
+            assert seen is not None, f"controlword 0x{cw:04X}: statusword {_statuswords(m)} not 0x{pattern:04X} in 20 ms"

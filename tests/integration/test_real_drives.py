@@ -165,3 +165,31 @@ def test_refusals_name_object_abort_and_policy(ecat_segment, profile, drive, mat
         agent.cycle.open()
     assert agent.cycle.state == "error"
     assert _slaves(control)[0]["al_state"] in ("init", "preop")  # never beyond PRE-OP
+
+
+def test_a_mapping_answer_lost_to_soem_starts_again_from_init(ecat_segment, caplog):
+    """SOEM sizes process data from its own SDO uploads of the mapping and counts an entry that
+    got no answer as 0 bits (here 0x606C, 32 bits). Slave 1 answers this master's upload of 0x1A00:03 (the PO2SO hook)
+    and not SOEM's next one: the sizes disagree, start() goes back to INIT and tries again, and
+    the segment reaches OP with the whole mapping. An upload of this master's own that gets no
+    answer is tried again (0x1A00:04 of slave 0)."""
+    ifname, control = ecat_segment(2)
+    for slave, sub, skip in ((1, 3, 1), (0, 4, 0)):
+        reply = control.request("mute_sdo", slave=slave, index=0x1A00, subindex=sub, skip=skip, count=1)
+        assert reply["ok"], reply
+    bad = control.request("mute_sdo", slave=2, index=0x1A00, subindex=3, skip=0, count=1)
+    assert not bad["ok"] and "slave must be an integer in 0..1" in bad["error"]
+    bus = PysoemBus(ifname)
+    try:
+        bus.open()
+        with caplog.at_level("WARNING", logger="bus_agent.bus.pysoem_bus"):
+            wkc = bus.start()
+        text = caplog.text
+        assert "SDO upload 0x1A00:04" in text and "no answer from the slave's mailbox (attempt 1 of 3)" in text
+        assert "slave 1" in text and "process data is 13 bytes out / 11 in" in text and "from INIT again" in text
+        for pos in (0, 1):
+            assert (bus.codec(pos).out_size, bus.codec(pos).in_size) == (13, 15)
+        assert wkc == 6 and bus.exchange() == wkc  # LRW: 3 per slave
+        assert [s["al_state"] for s in _slaves(control)] == ["op", "op"]
+    finally:
+        bus.close()

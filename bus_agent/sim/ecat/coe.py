@@ -443,6 +443,24 @@ class Mailbox:
         self.last_counter = 0
         self._out_counter = 0
         self.last_sent: bytes | None = None
+        #: Fault injection (control action ``mute_sdo``): [index, subindex, skip, count]. Of
+        #: the uploads of that object, the next ``skip`` are answered and the ``count`` after
+        #: them get no answer at all, as from a mailbox answer lost for good. Kept over reset.
+        self.mute: list[int] | None = None
+
+    def _muted(self, body: memoryview) -> bool:
+        """True for an SDO upload request that the ``mute`` fault swallows (counts it down)."""
+        mute = self.mute
+        if mute is None or len(body) < 6 or body[2] >> 5 != 2 or (body[3] | body[4] << 8, body[5]) != tuple(mute[:2]):
+            return False
+        if mute[2]:
+            mute[2] -= 1
+            return False
+        mute[3] -= 1
+        if mute[3] <= 0:
+            self.mute = None
+        log.info("SDO upload 0x%04X:%02X: no answer (mute_sdo fault)", mute[0], mute[1])
+        return True
 
     def reset(self) -> None:
         self.queue.clear()
@@ -481,6 +499,8 @@ class Mailbox:
         service = (body[1] >> 4) & 0x0F
         if service != CoeService.SDO_REQUEST:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.SERVICE_NOT_SUPPORTED)))
+            return
+        if self._muted(body):
             return
         reply = self.sdo.handle(body)
         if reply is not None:

@@ -9,6 +9,8 @@ A request is a JSON object ``{"action": ..., ...}``; the reply ``{"ok": true, ..
 - ``drop_frames {count | ratio}``: drop the next ``count`` frames, or each with probability ``ratio``
 - ``delay_frames {count, delay_ms}``: answer the next ``count`` frames ``delay_ms`` late
 - ``wkc_fault {slave, on}``: the slave's process data stops counting in the working counter
+- ``mute_sdo {slave, index, subindex, skip, count}``: of the slave's SDO uploads of that object,
+  answer the next ``skip``, then give the ``count`` after them no answer (a lost mailbox answer)
 
 Transports: a UNIX datagram socket (path) or a TCP loopback port (one JSON object per line).
 """
@@ -25,7 +27,7 @@ from bus_agent.sim.ecat.frameloop import FrameLoop
 
 log = logging.getLogger(__name__)
 
-ACTIONS = ("ping", "status", "fault", "unplug", "plug", "drop_frames", "delay_frames", "wkc_fault")
+ACTIONS = ("ping", "status", "fault", "unplug", "plug", "drop_frames", "delay_frames", "wkc_fault", "mute_sdo")
 
 
 class ControlError(ValueError):
@@ -79,6 +81,11 @@ def apply_action(loop: FrameLoop, name: str, req: dict) -> dict:
             if not isinstance(on, bool):
                 raise ControlError(f"on must be true or false, got {on!r}")
             seg.set_wkc_fault(slave, on)
+        elif action == "mute_sdo":
+            slave = _int(req, "slave", 0, n - 1)
+            mute = [_int(req, "index", 0, 0xFFFF), _int(req, "subindex", 0, 0xFF), _int(req, "skip", 0, 1000),
+                    _int(req, "count", 1, 1000)]
+            seg.escs[slave].mailbox.mute = mute
         log.info("control: %s", req)
         return {"ok": True}
     except ControlError as exc:
