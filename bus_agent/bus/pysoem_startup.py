@@ -1,0 +1,361 @@
+"""Start-up of the pysoem backend (the :class:`PysoemStartup` part of
+:class:`bus_agent.bus.pysoem_bus.PysoemBus`): ``open`` = Master.open + config_init (retried
+until a deadline); ``start`` = PDO mapping read (and per policy written) by SDO in PRE-OP through
+pysoem's ``config_func`` hook, config_map, SAFE-OP, then OP with process data flowing, each with a
+deadline. Errors name the slave and decode the AL status code (register 0x0134, ETG.1000.6
+Table 11) or the SDO abort code.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from typing import Any, Callable, Mapping
+
+from bus_agent.bus.base import ALState, BusError, SlaveInfo, SlaveIdentity, al_status_text
+from bus_agent.bus.codec import DriveCodec, segment_decoder
+from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort_hint, check_mapping, describe,
+                                   plan_writes, read_mapping)
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs
+from bus_agent.bus.pysoem_dc import PysoemDc
+
+log = logging.getLogger("bus_agent.bus.pysoem_bus")
+
+STATE_ACK = 0x10
+#: How long open() keeps retrying config_init when no slave answers.
+CONFIG_INIT_DEADLINE_S = 10.0
+#: Deadlines of the AL transitions in start().
+SAFEOP_DEADLINE_S = 5.0
+OP_DEADLINE_S = 5.0
+#: While waiting for an AL state, request it again this often (s).
+STATE_REWRITE_S = 0.25
+#: Short state_check polls (us) so the GIL is given up between them.
+STATE_POLL_US = 5000
+#: SOEM's config_map sizes each slave's process data from the PDO objects it uploads by SDO
+#: itself, and counts an entry whose upload got no answer as 0 bits, without an error. A size
+#: that disagrees with the mapping read here is such a lost answer (a stalled slave or link):
+#: start() goes back to INIT and config_init and tries again, this many times in all, before it
+#: reports the mismatch.
+START_ATTEMPTS = 3
+#: Uploads of the PDO mapping in PRE-OP: a transfer without an answer (not an abort) is tried
+#: again, this many times in all. Reads only: they change nothing on the slave.
+MAPPING_READ_ATTEMPTS = 3
+# ESC registers (ETG.1000.4 Table 31 ff.)
+REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
+REG_FMMU0 = 0x0600          # 16 bytes per FMMU
+REG_SM0 = 0x0800            # 8 bytes per SyncManager
+
+
+class ProcessDataSizeError(BusError):
+    """The process data SOEM sized for a slave disagrees with the slave's PDO mapping."""
+
+
+def al_state(value: int) -> ALState:
+    """The AL state in bits 0-3 of an AL status word (NONE for a value outside the states)."""
+    try:
+        return ALState(value & 0x0F)
+    except ValueError:
+        return ALState.NONE
+
+
+class PysoemStartup(PysoemDc):
+    """open() and start() over the master (attributes set up by PysoemBus)."""
+
+    _pysoem: Any
+    _setups: dict[int, SlaveSetup]
+    _mappings: dict[int, SlaveMapping]
+    _codecs: list[DriveCodec]
+    _preop_values: dict[tuple[int, int], bytes | BusError]
+    _inputs: list[DriveInputs]
+    _esc_config: dict[int, tuple[bytes, bytes]]
+    _expected_wkc: int
+    _opened: bool
+    config_init_deadline_s: float
+    sdo_read: Callable[[int, int, int, int], bytes]                # PysoemBus
+    set_outputs: Callable[[int, DriveOutputs], None]               # PysoemBus
+    request_al_state: Callable[[int | None, ALState], None]        # PysoemBus
+
+    def open(self) -> list[SlaveInfo]:
+        """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
+        pysoem = self._pysoem
+        m = pysoem.Master()
+        try:
+            m.open(self.ifname)
+        except Exception as e:
+            raise BusError(f"{self.ifname}: cannot open the interface: {e}") from None
+        self._master = m
+        deadline = time.monotonic() + self.config_init_deadline_s
+        n = 0
+        while True:
+            try:
+                n = m.config_init(release_gil=True)
+            except Exception as e:
+                self._abort_open()
+                raise BusError(f"{self.ifname}: config_init failed: {e}") from None
+            if n > 0 or time.monotonic() >= deadline:
+                break
+            time.sleep(0.2)
+        if n <= 0:
+            self._abort_open()
+            raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
+        self._slaves = list(m.slaves)
+        self._inputs = [DriveInputs() for _ in self._slaves]
+        self._dc_capable = [self._read_dc_capable(s) for s in self._slaves]
+        self._opened = True
+        infos = []
+        for pos, s in enumerate(self._slaves):
+            infos.append(SlaveInfo(pos, s.name, SlaveIdentity(s.man, s.id, s.rev, 0)))
+            log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
+                     self.ifname, pos, s.name, s.man, s.id, s.rev)
+        return infos
+
+    def _abort_open(self) -> None:
+        try:
+            self._master.close()
+        except Exception:
+            pass
+        self._master = None
+
+    def _config_func(self, position: int) -> None:
+        """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs."""
+        self._configure_slave(position)
+
+    def _configure_slave(self, position: int) -> SlaveMapping:
+        """In PRE-OP: read the drive's PDO mapping, write what its policy wants (only what
+        differs), read it back, check it, then apply the start-up SDOs. SDOs release the GIL.
+        Raises BusError naming the slave, the object, the abort code and what to do."""
+        setup = self._setups.get(position, SlaveSetup())
+        s = self._slaves[position]
+        who = f"slave {position} ({s.name!r})"
+
+        def read(index: int, sub: int, size: int) -> bytes:
+            return bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True),
+                                   f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}",
+                                   attempts=MAPPING_READ_ATTEMPTS))
+
+        current = read_mapping(read)
+        policy = setup.policy
+        steps = plan_writes(policy, current)
+        for step in steps:
+            self._sdo(lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
+                      f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X}", hint=True)
+        if steps:
+            current = read_mapping(read)
+            log.info("%s: mapping policy %s written (%d SDO downloads): %s", who, policy.policy, len(steps),
+                     describe(current))
+        problems = check_mapping(current)
+        if problems:
+            hint = ("use mapping policy 'default' (write the project's layout) or 'predefined'/'explicit'"
+                    if policy.policy == "drive" else "choose other PDOs or entries")
+            raise BusError(f"{who}: its PDO mapping cannot run the cycle: {'; '.join(problems)} "
+                           f"(mapping policy {policy.policy!r}: {describe(current)}); {hint}")
+        for sdo in setup.sdos:
+            self._sdo(lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True), f"{who}: start-up SDO {sdo}")
+        if setup.sdos:
+            log.info("%s: %d start-up SDO(s) applied", who, len(setup.sdos))
+        if position < len(self._codecs) and self._codecs[position].mapping != current:
+            raise BusError(f"{who}: its PDO mapping is not the one of start-up ({describe(current)}, was "
+                           f"{describe(self._codecs[position].mapping)}): not brought back")
+        self._mappings[position] = current
+        try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
+            self._preop_values[(position, 0x6502)] = read(0x6502, 0, 4)
+        except BusError as e:
+            self._preop_values[(position, 0x6502)] = e
+        return current
+
+    def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False, attempts: int = 1) -> Any:
+        """One SDO transfer; its failure as a BusError naming ``what``, the abort code and its
+        meaning (with ``hint``: what to do instead). A transfer that got no answer (not an
+        abort, which is the slave's definite no) is made again up to ``attempts`` times in all:
+        only for transfers that may be repeated (uploads)."""
+        for attempt in range(1, attempts + 1):
+            try:
+                return transfer()
+            except self._pysoem.SdoError as e:
+                code = e.abort_code & 0xFFFFFFFF
+                raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"
+                               + (f": {abort_hint(code)}" if hint else "")) from None
+            except Exception as e:
+                # pysoem's WkcError says nothing by itself: the mailbox exchange got no answer
+                why = str(e) or (f"{type(e).__name__}: no answer from the slave's mailbox"
+                                 if type(e).__name__ == "WkcError" else type(e).__name__)
+                if attempt < attempts:
+                    log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)
+                    continue
+                raise BusError(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
+        raise AssertionError("unreachable")
+
+    def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
+        v = self._preop_values.get((position, index)) if subindex == 0 else None
+        if v is None:
+            return self.sdo_read(position, index, subindex, size)
+        if isinstance(v, BusError):
+            raise v
+        return v
+
+    def codec(self, position: int) -> DriveCodec:
+        """The process-data codec of the slave at ``position`` (after start())."""
+        return self._codecs[position]
+
+    def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
+        """Read (and per policy write) each slave's PDO mapping and apply its start-up SDOs in
+        PRE-OP, build its codec, then SAFE-OP and OP, each with a deadline. ``mapping_override``
+        maps slave positions to a :class:`SlaveSetup` (default: policy ``drive``, no SDOs).
+        Returns the expected working counter. Raises BusError naming the slave (and the object,
+        abort code or AL status code).
+
+        A process-data size that disagrees with the mapping (see :data:`START_ATTEMPTS`) sends
+        the segment back to INIT and config_init for another try; the slaves found then must be
+        the ones found by open()."""
+        if not self._opened:
+            raise BusError(f"{self.ifname}: start() before open()")
+        for attempt in range(1, START_ATTEMPTS + 1):
+            try:
+                return self._start_once(mapping_override)
+            except ProcessDataSizeError as e:
+                if attempt == START_ATTEMPTS:
+                    raise BusError(f"{e} ({START_ATTEMPTS} attempts from INIT)") from None
+                log.warning("%s: %s; SOEM's own reading of the PDO mapping lost an answer: from INIT "
+                            "again (attempt %d of %d)", self.ifname, e, attempt + 1, START_ATTEMPTS)
+                self._reopen()
+        raise AssertionError("unreachable")
+
+    def _reopen(self) -> None:
+        """Every slave to INIT, the master closed, then open() again; the same slaves (name and
+        identity per position) must answer."""
+        before = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        m = self._master
+        try:
+            self.request_al_state(None, ALState.INIT)
+            m.state_check(int(ALState.INIT), 50_000)
+        except Exception as e:
+            log.warning("%s: INIT request before another start failed: %s", self.ifname, e)
+        finally:
+            try:
+                m.close()
+            except Exception:
+                pass
+            self._master = None
+            self._opened = False
+        self.open()
+        after = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        if after != before:
+            raise BusError(f"{self.ifname}: the segment changed during start-up: {len(before)} slave(s) "
+                           f"{before} before, {len(after)} {after} now")
+
+    def _start_once(self, mapping_override: Mapping[int, object] | None) -> int:
+        """One try of :meth:`start`; raises ProcessDataSizeError on a size mismatch."""
+        self._codecs = []
+        self._mappings = {}
+        self._preop_values = {}
+        pysoem = self._pysoem
+        m = self._master
+        setups: dict[int, SlaveSetup] = {}
+        for pos, setup in (mapping_override or {}).items():
+            if not 0 <= pos < len(self._slaves):
+                raise BusError(f"{self.ifname}: a mapping policy is configured for slave {pos}, which is not on the segment")
+            if not isinstance(setup, SlaveSetup):
+                raise BusError(f"slave {pos}: mapping setup must be a SlaveSetup, got {type(setup).__name__}")
+            setups[pos] = setup
+        self._setups = setups
+        self._sync0 = {pos: st.sync0 for pos, st in setups.items() if st.sync0 is not None}
+        before_safeop = any(st.sync0_before_safeop for st in setups.values() if st.sync0 is not None)
+        if self._sync0:
+            # PRE-OP: find the DC slaves, latch and set offsets and delays; from here on every
+            # process-data frame carries the FRMW of the reference clock (master.dc_time)
+            found = m.config_dc()
+            if not found:
+                raise BusError(f"{self.ifname}: config_dc found no DC slave, although slave(s) "
+                               f"{sorted(self._sync0)} report DC in 0x0008")
+        m.manual_state_change = before_safeop  # config_map requests SAFE-OP by itself otherwise
+        for pos, s in enumerate(self._slaves):
+            s.config_func = self._config_func
+        try:
+            m.config_map()
+        except BusError:
+            raise
+        except pysoem.ConfigMapError as e:
+            details = "; ".join(str(x) for x in e.error_list)
+            raise BusError(f"{self.ifname}: config_map: {details}") from None
+        except Exception as e:
+            raise BusError(f"{self.ifname}: config_map failed: {e}") from None
+        self._codecs = []
+        for pos, s in enumerate(self._slaves):
+            mp = self._mappings[pos]
+            try:
+                codec = DriveCodec(mp)
+            except MappingError as e:
+                raise BusError(f"slave {pos} ({s.name!r}): {e}") from None
+            if len(s.output) != codec.out_size or len(s.input) != codec.in_size:
+                raise ProcessDataSizeError(f"slave {pos} ({s.name!r}): process data is {len(s.output)} bytes out / "
+                               f"{len(s.input)} in, its PDO mapping says {codec.out_size}/{codec.in_size} "
+                               f"({describe(mp)})")
+            self._codecs.append(codec)
+            log.info("%s: slave %d: %s; absent actual values: %s; other objects: %s", self.ifname, pos,
+                     describe(mp), ", ".join(codec.absent_inputs) or "none", ", ".join(codec.extra_names) or "none")
+        self._decode_all = segment_decoder(self._codecs, self._inputs, self._slaves, changes=True)
+        if before_safeop:
+            self._start_sync0(sorted(self._sync0))
+            self._wait_sync0_start()
+            m.state = pysoem.SAFEOP_STATE
+            m.write_state()
+        self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
+        if self._sync0 and not before_safeop:
+            self._start_sync0(sorted(self._sync0))
+        self._expected_wkc = m.expected_wkc
+        # Outputs must flow while OP is requested, or the SM watchdog trips on the way.
+        for pos in range(len(self._slaves)):
+            self.set_outputs(pos, DriveOutputs())
+        self.exchange()
+        self._wait_sync0_start(exchange=True)
+        m.state = pysoem.OP_STATE
+        m.write_state()
+        self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
+        self._read_esc_config()
+        self._read_dc_delays()
+        log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
+                 self._expected_wkc)
+        return self._expected_wkc
+
+    def _read_esc_config(self) -> None:
+        """Read back each slave's SM (0x0800) and FMMU (0x0600) registers as SOEM programmed
+        them, so recover() can program a reset slave again without SOEM's reconfig_slave."""
+        for pos, s in enumerate(self._slaves):
+            try:
+                n_fmmu, n_sm = struct.unpack("<BB", s._fprd(REG_FMMU_COUNT, 2, 2000))
+                sm = bytes(s._fprd(REG_SM0, 8 * n_sm, 2000)) if n_sm else b""
+                fmmu = bytes(s._fprd(REG_FMMU0, 16 * n_fmmu, 2000)) if n_fmmu else b""
+            except Exception as e:
+                raise BusError(f"slave {pos} ({s.name!r}): reading back its SM/FMMU registers failed: {e}") from None
+            self._esc_config[pos] = (sm, fmmu)
+
+    def _wait_state(self, state: ALState, deadline_s: float, exchange: bool) -> None:
+        m = self._master
+        deadline = time.monotonic() + deadline_s
+        rewrite_at = time.monotonic() + STATE_REWRITE_S
+        while True:
+            if exchange:
+                self.exchange()
+            if m.state_check(int(state), STATE_POLL_US) == int(state):
+                return
+            now = time.monotonic()
+            if now >= deadline:
+                break
+            if now >= rewrite_at:
+                # An AL control write lost on the wire (SOEM gives up after its retries) must not
+                # fail start-up: writing the same request again is idempotent (ETG.1000.6 0x0120).
+                rewrite_at = now + STATE_REWRITE_S
+                m.state = int(state)
+                m.write_state()
+        m.read_state()
+        bad = []
+        for pos, s in enumerate(self._slaves):
+            st = s.state
+            if al_state(st) != state or st & STATE_ACK:
+                code = s.al_status
+                bad.append(f"slave {pos} ({s.name!r}) in {al_state(st).wire_name}"
+                           + (f" with error: AL status code 0x{code:04X} {al_status_text(code)}" if st & STATE_ACK else ""))
+        raise BusError(f"{self.ifname}: {state.wire_name} not reached within {deadline_s:g} s: "
+                       + ("; ".join(bad) or "no slave reports an error"))
