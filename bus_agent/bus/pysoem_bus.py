@@ -315,18 +315,5 @@ class PysoemBus(PysoemStartup):
         if self._closed:
             return
         self._closed = True
-        m = self._master
-        if m is None:
-            return
-        try:
-            if self._opened:
-                self.request_al_state(None, ALState.INIT)
-                m.state_check(int(ALState.INIT), 50_000)
-        except Exception as e:
-            log.warning("%s: INIT request on close failed: %s", self.ifname, e)
-        finally:
-            try:
-                m.close()
-            except Exception:
-                pass
-            self._master = None
+        if self._master is not None:
+            self._release_master("on close")

@@ -226,24 +226,29 @@ class PysoemStartup(PysoemDc):
         """Every slave to INIT, the master closed, then open() again; the same slaves (name and
         identity per position) must answer."""
         before = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        self._release_master("before another start")
+        self._opened = False
+        self.open()
+        after = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        if after != before:
+            raise BusError(f"{self.ifname}: the segment changed during start-up: {len(before)} slave(s) "
+                           f"{before} before, {len(after)} {after} now")
+
+    def _release_master(self, when: str) -> None:
+        """Every slave to INIT (briefly checked) if the segment was opened, then the NIC released."""
         m = self._master
         try:
-            self.request_al_state(None, ALState.INIT)
-            m.state_check(int(ALState.INIT), 50_000)
+            if self._opened:
+                self.request_al_state(None, ALState.INIT)
+                m.state_check(int(ALState.INIT), 50_000)
         except Exception as e:
-            log.warning("%s: INIT request before another start failed: %s", self.ifname, e)
+            log.warning("%s: INIT request %s failed: %s", self.ifname, when, e)
         finally:
             try:
                 m.close()
             except Exception:
                 pass
             self._master = None
-            self._opened = False
-        self.open()
-        after = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
-        if after != before:
-            raise BusError(f"{self.ifname}: the segment changed during start-up: {len(before)} slave(s) "
-                           f"{before} before, {len(after)} {after} now")
 
     def _start_once(self, mapping_override: Mapping[int, object] | None) -> int:
         """One try of :meth:`start`; raises ProcessDataSizeError on a size mismatch."""
