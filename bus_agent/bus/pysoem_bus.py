@@ -29,6 +29,7 @@ from typing import Any, Callable, Sequence
 
 from bus_agent.bus.base import ALState, BusError, SlaveALStatus, al_status_text
 from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.emergency import EmergencyLog
 from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
@@ -91,6 +92,10 @@ class PysoemBus(PysoemStartup):
         self._frames_back = 0
         self._frames_back_at = 0
         self._poll_first = -1
+        self._emcy = EmergencyLog()
+        self._mailbox_turn = -1
+        #: position -> (error code, text) of its last CoE emergency (read by the cycle for error_text)
+        self.error_texts = self._emcy.error_texts
 
     # ---- start-up ------------------------------------------------------------------------------
 
@@ -297,6 +302,32 @@ class PysoemBus(PysoemStartup):
         self._write_al_control(position, int(ALState.INIT))
         self._recover_step[position] = "to_init"
         return False
+
+    # ---- emergencies (CoE EMCY) -------------------------------------------------------------------
+
+    def _on_emergency(self, position: int, e: Any) -> None:
+        """pysoem's emergency callback (a ``pysoem.Emergency``), on the thread that read the
+        mailbox: start-up or the management thread."""
+        text = self._emcy.record(position, e.error_code, e.error_reg)
+        log.warning("%s: slave %d: EMCY 0x%04X (%s), error register 0x%02X, data %02X %04X %04X", self.ifname,
+                    position, e.error_code, text, e.error_reg, e.b1, e.w1, e.w2)
+
+    def take_emergencies(self) -> list[tuple[int, int, int, str]]:
+        """CoE emergencies since the last call as (position, error code, register, text). Cycle-safe."""
+        return self._emcy.take()
+
+    def poll_mailbox(self, position: int | None) -> None:
+        """Read the slave's mailbox if it holds something (one datagram when empty, holding the
+        GIL for it): an emergency goes to the log. ``None``: the next slave in turn. Management
+        thread only. Raises BusError."""
+        if position is None:
+            if not self._slaves:
+                return
+            position = self._mailbox_turn = (self._mailbox_turn + 1) % len(self._slaves)
+        try:
+            self._slaves[position].mbx_receive()
+        except Exception as e:
+            raise BusError(f"slave {position}: mailbox read failed: {type(e).__name__} {e}") from None
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """CoE SDO upload. Raises BusError with the abort code. Not cycle-safe (mailbox round trips)."""

@@ -8,6 +8,7 @@ Table 11) or the SDO abort code.
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
 import time
@@ -72,6 +73,7 @@ class PysoemStartup(PysoemDc):
     _expected_wkc: int
     _opened: bool
     config_init_deadline_s: float
+    _on_emergency: Callable[[int, Any], None]                      # PysoemBus
     sdo_read: Callable[[int, int, int, int], bytes]                # PysoemBus
     set_outputs: Callable[[int, DriveOutputs], None]               # PysoemBus
     request_al_state: Callable[[int | None, ALState], None]        # PysoemBus
@@ -100,6 +102,10 @@ class PysoemStartup(PysoemDc):
             self._abort_open()
             raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
         self._slaves = list(m.slaves)
+        for pos, s in enumerate(self._slaves):
+            # CoE emergencies reach the bus's log whenever SOEM reads the mailbox (every SDO
+            # transfer, poll_mailbox); without a callback pysoem would fail that SDO transfer
+            s.add_emergency_callback(functools.partial(self._on_emergency, pos))
         self._inputs = [DriveInputs() for _ in self._slaves]
         self._dc_capable = [self._read_dc_capable(s) for s in self._slaves]
         self._opened = True

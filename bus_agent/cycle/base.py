@@ -94,11 +94,13 @@ class CycleBase:
         self._express_events: list[CycleEvent] = []
         self.express_exchanges = 0
         self._events: list[CycleEvent] = []
-        # Optional bus hooks (the CANopen backend): EMCY frames as (slave, error code, register,
-        # text), and the text of the last emergency per slave as {slave: (error code, text)}.
+        # Optional bus hooks (CANopen and pysoem, bus.emergency.EmergencyLog): emergencies as
+        # (slave, error code, register, text), the text of the last one per slave as {slave: (error
+        # code, text)}; a bus with mailboxes (pysoem) has the management thread read them.
         self._take_emergencies: Callable[[], list[tuple[int, int, int, str]]] | None = \
             getattr(bus, "take_emergencies", None)
         self._error_texts: dict[int, tuple[int, str]] = getattr(bus, "error_texts", {})
+        self._reads_mailbox = getattr(bus, "poll_mailbox", None) is not None
         self._lost_origins: list[tuple[str, str]] = []
         self._ordered_stop = True
         self._desired_al: dict[int, ALState] = {}

@@ -370,6 +370,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
             if st in FAULT_STATES and d.state not in FAULT_STATES:
                 if d.sdo_error_code:
                     mgmt.sdo(SdoJob(d.slave, "error_code", deadline_ns=now_ns + 1_000_000_000))  # 0x603F not mapped
+                elif self._reads_mailbox:
+                    mgmt.sdo(SdoJob(d.slave, "mailbox"))  # the fault's EMCY (the SDO read above gets it too)
                 for g in self.groups.of_axis(d.axis):
                     origins.append((g, f"{self.config.host}/{d.axis} fault 0x{d.inputs.error_code:04X}"))
                 d.fault_since_ns = now_ns

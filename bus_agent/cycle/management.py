@@ -32,13 +32,17 @@ RECOVER_EVERY_CYCLES = 10
 MODE_POLL_NS = 5_000_000
 #: Reads of an SDO job tried this often before its error is reported.
 SDO_ATTEMPTS = 5
+#: A bus with mailboxes (``poll_mailbox``, EtherCAT CoE): one slave's mailbox is read this often,
+#: in turn, for emergencies that no SDO transfer picked up (a drive's warning). A drive that
+#: enters Fault has its mailbox read at once (an SdoJob of kind "mailbox").
+MAILBOX_POLL_NS = 100_000_000
 
 
 @dataclass
 class SdoJob:
     """An object served by SDO because the drive does not map it (never on the cycle thread).
 
-    ``kind`` "mode": write 0x6060 = ``value`` (unless ``written``: it is in the PDOs), then read 0x6061 every :data:`MODE_POLL_NS` until
+    ``kind`` "mailbox": read the slave's mailbox once (its emergency); "mode": write 0x6060 = ``value`` (unless ``written``: it is in the PDOs), then read 0x6061 every :data:`MODE_POLL_NS` until
     it echoes or ``deadline_ns``; "error_code": read 0x603F once; "write": download ``writes``
     ((index, subindex, data), in order, stopping at the first refusal; homing parameters).
     Reports ``("sdo", slave, what, value, error)`` with what = "mode_write" (error only),
@@ -86,6 +90,8 @@ class Management:
         self._last_poll_ns: int | None = None
         self._next_recover: dict[int, int] = {}
         self._reported: set[tuple[int, int]] = set()
+        self._poll_mailbox: Callable[[int | None], None] | None = getattr(bus, "poll_mailbox", None)
+        self._next_mailbox_ns = 0
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -147,6 +153,8 @@ class Management:
                 due = min(due, self._next_recover.get(_slave, now))
             for job in self._sdo_jobs:
                 due = min(due, job.next_ns)
+            if self._poll_mailbox is not None:
+                due = min(due, self._next_mailbox_ns)
             self._wake.wait(min(max(due - now, 200_000), 100_000_000) / 1e9)
 
     def run_once(self, now_ns: int) -> None:
@@ -176,6 +184,9 @@ class Management:
                 statuses = None
             self.reports.append(("al", statuses, ticket))
         self._run_sdo_jobs(now_ns)
+        if self._poll_mailbox is not None and now_ns >= self._next_mailbox_ns:
+            self._next_mailbox_ns = now_ns + MAILBOX_POLL_NS
+            self._read_mailbox(None)  # the next slave in turn
         keys = self.recover_set
         self._reported &= keys
         for key in sorted(keys):
@@ -211,9 +222,20 @@ class Management:
                 keep.append(job)
         self._sdo_jobs = keep
 
+    def _read_mailbox(self, slave: int | None) -> None:
+        assert self._poll_mailbox is not None
+        try:
+            self._poll_mailbox(slave)
+        except Exception as e:  # a slave being recovered or gone: its AL status says so
+            log.debug("host %s: %s", self.host, e)
+
     def _sdo_step(self, job: SdoJob, now_ns: int) -> bool:
         """One step of a job; True while it is not finished."""
         bus = self.bus
+        if job.kind == "mailbox":
+            if self._poll_mailbox is not None:
+                self._read_mailbox(job.slave)
+            return False
         if job.kind == "write":
             error = ""
             for index, subindex, data in job.writes:
@@ -239,7 +261,8 @@ class Management:
             if what == "mode_write" and "aborted" not in str(e):
                 job.written = False  # no answer (a mailbox timeout under load): write again; an abort is final
             if (what != "mode_write" or not job.written) and job.attempts < SDO_ATTEMPTS and now_ns < job.deadline_ns:
-                # an emergency in the mailbox (the fault's own EMCY) fails SOEM's upload: read again
+                # no answer in time (a mailbox timeout under load, or a backend that fails the
+                # upload on the fault's own EMCY): read again
                 return True
             self.reports.append(("sdo", job.slave, what, None, str(e)))
             return False

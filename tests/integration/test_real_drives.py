@@ -18,6 +18,7 @@ from bus_agent.bus.base import BusError
 from bus_agent.bus.mapping import MappingPolicy, StartupSdo
 from bus_agent.bus.pysoem_bus import PysoemBus
 from bus_agent.config import AgentConfig, DriveConfig
+from bus_agent.cycle import management
 from bus_agent.cycle.cycle import Cycle
 from bus_agent.runtime import DriveCommand, Outcome
 from bus_agent.sim import child
@@ -193,3 +194,54 @@ def test_a_mapping_answer_lost_to_soem_starts_again_from_init(ecat_segment, capl
         assert [s["al_state"] for s in _slaves(control)] == ["op", "op"]
     finally:
         bus.close()
+
+
+def test_coe_emergencies_reach_the_log_and_do_not_fail_sdo_transfers(ecat_segment):
+    """A drive's CoE emergency (EMCY in its mailbox) is taken by the SDO transfer that finds it,
+    which still succeeds (pysoem fails it without an emergency callback), or by poll_mailbox;
+    either way it reaches take_emergencies() and error_texts with its error code and text."""
+    ifname, control = ecat_segment(2)
+    bus = PysoemBus(ifname)
+    try:
+        bus.open()
+        bus.start()
+        assert bus.take_emergencies() == []
+        assert control.request("fault", slave=1, error_code=0x2310)["ok"]
+        _wait(lambda: bus.exchange() and _slaves(control)[1]["drive_state"] == "fault", 3, "slave 1 in fault")
+        assert struct.unpack("<H", bus.sdo_read(1, 0x603F, 0, 2))[0] == 0x2310  # the EMCY came first
+        assert bus.take_emergencies() == [(1, 0x2310, 0x03, "continuous over-current")]
+        assert bus.error_texts == {1: (0x2310, "continuous over-current")}
+        assert control.request("fault", slave=0, error_code=0x7500)["ok"]
+        _wait(lambda: bus.exchange() and _slaves(control)[0]["drive_state"] == "fault", 3, "slave 0 in fault")
+        bus.poll_mailbox(0)
+        assert bus.take_emergencies() == [(0, 0x7500, 0x21, "communication")]
+        bus.poll_mailbox(None)  # the next slave in turn; nothing waits there
+        bus.poll_mailbox(None)
+        assert bus.take_emergencies() == []
+    finally:
+        bus.close()
+
+
+def test_the_cycle_reports_a_coe_emergency_as_an_event(ecat_segment, monkeypatch):
+    """The cycle reads the mailbox of a drive that enters Fault: its EMCY becomes an ``emcy``
+    event with the code, its text and the error register; the status's error_text is the EMCY's.
+    The slow poll of every mailbox in turn is put off here, so only that read can find it."""
+    monkeypatch.setattr(management, "MAILBOX_POLL_NS", 3600 * 10**9)
+    ifname, control = ecat_segment(2)
+    agent = Agent(ifname)
+    agent.cycle.start()
+    try:
+        _wait(lambda: agent.cycle.latest is not None, 10, "the first snapshot")
+        assert control.request("fault", slave=1, error_code=0x2310)["ok"]
+
+        def emcy():
+            with agent.lock:
+                return [e for e in agent.events if e.kind == "emcy"]
+        _wait(lambda: emcy(), 3, "an emcy event")
+        (ev,) = emcy()
+        assert ev.axis == "axis1" and ev.error_code == 0x2310
+        assert ev.detail == "EMCY 0x2310 continuous over-current (error register 0x03)"
+        _wait(lambda: agent.drive("axis1").error_text == "continuous over-current", 3, "the EMCY's text in the status")
+        assert agent.drive("axis0").error_code == 0 and agent.drive("axis0").state == "switch_on_disabled"
+    finally:
+        agent.cycle.stop()

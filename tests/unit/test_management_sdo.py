@@ -50,3 +50,41 @@ def test_a_refused_mode_download_is_reported_once_and_not_retried():
     reports = _run(bus)
     assert bus.writes == 1
     assert [r[2] for r in reports] == ["mode_write"] and "aborted 0x06090030" in reports[0][4]
+
+
+class PolledBus:
+    """A bus with mailboxes: records each poll_mailbox call; the second one fails."""
+
+    def __init__(self) -> None:
+        self.polls: list[int | None] = []
+
+    def poll_mailbox(self, position: int | None) -> None:
+        self.polls.append(position)
+        if len(self.polls) == 2:
+            raise BusError("slave 1: mailbox read failed: WkcError")
+
+    def read_al_status(self):
+        return ()
+
+
+def test_mailboxes_are_read_in_turn_every_poll_period_and_at_once_for_a_job():
+    """One mailbox (the bus's next in turn) per MAILBOX_POLL_NS, a failed read logged and the
+    schedule kept; a "mailbox" job (a drive entered Fault) reads that slave's at once."""
+    from bus_agent.cycle.management import MAILBOX_POLL_NS
+
+    bus = PolledBus()
+    m = Management(bus, lambda: 0, 1_000_000, "h1")  # type: ignore[arg-type]
+    for now in (0, 1, MAILBOX_POLL_NS - 1, MAILBOX_POLL_NS, MAILBOX_POLL_NS + 5, 2 * MAILBOX_POLL_NS):
+        m.run_once(now)
+    assert bus.polls == [None, None, None]
+    m.sdo(SdoJob(3, "mailbox"))
+    m.run_once(2 * MAILBOX_POLL_NS + 1)
+    assert bus.polls == [None, None, None, 3] and not m._sdo_jobs
+    assert not [r for r in m.reports if r[0] == "sdo"]  # a mailbox read reports nothing itself
+
+
+def test_a_bus_without_mailboxes_is_never_polled():
+    m = Management(MailboxBus(), lambda: 0, 1_000_000, "h1")  # type: ignore[arg-type]
+    m.sdo(SdoJob(0, "mailbox"))
+    m.run_once(0)
+    assert not m._sdo_jobs and m._poll_mailbox is None

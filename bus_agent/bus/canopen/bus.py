@@ -35,6 +35,7 @@ from bus_agent.bus.canopen.heartbeat import HeartbeatConsumer
 from bus_agent.bus.canopen.nmt import (AL_OF_NMT, BROADCAST, HEARTBEAT_COB_BASE, NMT_COB_ID, NMT_FOR_AL,
                                        NmtCommand, NmtState, nmt_frame)
 from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.emergency import EmergencyLog
 from bus_agent.bus.mapping import MappingError, SlaveMapping, describe
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.can_config import CanConfig
@@ -131,9 +132,9 @@ class CanopenBus:
         self._by_id = {c.node_id: i for i, c in enumerate(cfgs)}
         self.heartbeats = HeartbeatConsumer(tuple(ids), heartbeat_ms / 1000.0 * HEARTBEAT_TIMEOUT_FACTOR)
         self.emergencies: collections.deque[emcy_mod.Emergency] = collections.deque(maxlen=256)
-        self._emcy_new: collections.deque[tuple[int, int, int, str]] = collections.deque(maxlen=256)
+        self._emcy = EmergencyLog()
         #: position -> (error code, text) of its last EMCY (read by the cycle for error_text)
-        self.error_texts: dict[int, tuple[int, str]] = {}
+        self.error_texts = self._emcy.error_texts
         self.frames_sent = 0
         self.exchanges = 0
         self._changed: list[int] = []
@@ -161,9 +162,7 @@ class CanopenBus:
         pos = self._by_id.get(e.node_id)
         if pos is not None:
             self._nodes[pos].last_emcy = e
-            if not e.reset:
-                self.error_texts[pos] = (e.error_code, e.text)
-            self._emcy_new.append((pos, e.error_code, e.error_register, e.text))
+            self._emcy.record(pos, e.error_code, e.error_register)
         self.emergencies.append(e)
         log.warning("CAN %s node %d: EMCY 0x%04X (%s), error register 0x%02X", self.channel, e.node_id,
                     e.error_code, e.text, e.error_register)
@@ -428,11 +427,7 @@ class CanopenBus:
 
     def take_emergencies(self) -> list[tuple[int, int, int, str]]:
         """EMCY frames since the last call as (position, error code, register, text). Cycle-safe."""
-        out = []
-        q = self._emcy_new
-        while q:
-            out.append(q.popleft())
-        return out
+        return self._emcy.take()
 
     def last_emergency(self, position: int) -> emcy_mod.Emergency | None:
         return self._node(position).last_emcy

@@ -11,15 +11,11 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from schemas.error_codes import ERROR_CLASSES, describe
+from bus_agent.bus.emergency import error_text
+
+__all__ = ["EMCY_STRUCT", "Emergency", "decode", "encode", "error_text"]
 
 EMCY_STRUCT = struct.Struct("<HB5s")
-
-
-def error_text(code: int) -> str:
-    """The meaning of an EMCY / 0x603F error code (:func:`schemas.error_codes.describe`: the
-    code, else its sub-class or class, with the code); "error reset or no error" for 0x00xx."""
-    return describe(code) if code & 0xFF00 else ERROR_CLASSES[0]
 
 
 @dataclass(frozen=True)
