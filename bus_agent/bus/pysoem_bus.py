@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import struct
+import threading
 import time
 from typing import Any, Callable, Sequence
 
@@ -94,6 +95,7 @@ class PysoemBus(PysoemStartup):
         self._poll_first = -1
         self._emcy = EmergencyLog()
         self._mailbox_turn = -1
+        self._mailbox_lock = threading.Lock()
         #: position -> (error code, text) of its last CoE emergency (read by the cycle for error_text)
         self.error_texts = self._emcy.error_texts
 
@@ -318,16 +320,20 @@ class PysoemBus(PysoemStartup):
 
     def poll_mailbox(self, position: int | None) -> None:
         """Read the slave's mailbox if it holds something (one datagram when empty, holding the
-        GIL for it): an emergency goes to the log. ``None``: the next slave in turn. Management
-        thread only. Raises BusError."""
+        GIL for it): an emergency goes to the log. ``None``: the next slave in turn. Skipped
+        while an SDO transfer runs (on any thread). Raises BusError."""
         if position is None:
             if not self._slaves:
                 return
             position = self._mailbox_turn = (self._mailbox_turn + 1) % len(self._slaves)
+        if not self._mailbox_lock.acquire(blocking=False):
+            return  # an SDO transfer is reading the mailboxes: it hands any emergency over itself
         try:
             self._slaves[position].mbx_receive()
         except Exception as e:
             raise BusError(f"slave {position}: mailbox read failed: {type(e).__name__} {e}") from None
+        finally:
+            self._mailbox_lock.release()
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """CoE SDO upload. Raises BusError with the abort code. Not cycle-safe (mailbox round trips)."""

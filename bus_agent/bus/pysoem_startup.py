@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import logging
 import struct
+import threading
 import time
 from typing import Any, Callable, Mapping
 
@@ -74,6 +75,9 @@ class PysoemStartup(PysoemDc):
     _opened: bool
     config_init_deadline_s: float
     _on_emergency: Callable[[int, Any], None]                      # PysoemBus
+    #: Held for every mailbox exchange (SDO transfer, mailbox read): a mailbox read on one thread
+    #: would take the answer an SDO transfer on another waits for.
+    _mailbox_lock: threading.Lock
     sdo_read: Callable[[int, int, int, int], bytes]                # PysoemBus
     set_outputs: Callable[[int, DriveOutputs], None]               # PysoemBus
     request_al_state: Callable[[int | None, ALState], None]        # PysoemBus
@@ -177,7 +181,8 @@ class PysoemStartup(PysoemDc):
         only for transfers that may be repeated (uploads)."""
         for attempt in range(1, attempts + 1):
             try:
-                return transfer()
+                with self._mailbox_lock:
+                    return transfer()
             except self._pysoem.SdoError as e:
                 code = e.abort_code & 0xFFFFFFFF
                 raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"

@@ -245,3 +245,31 @@ def test_the_cycle_reports_a_coe_emergency_as_an_event(ecat_segment, monkeypatch
         assert agent.drive("axis0").error_code == 0 and agent.drive("axis0").state == "switch_on_disabled"
     finally:
         agent.cycle.stop()
+
+
+def test_mailbox_reads_never_take_an_sdo_transfers_answer(ecat_segment):
+    """poll_mailbox on one thread while SDO uploads run on another (the management thread and a
+    caller of bus.sdo_read): the mailbox lock keeps the poll from taking an upload's answer."""
+    ifname, _control = ecat_segment(1)
+    bus = PysoemBus(ifname)
+    try:
+        bus.open()
+        bus.start()
+        stop = threading.Event()
+        polls = [0]
+
+        def poll() -> None:
+            while not stop.is_set():
+                bus.poll_mailbox(0)
+                polls[0] += 1
+
+        t = threading.Thread(target=poll)
+        t.start()
+        try:
+            values = {struct.unpack("<I", bus.sdo_read(0, 0x1018, 1, 4))[0] for _ in range(200)}
+        finally:
+            stop.set()
+            t.join()
+        assert len(values) == 1 and polls[0] > 200
+    finally:
+        bus.close()
