@@ -280,6 +280,12 @@ def check_mapping(m: SlaveMapping) -> list[str]:
         problems.append("0x6040 (controlword) is not in the outputs (RxPDO)")
     if not m.has_tx(0x6041):
         problems.append("0x6041 (statusword) is not in the inputs (TxPDO)")
+    for side, entries in (("outputs (RxPDO)", m.rx), ("inputs (TxPDO)", m.tx)):
+        seen: set[tuple[int, int]] = set()
+        for e in entries:
+            if not e.padding and e.key in seen:
+                problems.append(f"0x{e.index:04X}:{e.subindex:02X} is mapped twice in the {side}")
+            seen.add(e.key)
     if m.has_rx(0x607A) and not m.has_tx(0x6064):
         problems.append("0x607A (target position) is mapped but 0x6064 (position actual value) is not: "
                         "the target could not be held at the actual position on enable")

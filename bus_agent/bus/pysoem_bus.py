@@ -96,6 +96,7 @@ class PysoemBus(PysoemStartup):
         self._emcy = EmergencyLog()
         self._mailbox_turn = -1
         self._mailbox_lock = threading.Lock()
+        self._sdo_retries = 0
         #: position -> (error code, text) of its last CoE emergency (read by the cycle for error_text)
         self.error_texts = self._emcy.error_texts
 

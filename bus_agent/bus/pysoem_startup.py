@@ -78,6 +78,8 @@ class PysoemStartup(PysoemDc):
     #: Held for every mailbox exchange (SDO transfer, mailbox read): a mailbox read on one thread
     #: would take the answer an SDO transfer on another waits for.
     _mailbox_lock: threading.Lock
+    #: Transfers made again (no answer in time, or an answer of the wrong size) since open.
+    _sdo_retries: int
     sdo_read: Callable[[int, int, int, int], bytes]                # PysoemBus
     set_outputs: Callable[[int, DriveOutputs], None]               # PysoemBus
     request_al_state: Callable[[int | None, ALState], None]        # PysoemBus
@@ -140,18 +142,27 @@ class PysoemStartup(PysoemDc):
         who = f"slave {position} ({s.name!r})"
 
         def read(index: int, sub: int, size: int) -> bytes:
-            return bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True),
-                                   f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}",
-                                   attempts=MAPPING_READ_ATTEMPTS))
+            what = f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}"
+            for _ in range(MAPPING_READ_ATTEMPTS):
+                data = bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True), what,
+                                       attempts=MAPPING_READ_ATTEMPTS))
+                if len(data) == size:
+                    return data
+                # the late answer to an earlier upload of this object (another subindex)
+                self._sdo_retries += 1
+                log.warning("%s: %d byte(s) where the object has %d: the answer to another upload; again",
+                            what, len(data), size)
+            raise BusError(f"{what}: answered {len(data)} byte(s) where the object has {size}, "
+                           f"{MAPPING_READ_ATTEMPTS} times")
 
-        current = read_mapping(read)
+        current = self._read_mapping_twice(read, who)
         policy = setup.policy
         steps = plan_writes(policy, current)
         for step in steps:
             self._sdo(lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
                       f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X}", hint=True)
         if steps:
-            current = read_mapping(read)
+            current = self._read_mapping_twice(read, who)
             log.info("%s: mapping policy %s written (%d SDO downloads): %s", who, policy.policy, len(steps),
                      describe(current))
         problems = check_mapping(current)
@@ -169,10 +180,32 @@ class PysoemStartup(PysoemDc):
                            f"{describe(self._codecs[position].mapping)}): not brought back")
         self._mappings[position] = current
         try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
-            self._preop_values[(position, 0x6502)] = read(0x6502, 0, 4)
+            self._preop_values[(position, 0x6502)] = bytes(self._sdo(
+                lambda: s.sdo_read(0x6502, 0, 4, release_gil=True), f"{who}: SDO upload 0x6502:00",
+                attempts=MAPPING_READ_ATTEMPTS))
         except BusError as e:
             self._preop_values[(position, 0x6502)] = e
         return current
+
+    def _read_mapping_twice(self, read: Callable[[int, int, int], bytes], who: str) -> SlaveMapping:
+        """The slave's mapping (:func:`read_mapping`). After an upload that got no answer in
+        time, its answer may still come and be taken for the next upload of the same object:
+        SOEM matches an answer's index, not its subindex. So a read during which any upload was
+        made again is followed by another, until one goes without and agrees with the one before."""
+        retries = self._sdo_retries
+        current = read_mapping(read)
+        for _ in range(MAPPING_READ_ATTEMPTS):
+            if self._sdo_retries == retries:
+                return current
+            log.warning("%s: reading its PDO mapping needed another try: reading it again (%s)", who,
+                        describe(current))
+            retries = self._sdo_retries
+            again = read_mapping(read)
+            if again == current and self._sdo_retries == retries:
+                return current
+            current = again
+        raise BusError(f"{who}: its PDO mapping could not be read twice alike without lost answers "
+                       f"({MAPPING_READ_ATTEMPTS + 1} reads; the last: {describe(current)}); check the link")
 
     def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False, attempts: int = 1) -> Any:
         """One SDO transfer; its failure as a BusError naming ``what``, the abort code and its
@@ -192,6 +225,7 @@ class PysoemStartup(PysoemDc):
                 why = str(e) or (f"{type(e).__name__}: no answer from the slave's mailbox"
                                  if type(e).__name__ == "WkcError" else type(e).__name__)
                 if attempt < attempts:
+                    self._sdo_retries += 1
                     log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)
                     continue
                 raise BusError(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
