@@ -53,6 +53,14 @@ class ProcessDataSizeError(BusError):
     """The process data SOEM sized for a slave disagrees with the slave's PDO mapping."""
 
 
+def transfer_failure_text(e: BaseException) -> str:
+    """What a failed pysoem mailbox transfer says; pysoem's WkcError says nothing by itself: the
+    exchange got no answer in time."""
+    if type(e).__name__ == "WkcError":
+        return "WkcError: no answer from the slave's mailbox"
+    return str(e) or type(e).__name__
+
+
 def al_state(value: int) -> ALState:
     """The AL state in bits 0-3 of an AL status word (NONE for a value outside the states)."""
     try:
@@ -221,9 +229,7 @@ class PysoemStartup(PysoemDc):
                 raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"
                                + (f": {abort_hint(code)}" if hint else "")) from None
             except Exception as e:
-                # pysoem's WkcError says nothing by itself: the mailbox exchange got no answer
-                why = str(e) or (f"{type(e).__name__}: no answer from the slave's mailbox"
-                                 if type(e).__name__ == "WkcError" else type(e).__name__)
+                why = transfer_failure_text(e)
                 if attempt < attempts:
                     self._sdo_retries += 1
                     log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)

@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 
 from bus_agent.bus.base import BusError
 from bus_agent.bus.mapping import SlaveMapping, read_mapping
+from bus_agent.bus.pysoem_startup import transfer_failure_text
 from bus_agent.cia402.states import Mode
 
 #: SII word 0x1C mailbox protocol bits (ETG.1000.6 Table 18).
@@ -164,7 +165,12 @@ def scan_segment(ifname: str) -> list[SlaveScan]:
                 raise BusError(f"slave {pos} ({s.name!r}): registers not readable: {e}") from None
 
             def read(index: int, sub: int, size: int, s: Any = s) -> bytes:
-                return bytes(s.sdo_read(index, sub, size, release_gil=True))
+                try:
+                    return bytes(s.sdo_read(index, sub, size, release_gil=True))
+                except pysoem.SdoError:
+                    raise
+                except Exception as e:
+                    raise BusError(f"SDO upload 0x{index:04X}:{sub:02X}: {transfer_failure_text(e)}") from None
 
             out.append(scan_slave(pos, s.name, (s.man, s.id, s.rev), bool(features & 0x0004), word, read))
         return out

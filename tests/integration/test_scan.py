@@ -56,3 +56,16 @@ def test_scan_of_an_unreadable_segment_is_a_clear_error(ecat_segment):
     out = subprocess.run([sys.executable, "-m", "bus_agent.cli", "scan", "--ifname", "zdnosuchif0"],
                          cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 3 and "zdnosuchif0: cannot open the interface" in out.stderr, out.stderr
+
+
+def test_an_upload_without_answer_is_named_and_the_rest_still_read(ecat_segment):
+    """0x6502 of slave 1 gets no answer: the scan says which upload and why, and reads the
+    identity and the mapping of every slave all the same."""
+    ifname, control = ecat_segment(2)
+    assert control.request("mute_sdo", slave=1, index=0x6502, subindex=0, skip=0, count=1)["ok"]
+    scans = scan_segment(ifname)
+    assert not scans[0].errors and scans[0].modes == ALL_MODES
+    assert scans[1].errors == ("0x6502 supported drive modes: SDO upload 0x6502:00: WkcError: no answer from "
+                               "the slave's mailbox",)
+    assert [s.serial for s in scans] == [1, 2] and all((s.mapping.out_bytes, s.mapping.in_bytes) == (13, 15)
+                                                      for s in scans)
