@@ -388,9 +388,16 @@ class PysoemStartup(PysoemDc):
             self._esc_config[pos] = (sm, fmmu)
 
     def _wait_state(self, state: ALState, deadline_s: float, exchange: bool) -> None:
+        """Until every slave is in ``state`` (requested already), at most ``deadline_s``: the
+        request is written again every STATE_REWRITE_S. A slave that refuses sets its error
+        indication (AL status bit 4) and stays below until the master acknowledges it, which
+        start-up does not: the same refusal seen at two rewrites in a row ends the wait at once.
+        Raises BusError naming every slave not there, with its AL status code."""
         m = self._master
-        deadline = time.monotonic() + deadline_s
-        rewrite_at = time.monotonic() + STATE_REWRITE_S
+        start = time.monotonic()
+        deadline = start + deadline_s
+        rewrite_at = start + STATE_REWRITE_S
+        refused: tuple[int, ...] = ()
         while True:
             if exchange:
                 self.exchange()
@@ -400,6 +407,12 @@ class PysoemStartup(PysoemDc):
             if now >= deadline:
                 break
             if now >= rewrite_at:
+                m.read_state()
+                seen = tuple(pos for pos, s in enumerate(self._slaves)
+                             if s.state & STATE_ACK and al_state(s.state) != state)
+                if seen and seen == refused:
+                    break
+                refused = seen
                 # An AL control write lost on the wire (SOEM gives up after its retries) must not
                 # fail start-up: writing the same request again is idempotent (ETG.1000.6 0x0120).
                 rewrite_at = now + STATE_REWRITE_S
@@ -413,5 +426,6 @@ class PysoemStartup(PysoemDc):
                 code = s.al_status
                 bad.append(f"slave {pos} ({s.name!r}) in {al_state(st).wire_name}"
                            + (f" with error: AL status code 0x{code:04X} {al_status_text(code)}" if st & STATE_ACK else ""))
-        raise BusError(f"{self.ifname}: {state.wire_name} not reached within {deadline_s:g} s: "
-                       + ("; ".join(bad) or "no slave reports an error"))
+        waited = time.monotonic() - start
+        when = f"refused after {waited:.1f} s" if time.monotonic() < deadline else f"not reached within {deadline_s:g} s"
+        raise BusError(f"{self.ifname}: {state.wire_name} {when}: " + ("; ".join(bad) or "no slave reports an error"))
