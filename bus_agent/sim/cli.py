@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", default="generic",
                    help="slave profile, or one per slave: 'generic*2,omron1s' (the last repeats); see below")
     p.add_argument("--name", default="seg0", help="segment name (the Zenoh control key chunk)")
-    p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port")
+    p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port; "
+                   f"actions: {', '.join(ACTIONS)} (docs/virtual-ethercat.md)")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP")
     p.add_argument("--pki", metavar="DIR", help="drives-pki directory: the Zenoh control over mutual TLS")

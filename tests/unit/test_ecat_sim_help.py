@@ -18,3 +18,12 @@ def test_help_lists_every_profile_and_modifier():
 def test_an_unknown_modifier_is_refused_by_name():
     with pytest.raises(ValueError, match="unknown modifier 'dc-maybe'"):
         as_ecat("omron1s:dc-maybe")
+
+
+def test_help_names_every_control_action():
+    from bus_agent.sim.ecat.control import ACTIONS
+
+    text = " ".join(build_parser().format_help().split())
+    for action in ACTIONS:
+        assert action in text, action
+    assert "mute_sdo" in ACTIONS
