@@ -142,7 +142,7 @@ class DriveStatus:
     seq: int = _f(range=U64, doc="per-drive sequence number, +1 per publication")
     time_ns: int = _f(range=U64, doc="agent wall clock at the snapshot, ns since the epoch")
     cycle: int = _f(range=U64, doc="agent cycle counter at the snapshot")
-    state: str = _f(choices=DRIVE_STATES, doc="CiA 402 state decoded from the statusword")
+    state: str = _f(choices=DRIVE_STATES, doc="CiA 402 state decoded from the statusword; 'unknown' while the drive is lost (its inputs are old: statusword, mode_display, error_code and objects read 0 or empty, the actual values are listed in absent)")
     statusword: int = _f(range=U16, doc="0x6041")
     controlword: int = _f(range=U16, doc="0x6040 last written")
     goal: str = _f(choices=GOALS, doc="what the agent drives this drive towards")
@@ -167,6 +167,7 @@ class DriveStatus:
     target_position: int = _f(0, range=I32, doc="0x607A target position written last")
     following_error: int = _f(0, range=I32, doc="target position written last minus 0x6064 (counts)")
     motion_request_id: str = _f("", max_len=128, doc="request id of the running motion command ('' if none)")
+    last_known_state: str = _f("", choices=DRIVE_STATES + ("",), doc="a lost drive (state 'unknown'): the CiA 402 state it was in when it was lost; '' while not lost")
 
 
 @dataclass(frozen=True)

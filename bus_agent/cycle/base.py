@@ -20,6 +20,7 @@ from bus_agent.bus.base import ALState, Bus, SlaveALStatus, SlaveInfo
 from bus_agent.bus.dc import DcSync
 from bus_agent.config import AgentConfig
 from bus_agent.cycle.drive import Drive, NmtRun
+from bus_agent.cycle.found import FoundConfirmation
 from bus_agent.cycle.groups import Groups
 from bus_agent.cycle.management import AL_POLL_MIN_CYCLES, Management
 from bus_agent.cycle.recorder import Recorder
@@ -132,6 +133,7 @@ class CycleBase:
         self._wkc_was_bad = False
         self._no_answer_since: dict[int, int] = {}
         self._epoch: dict[int, int] = {}
+        self._found = FoundConfirmation()
         self._mgmt = Management(bus, clock_ns, self.period_ns, config.host)
         self._dc: DcSync | None = None
         self._dc_time: Callable[[], int] = lambda: 0
@@ -194,6 +196,8 @@ class CycleBase:
         def _group_move(self, cmd: DriveCommand, now_ns: int) -> None: ...
 
         def _update_recover_set(self) -> None: ...
+
+        def _confirm_found(self, wkc: int, now_ns: int) -> bool: ...
 
         def _finish_nmt(self, outcome: str, reason: str, now_ns: int) -> None: ...
 

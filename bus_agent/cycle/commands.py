@@ -58,7 +58,7 @@ class CommandsMixin(CycleBase):
                 for axis in cmd.axes:
                     d = self._by_axis.get(axis)
                     self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=reason,
-                                               state=d.state.value if d else "unknown"))
+                                               state=d.state.value if d and not d.lost else "unknown"))
 
     def _apply_inbox(self, now_ns: int) -> bool:
         """Apply the queued commands; True when there were any."""
@@ -169,12 +169,14 @@ class CommandsMixin(CycleBase):
 
     def _reply(self, d: Drive, cmd: DriveCommand, outcome: str, reason: str, now_ns: int, start_ns: int,
                start_cycle: int | None = None, duration_s: float = 0.0) -> None:
-        o = Outcome(axis=d.axis, outcome=outcome, state=d.state.value, error_code=d.inputs.error_code,
+        # a lost drive's state and error code are unknown: its inputs are old
+        state, error_code = ("unknown", 0) if d.lost else (d.state.value, d.inputs.error_code)
+        o = Outcome(axis=d.axis, outcome=outcome, state=state, error_code=error_code,
                     reason=reason, elapsed_s=max(0.0, (now_ns - start_ns) / 1e9),
                     cycles=self.cycles - (start_cycle if start_cycle is not None else self.cycles),
                     duration_s=duration_s)
         self._event(d.axis, "outcome", f"{cmd.op} {outcome}" + (f": {reason}" if reason else ""),
-                    to_state=d.state.value, error_code=d.inputs.error_code, request_id=cmd.request_id)
+                    to_state=state, error_code=error_code, request_id=cmd.request_id)
         self._outcome(cmd, o)
         hops.stamp("cy.outcome")
 

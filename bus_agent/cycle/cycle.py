@@ -335,6 +335,8 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
         reports = bool(mgmt.reports)
         if reports:
             self._apply_reports(now_ns)
+        if self._found and self._confirm_found(wkc, now_ns):
+            reports = True  # step every drive this cycle (a found drive's inputs are fresh)
 
         # The drives to step this cycle: all of them, or (fast path) only those whose inputs
         # changed or that are not at rest; see _at_rest and docs/agent-cycle.md, "Fast paths".

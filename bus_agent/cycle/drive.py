@@ -56,6 +56,7 @@ class Drive:
     state: State = State.UNKNOWN
     controlword: int = 0
     lost: bool = False
+    lost_reason: str = ""               # why it was lost (the status's error_text while lost)
     al: SlaveALStatus = SlaveALStatus(ALState.NONE, False, 0)
     pending: Pending | None = None
     target_position: int = 0

@@ -17,6 +17,9 @@ from bus_agent.cycle.drive import Drive
 from bus_agent.cycle.motion import following_error
 from bus_agent.runtime import CycleStats, DriveSnapshot
 
+#: The actual values of a lost drive: not published as current (they read 0 and mean nothing).
+LOST_ABSENT = ("position", "velocity", "torque")
+
 
 class OutputMixin(CycleBase):
     """The fast path's choice of drives, the snapshots and the statistics of the :class:`Cycle`."""
@@ -72,7 +75,14 @@ class OutputMixin(CycleBase):
             key = (d.state, i.statusword, d.controlword, c.goal, c.halt, c.mode, i.modes_of_operation_display,
                    i.position_actual, i.velocity_actual, i.torque_actual, i.error_code,
                    texts.get(d.slave) if i.error_code else None, d.al, d.lost, d.absent, d.object_names, i.extra,
-                   d.dc, m.axis_state, m.homed, d.target_position, m.request_id)
+                   d.dc, m.axis_state, m.homed, d.target_position, m.request_id, d.lost_reason if d.lost else "")
+            if d.lost:
+                if d.snapshot is None or key != d.snapshot_key:
+                    d.snapshot = self._lost_snapshot(d)
+                    d.snapshot_key = key
+                    snaps[d.index] = d.snapshot
+                    changed = True
+                continue
             if d.snapshot is None or key != d.snapshot_key:
                 # positional, in DriveSnapshot's field order (26 keywords cost 2.7 x the call;
                 # tests/unit/test_fast_paths.py pins the order)
@@ -93,6 +103,19 @@ class OutputMixin(CycleBase):
         if changed or len(last) != len(snaps):
             last = self._drive_snaps = tuple(snaps)  # type: ignore[arg-type]
         return last
+
+    def _lost_snapshot(self, d: Drive) -> DriveSnapshot:
+        """A lost drive's snapshot: its state is ``unknown`` and its last known state goes in
+        ``last_known_state``; the inputs of its slave are old, so none is published as current
+        (statusword, mode display, error code and mapped objects 0 or empty, the actual values
+        reported ``absent``); ``error_text`` says why it was lost."""
+        c = d.ctrl
+        m = d.motion
+        return DriveSnapshot(
+            d.axis, d.slave, "unknown", 0, d.controlword, c.goal.value, c.halt, c.mode, 0, 0, 0, 0, 0,
+            d.lost_reason, d.al.state.wire_name if d.al.state in ALState else "none", True,
+            LOST_ABSENT, (), (), d.dc, m.axis_state.value, m.homed, d.target_position, 0, m.request_id,
+            d.state.value)
 
     def _error_text(self, slave: int, error_code: int) -> str:
         """The text of the bus's last emergency of ``slave`` when it is about this error code."""

@@ -2,8 +2,10 @@
 
 The :class:`SlavesMixin` part of :class:`bus_agent.cycle.cycle.Cycle` (cycle thread only). A
 slave not in its wanted AL state is lost (a missing answer only after
-:data:`NO_ANSWER_CONFIRM_CYCLES`); its drives get goal DISABLED and their groups react; a slave
-brought back by the management thread is found with its goal still DISABLED.
+:data:`NO_ANSWER_CONFIRM_CYCLES`); its drives get goal DISABLED and their groups react. A slave
+brought back to OP by the management thread is found only once the working counter has proven
+its process data for several cycles (:mod:`bus_agent.cycle.found`), with its goal still DISABLED;
+until then its drives stay lost.
 """
 
 from __future__ import annotations
@@ -87,6 +89,11 @@ class SlavesMixin(CycleBase):
             d.al = self._al_status[d.slave]
             want = self._desired_al.get(d.slave, ALState.OP)
             gone = d.al.state != want or (d.al.error and want == ALState.OP)
+            if gone and d.lost and self._found.waiting(d.slave):
+                # back in OP, not yet proven by the working counter, and gone again: recover anew
+                self._found.cancel(d.slave)
+                self._epoch[d.slave] = self._epoch.get(d.slave, 0) + 1
+                lost_now = True
             if gone and not d.lost and d.slave not in nmt_slaves:
                 if d.al.state == ALState.NONE:
                     # No answer: lost only if a later read confirms it (not a dropped frame).
@@ -105,6 +112,7 @@ class SlavesMixin(CycleBase):
                + (f" error 0x{st.status_code:04X} {al_status_text(st.status_code)}" if st.error else "")
                + f", working counter {self._last_wkc}/{self.bus.expected_wkc}")
         d.lost = True
+        d.lost_reason = f"lost: {why}"
         self._no_answer_since.pop(d.slave, None)
         self._epoch[d.slave] = self._epoch.get(d.slave, 0) + 1
         log.warning("drive %s/%s lost: %s", self.config.host, d.axis, why)
@@ -138,19 +146,36 @@ class SlavesMixin(CycleBase):
             self._mgmt.wake()
 
     def _apply_returned(self, slave: int, epoch: int, now_ns: int) -> None:
-        """A slave of the recover set is back in OP: 'found', goal stays DISABLED."""
+        """A slave of the recover set is back in OP: it waits for the working counter's proof
+        (:meth:`_confirm_found`); its drives stay lost until then."""
         if epoch != self._epoch.get(slave, 0):
             return  # lost again since that recovery began
         self._al_status[slave] = SlaveALStatus(ALState.OP, False, 0)
         self._no_answer_since.pop(slave, None)
         for other in self.drives:
-            if other.slave != slave:
-                continue
-            other.al = self._al_status[slave]
-            if other.lost:
+            if other.slave == slave:
+                other.al = self._al_status[slave]
+        self._found.returned(slave, epoch)
+
+    def _confirm_found(self, wkc: int, now_ns: int) -> bool:
+        """Once per cycle while a returned slave waits: found when its process data is proven
+        (:class:`bus_agent.cycle.found.FoundConfirmation`), with fresh inputs and goal DISABLED.
+        True when a slave was found."""
+        lost_slaves = {d.slave for d in self.drives if d.lost}
+        found = self._found.step(wkc, self.bus.expected_wkc, lost_slaves, self._al_status)
+        for slave in found:
+            for other in self.drives:
+                if other.slave != slave or not other.lost:
+                    continue
                 other.lost = False
+                other.lost_reason = ""
+                other.inputs = self.bus.inputs(slave)  # read in this cycle's proven exchange
                 other.state = decode_statusword(other.inputs.statusword)
                 other.ctrl.set_goal(Goal.DISABLED, now_ns / 1e9)
-                log.info("drive %s/%s found: slave %d back in OP, goal disabled", self.config.host, other.axis, slave)
-                self._event(other.axis, "found", f"slave {slave} back in OP; goal stays disabled")
-        self._update_recover_set()
+                log.info("drive %s/%s found: slave %d in OP, process data valid for %d cycles, goal disabled",
+                         self.config.host, other.axis, slave, self._found.confirm_cycles)
+                self._event(other.axis, "found", f"slave {slave} back in OP with valid process data "
+                            f"for {self._found.confirm_cycles} cycles; goal stays disabled",
+                            to_state=other.state.value)
+            self._update_recover_set()
+        return bool(found)

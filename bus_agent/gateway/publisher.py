@@ -190,6 +190,7 @@ class PublisherMixin(GatewayBase):
             "axis_state": d.axis_state, "homed": d.homed, "target_position": d.target_position,
             "following_error": max(-2**31, min(2**31 - 1, d.following_error)),
             "motion_request_id": d.motion_request_id[:128],
+            "last_known_state": d.last_known_state if d.last_known_state in m.DRIVE_STATES else "",
         })
 
     def _publish_event(self, ev: rt.CycleEvent, cycle: int, time_ns: int) -> None:
