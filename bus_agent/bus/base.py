@@ -135,6 +135,21 @@ class BusError(RuntimeError):
     """Start-up or management failure; the message names the slave and the AL status code."""
 
 
+class SdoRefused(BusError):
+    """An SDO transfer the slave refused with an abort code: a definite answer, never repeated
+    (a transfer that got no answer is a plain :class:`BusError`, and may be)."""
+
+    def __init__(self, text: str, abort_code: int) -> None:
+        super().__init__(text)
+        self.abort_code = abort_code
+
+
+def sdo_abort_code(e: BaseException) -> int:
+    """The abort code of a refused SDO transfer (any backend's error with ``abort_code``), 0 when
+    the transfer got no answer or failed otherwise."""
+    return int(getattr(e, "abort_code", 0) or 0)
+
+
 class Bus(Protocol):
     """An EtherCAT segment of CiA 402 drives, one per slave position."""
 

@@ -15,7 +15,7 @@ import threading
 import time
 from typing import Any, Callable, Mapping
 
-from bus_agent.bus.base import ALState, BusError, SlaveInfo, SlaveIdentity, al_status_text
+from bus_agent.bus.base import ALState, BusError, SdoRefused, SlaveInfo, SlaveIdentity, al_status_text
 from bus_agent.bus.codec import DriveCodec, segment_decoder
 from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort_hint, check_mapping, describe,
                                    plan_writes, read_mapping)
@@ -226,8 +226,8 @@ class PysoemStartup(PysoemDc):
                     return transfer()
             except self._pysoem.SdoError as e:
                 code = e.abort_code & 0xFFFFFFFF
-                raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"
-                               + (f": {abort_hint(code)}" if hint else "")) from None
+                raise SdoRefused(f"{what} aborted 0x{code:08X} ({e.desc})"
+                               + (f": {abort_hint(code)}" if hint else ""), code) from None
             except Exception as e:
                 why = transfer_failure_text(e)
                 if attempt < attempts:

@@ -28,6 +28,7 @@ from typing import Callable, Mapping, Sequence
 from bus_agent.bus.base import (
     ALState,
     BusError,
+    SdoRefused,
     SlaveALStatus,
     SlaveIdentity,
     SlaveInfo,
@@ -59,15 +60,15 @@ _AL_ALLOWED = {
 }
 
 
-class SimSdoError(BusError):
+class SimSdoError(SdoRefused):
     """An SDO abort from a simulated slave; carries the CoE abort code."""
 
     def __init__(self, position: int, index: int, subindex: int, abort_code: int, detail: str) -> None:
         self.position = position
         self.index = index
         self.subindex = subindex
-        self.abort_code = abort_code
-        super().__init__(f"slave {position}: SDO 0x{index:04X}:{subindex} aborted with 0x{abort_code:08X} ({detail})")
+        super().__init__(f"slave {position}: SDO 0x{index:04X}:{subindex} aborted with 0x{abort_code:08X} ({detail})",
+                         abort_code)
 
 
 @dataclass

@@ -353,14 +353,17 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
             i = d.inputs = bus.inputs(d.slave)
             if d.sdo_mode_display:
                 i.modes_of_operation_display = d.mode_display_sdo
-            if d.sdo_error_code:
-                i.error_code = d.error_code_sdo
         if self._take_emergencies is not None:
             for slave, code, register, text in self._take_emergencies():
                 for d in drives:
                     if d.slave == slave:
                         self._event(d.axis, "emcy", f"EMCY 0x{code:04X} {text} (error register 0x{register:02X})",
                                     error_code=code)
+                        d.last_emcy_code = code if code & 0xFF00 else 0
+                        if d.sdo_error_code and d.state in FAULT_STATES and code & 0xFF00 and (
+                                not d.error_code_readable or not d.error_code_sdo):
+                            d.error_code_sdo = d.inputs.error_code = code  # 0x603F not mapped: the EMCY's
+                            self._busy.add(d.index)  # published by the next cycle's step
 
         # Reflex origins are detected on the fresh statusword, before any controller step, so the
         # other members get their new goal in this very cycle.
@@ -369,8 +372,17 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
             if d.lost:
                 continue
             st = decode_statusword(d.inputs.statusword)
+            if d.sdo_error_code:
+                # 0x603F not mapped: read by SDO, else the last EMCY's (docs/agent-cycle.md)
+                if st not in FAULT_STATES:
+                    d.error_code_sdo = 0  # out of fault: no error code applies
+                    if d.state in FAULT_STATES:
+                        d.last_emcy_code = 0  # that fault's EMCY is not the next one's
+                elif d.state not in FAULT_STATES:
+                    d.error_code_sdo = d.last_emcy_code
+                d.inputs.error_code = d.error_code_sdo
             if st in FAULT_STATES and d.state not in FAULT_STATES:
-                if d.sdo_error_code:
+                if d.sdo_error_code and d.error_code_readable:
                     mgmt.sdo(SdoJob(d.slave, "error_code", deadline_ns=now_ns + 1_000_000_000))  # 0x603F not mapped
                 elif self._reads_mailbox:
                     mgmt.sdo(SdoJob(d.slave, "mailbox"))  # the fault's EMCY (the SDO read above gets it too)
@@ -380,8 +392,6 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                 d.last_fault_ns = now_ns
             elif st in FAULT_STATES:
                 d.last_fault_ns = now_ns
-            elif d.error_code_sdo and d.sdo_error_code:
-                d.error_code_sdo = 0  # out of fault: the SDO-read 0x603F no longer applies
         if origins:
             hops.stamp("cy.fault")
         for g, reason in self._lost_origins:

@@ -75,7 +75,9 @@ class Drive:
     sdo_error_code: bool = False        # 0x603F not in the TxPDO: read by SDO on a fault
     mode_written: int = 0
     mode_display_sdo: int = 0
-    error_code_sdo: int = 0
+    error_code_sdo: int = 0             # 0x603F not mapped: the error code read by SDO, or the last EMCY's
+    error_code_readable: bool = True    # False once an SDO read of 0x603F was refused: EMCY only
+    last_emcy_code: int = 0             # the last emergency's error code (0 after an error reset EMCY)
     dc: str = "none"                    # DC state of the slave (bus dc_states)
     # the last published snapshot and the values it was built from (Cycle._drive_snapshots)
     snapshot: DriveSnapshot | None = None

@@ -37,19 +37,28 @@ class SlavesMixin(CycleBase):
             if r[0] == "al":
                 self._apply_al(r[1], r[2], now_ns)
             elif r[0] == "sdo":
-                self._apply_sdo(r[1], r[2], r[3], r[4], now_ns)
+                self._apply_sdo(r[1], r[2], r[3], r[4], r[5], now_ns)
             else:
                 self._apply_returned(r[1], r[2], now_ns)
 
-    def _apply_sdo(self, slave: int, what: str, value: int | None, error: str, now_ns: int) -> None:
+    def _apply_sdo(self, slave: int, what: str, value: int | None, error: str, abort: int, now_ns: int) -> None:
         """A result of an SDO job (objects the drive does not map)."""
         for d in self.drives:
             if d.slave != slave:
                 continue
+            if what == "error_code" and value is None and abort and d.error_code_readable:
+                # 0x603F refused (0x06020000: the drive has no such object): from now on the
+                # error code is the drive's last emergency's
+                d.error_code_readable = False
+                log.warning("axis %s: 0x603F not readable (%s): error codes from the drive's emergencies",
+                            d.axis, error)
+                if d.state in FAULT_STATES and d.last_emcy_code and d.error_code_sdo != d.last_emcy_code:
+                    d.error_code_sdo = d.last_emcy_code
+                continue
             if what == "mode_display" and value is not None:
                 d.mode_display_sdo = value
             elif what == "error_code" and value is not None:
-                if value != d.error_code_sdo and d.state in FAULT_STATES:
+                if value and d.state in FAULT_STATES:  # once per fault: its job reads once
                     self._event(d.axis, "fault", f"0x603F = 0x{value:04X} (read by SDO: not in the PDO mapping)",
                                 to_state=d.state.value, error_code=value)
                 d.error_code_sdo = value

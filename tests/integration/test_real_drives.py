@@ -135,6 +135,7 @@ def test_mixed_segment_and_policies(ecat_segment):
             assert any(e.kind == "fault" and e.error_code == 0x5530 and "SDO" in e.detail for e in agent.events)
         outs = agent.cmd("fault_reset", "axis0")
         assert [o.outcome for o in outs] == ["done"], outs
+        assert outs[0].error_code == 0, outs  # the reply does not carry the reset fault's code
         _wait(lambda: agent.drive("axis0").error_code == 0, 5, "error code cleared after the reset")
         # power cycle: mapping and start-up SDOs re-applied before it is back in OP
         assert control.request("unplug", slave=0)["ok"]
@@ -143,6 +144,43 @@ def test_mixed_segment_and_policies(ecat_segment):
         _wait(lambda: not agent.drive("axis0").lost, 20, "axis0 found")
         assert struct.unpack("<I", agent.bus.sdo_read(0, 0x6065, 0, 4))[0] == 12345
         assert agent.drive("axis0").state == "switch_on_disabled"  # never re-enabled by itself
+    finally:
+        agent.cycle.stop()
+
+
+def test_a_drive_without_0x603F_reports_the_fault_of_its_emergency(ecat_segment):
+    """0x603F neither mapped nor readable (the upload aborted 0x06020000, object does not exist):
+    the fault's error code and text come from the drive's CoE emergency; the refused upload is
+    made once, not tried again (a definite answer); the fault reset's reply says 0."""
+    ifname, control = ecat_segment(1, "generic")
+    assert control.request("refuse_sdo", slave=0, index=0x603F, subindex=0, abort=0x06020000)["ok"]
+    drives = (DriveConfig(slave=0, mapping=MappingPolicy(
+        "explicit", rx_entries=((0x6040, 0, 16), (0x607A, 0, 32), (0x6060, 0, 8)),
+        tx_entries=((0x6041, 0, 16), (0x6064, 0, 32), (0x6061, 0, 8)))),)
+    agent = Agent(ifname, drives=drives)
+    uploads = []
+    sdo_read = agent.bus.sdo_read
+
+    def counting(position, index, subindex, size):
+        if index == 0x603F:
+            uploads.append(time.monotonic())
+        return sdo_read(position, index, subindex, size)
+    agent.bus.sdo_read = counting
+    agent.cycle.start()
+    try:
+        assert [o.outcome for o in agent.cmd("enable", "axis0")] == ["done"]
+        assert control.request("fault", slave=0, error_code=0x2310)["ok"]
+        _wait(lambda: agent.drive("axis0").error_code == 0x2310, 5, "the EMCY's error code")
+        d = agent.drive("axis0")
+        assert d.state == "fault" and d.error_text == "continuous over-current", d
+        time.sleep(0.3)  # the management thread's retries would have run by now
+        assert len(uploads) == 1, f"0x603F uploaded {len(uploads)} times"
+        outs = agent.cmd("fault_reset", "axis0")
+        assert [(o.outcome, o.error_code) for o in outs] == [("done", 0)], outs
+        # a second fault: no more uploads of the refused object, the EMCY's code again
+        assert control.request("fault", slave=0, error_code=0x7500)["ok"]
+        _wait(lambda: agent.drive("axis0").error_code == 0x7500, 5, "the second EMCY's error code")
+        assert len(uploads) == 1
     finally:
         agent.cycle.stop()
 

@@ -447,6 +447,9 @@ class Mailbox:
         #: the uploads of that object, the next ``skip`` are answered and the ``count`` after
         #: them get no answer at all, as from a mailbox answer lost for good. Kept over reset.
         self.mute: list[int] | None = None
+        #: Fault injection (control action ``refuse_sdo``): (index, subindex) -> abort code that
+        #: answers every upload and download of that object, as from a drive without it (0x06020000).
+        self.refuse: dict[tuple[int, int], int] = {}
 
     def _muted(self, body: memoryview) -> bool:
         """True for an SDO upload request that the ``mute`` fault swallows (counts it down)."""
@@ -502,6 +505,13 @@ class Mailbox:
             return
         if self._muted(body):
             return
+        if self.refuse and len(body) >= 6:
+            key = (body[3] | body[4] << 8, body[5])
+            code = self.refuse.get(key)
+            if code is not None and body[2] >> 5 in (1, 2):  # initiate download / upload
+                log.info("SDO 0x%04X:%02X: aborted 0x%08X (refuse_sdo fault)", key[0], key[1], code)
+                self._push(self._frame(MbxType.COE, _abort(key[0], key[1], code)))
+                return
         reply = self.sdo.handle(body)
         if reply is not None:
             self._push(self._frame(MbxType.COE, reply))

@@ -11,6 +11,8 @@ A request is a JSON object ``{"action": ..., ...}``; the reply ``{"ok": true, ..
 - ``wkc_fault {slave, on}``: the slave's process data stops counting in the working counter
 - ``mute_sdo {slave, index, subindex, skip, count}``: of the slave's SDO uploads of that object,
   answer the next ``skip``, then give the ``count`` after them no answer (a lost mailbox answer)
+- ``refuse_sdo {slave, index, subindex, abort}``: every SDO transfer of that object is aborted
+  with ``abort`` (e.g. 0x06020000, a drive without the object); ``abort`` 0 lifts it
 
 Transports: a UNIX datagram socket (path) or a TCP loopback port (one JSON object per line).
 """
@@ -27,7 +29,8 @@ from bus_agent.sim.ecat.frameloop import FrameLoop
 
 log = logging.getLogger(__name__)
 
-ACTIONS = ("ping", "status", "fault", "unplug", "plug", "drop_frames", "delay_frames", "wkc_fault", "mute_sdo")
+ACTIONS = ("ping", "status", "fault", "unplug", "plug", "drop_frames", "delay_frames", "wkc_fault", "mute_sdo",
+           "refuse_sdo")
 
 
 class ControlError(ValueError):
@@ -86,6 +89,15 @@ def apply_action(loop: FrameLoop, name: str, req: dict) -> dict:
             mute = [_int(req, "index", 0, 0xFFFF), _int(req, "subindex", 0, 0xFF), _int(req, "skip", 0, 1000),
                     _int(req, "count", 1, 1000)]
             seg.escs[slave].mailbox.mute = mute
+        elif action == "refuse_sdo":
+            slave = _int(req, "slave", 0, n - 1)
+            key = (_int(req, "index", 0, 0xFFFF), _int(req, "subindex", 0, 0xFF))
+            abort = _int(req, "abort", 0, 0xFFFFFFFF)
+            refuse = seg.escs[slave].mailbox.refuse
+            if abort:
+                refuse[key] = abort
+            else:
+                refuse.pop(key, None)
         log.info("control: %s", req)
         return {"ok": True}
     except ControlError as exc:
