@@ -21,7 +21,7 @@ import zenoh
 from supervisor.fleet import Fleet
 from supervisor.recordings import fetch_recording
 from supervisor.session import zenoh_config
-from supervisor.testbed import _env, start_agents, start_router
+from supervisor.testbed import _env, enabled_sim_bed
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -30,18 +30,8 @@ HOSTS = ("s1", "s2")
 
 @pytest.fixture(scope="module")
 def bed() -> Iterator[str]:
-    router, ep = start_router()
-    try:
-        agents = start_agents(HOSTS, 3, ep, sm_watchdog_s=2.0)
-        try:
-            with Fleet(connect=[ep]) as f:
-                assert f.wait_for_agents(HOSTS, 10, drives=6)
-                assert f.enable("s*/*").ok
-            yield ep
-        finally:
-            agents.stop()
-    finally:
-        router.stop()
+    with enabled_sim_bed(HOSTS, 3) as ep:
+        yield ep
 
 
 def drivectl(ep: str, *args: str) -> subprocess.CompletedProcess:
