@@ -140,6 +140,7 @@ class Agent:
         import zenoh
 
         from bus_agent.gateway.gateway import Gateway, GatewaySettings
+        from bus_agent.gateway.hostclaim import claim_config
         from bus_agent.gateway.zenoh_config import ZenohConfigError, from_settings
 
         assert self.cycle is not None and self.bus is not None
@@ -150,7 +151,8 @@ class Agent:
             self._abort()
             raise self._zenoh_error(exc) from None
         try:
-            self.gateway = Gateway(self.session, self.cycle, GatewaySettings(**self._gateway_settings()))
+            self.gateway = Gateway(self.session, self.cycle, GatewaySettings(**self._gateway_settings()),
+                                   claim_config=claim_config(cfg.zenoh))
             self.gateway.start()
             self.cycle.start()
             if self.bus.backend == "sim" and hasattr(self.bus, "control_handlers"):

@@ -56,7 +56,7 @@ DRIVE_OPS = (
     "set_mode",     # args {"mode": int}: 0x6060, done on the 0x6061 echo
     "lease",        # args {"holder": str, "ttl_s": float, "takeover": bool}
     "release",      # args {"holder": str}
-    "move",         # args {"to" | "by": float, "velocity", "accel", "jerk": float, "sync": bool}
+    "move",         # args {"to" | "by": float, "velocity", "accel", "jerk": float, "sync": bool, "targets", "axes"}
     "jog",          # args {"velocity": float, "for_s": float}
     "home",         # args {"method": int}
     "stop",         # args {"release": bool}: decelerate and refuse motion until released
@@ -353,6 +353,7 @@ OP_ARGS: dict[str, dict[str, Arg]] = {
         "start_at_ns": Arg(int, meta={"range": (0, 2**63 - 1), "doc": "sync: start at this agent wall-clock time (ns since the epoch)"}),
         "prepare": Arg(bool, default=False, meta={"doc": "sync: only plan; the reply's duration_s is the axes' minimum duration"}),
         "targets": Arg(dict, meta={"keys": NAME, "values": Meta(float, {"range": (-1e12, 1e12)}), "doc": "per-axis absolute targets (axis -> position), instead of to/by"}),
+        "axes": Arg(list, meta={"items": NAME, "doc": "sync: the axes of this host in the group (to/by for each); the query may address more, the agent takes these (a group move of some of a host's axes)"}),
     },
     "jog": {
         "velocity": Arg(float, required=True, meta={"range": (-1e12, 1e12), "doc": "velocity (unit/s, signed)"}),

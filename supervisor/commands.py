@@ -33,7 +33,7 @@ from schemas.messages import (
     encode,
 )
 
-from .motion import group_move, move_args
+from .motion import group_move, move_args, sync_move
 from .orchestration import ordered_shutdown, two_phase_enable
 from .results import CommandResult, DriveResult, Report, aggregate, single
 from .selectors import DriveRef, SelectorError, parse_selector
@@ -218,9 +218,23 @@ class FleetCommands:
     def command(self, op: str, target: "Selection | str | Sequence[str]" = "**",
                 args: Mapping[str, Any] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
         """Send drive command ``op`` (``schemas.messages.DRIVE_OPS``) to the selection: one
-        fan-out query per planned key expression, one result per selected drive."""
+        fan-out query per planned key expression, one result per selected drive. A ``move`` with
+        ``sync`` goes through the group move whatever the selectors
+        (:func:`supervisor.motion.sync_move`): one group, or refused as a whole."""
         sel = self._as_selection(target)
-        req = CommandRequest(self._request_id(op), op, dict(args or {}), float(timeout_s), self.name)
+        if op == "move" and (args or {}).get("sync"):
+            return sync_move(self, sel.drives, dict(args or {}), timeout_s=timeout_s)
+        return self.send(op, sel, args, timeout_s)
+
+    def send(self, op: str, sel: "Selection", args: Mapping[str, Any] | None = None,
+             timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Send ``op`` as ``sel`` plans it (its queries as they are). A synchronized move comes
+        here only from the group path, with the axes named per host (``targets`` or ``axes``):
+        planned otherwise it would start as several groups (ValueError)."""
+        args = dict(args or {})
+        if op == "move" and args.get("sync") and not ("targets" in args or "axes" in args):
+            raise ValueError("a synchronized move goes through Fleet.command or Fleet.group_move (one group)")
+        req = CommandRequest(self._request_id(op), op, args, float(timeout_s), self.name)
         conflicts = self.conflicts()
         refused = [DriveResult(r.host, r.axis, "rejected", error=f"not sent: {conflicts[r.host]}")
                    for r in sel.drives if r.host in conflicts]
@@ -283,8 +297,10 @@ class FleetCommands:
              sync: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
         """Move to ``to`` (absolute) or ``by`` (relative), in each axis's unit; ``velocity``,
         ``accel``, ``jerk`` default to the axis limits (above them: clamped or rejected by the
-        axis). ``sync``: the selected axes of each host start in one cycle and arrive together.
-        Done when in the position window at rest; ``timeout_s`` must cover the move."""
+        axis). ``sync``: every selected axis, on whatever hosts, starts together and arrives
+        together (one group move; a drive or host that cannot take part refuses the whole
+        move, nothing moves). Done when in the position window at rest; ``timeout_s`` must
+        cover the move."""
         return self.command("move", selectors or "**", move_args(to, by, velocity, accel, jerk, sync),
                             timeout_s=timeout_s)
 

@@ -1,10 +1,12 @@
 """Motion commands of the supervisor API: move, jog, stop, home, and synchronized group moves.
 
-The agents generate the trajectories (docs/motion.md); the supervisor only sends commands. A
-group move whose axes live on one host is one query (the agent starts them in one cycle); across
-hosts it is two phases: *prepare* (each agent plans, moves nothing, and answers its axes'
-minimum duration), then *commit* (every host gets the largest duration and one wall-clock start
-time :data:`START_MARGIN_S` ahead, sent concurrently).
+The agents generate the trajectories (docs/motion.md); the supervisor only sends commands. Every
+synchronized move (``Fleet.move(..., sync=True)``, ``drivectl move --sync``, ``Fleet.group_move``)
+takes one path, :func:`_one_group`, whatever selected its drives: one ``<host>/drive/*`` query
+per host naming its axes (the agent starts them in one cycle); across hosts two phases:
+*prepare* (each agent plans, moves nothing, and answers its axes' minimum duration), then
+*commit* (every host gets the largest duration and one wall-clock start time
+:data:`START_MARGIN_S` ahead, sent concurrently). What cannot be one group is refused as a whole.
 """
 
 from __future__ import annotations
@@ -63,18 +65,63 @@ def group_move(fleet: "Fleet", targets: Mapping[DriveRef | str, float], *, veloc
     if not by_host:
         raise ValueError("group_move: no targets")
     extra = {k: float(v) for k, v in (("velocity", velocity), ("accel", accel), ("jerk", jerk)) if v is not None}
+    refs = [DriveRef(h, a) for h, axes in by_host.items() for a in axes]
+    return _one_group(fleet, refs, {h: {"targets": t, "sync": True, **extra} for h, t in by_host.items()},
+                      timeout_s=timeout_s, margin_s=margin_s)
+
+
+def sync_move(fleet: "Fleet", refs: Sequence[DriveRef], args: Mapping[str, Any], *, timeout_s: float,
+              margin_s: float = START_MARGIN_S) -> CommandResult:
+    """A ``move`` with ``sync`` to ``refs``, whatever selected them (classes, lists, groups,
+    several hosts): one group move, or refused as a whole (see :func:`_one_group`). ``to``
+    goes out as per-axis ``targets``, ``by`` with the host's ``axes``. ``Fleet.command`` sends
+    every synchronized move here."""
+    by_host: dict[str, list[str]] = {}
+    for r in sorted(set(refs)):
+        by_host.setdefault(r.host, []).append(r.axis)
+    # The addressing and the two phases are this path's own: a caller's are not passed on.
+    base = {k: v for k, v in args.items()
+            if k not in ("to", "by", "targets", "axes", "prepare", "duration_s", "start_at_ns")} | {"sync": True}
+    if "to" in args and "by" not in args:
+        per_host = {h: base | {"targets": {a: float(args["to"]) for a in axes}} for h, axes in by_host.items()}
+    elif "by" in args and "to" not in args:
+        per_host = {h: base | {"by": float(args["by"]), "axes": axes} for h, axes in by_host.items()}
+    else:
+        raise ValueError("move: give exactly one of to (absolute) or by (relative)")
+    return _one_group(fleet, list(refs), per_host, timeout_s=timeout_s, margin_s=margin_s)
+
+
+def _refused(op: str, refs: Sequence[DriveRef], why: str) -> CommandResult:
+    """Every drive of a group refused with one reason (nothing sent)."""
+    return CommandResult(op, "", tuple(DriveResult(r.host, r.axis, "rejected", error=why[:400])
+                                       for r in sorted(set(refs))))
+
+
+def _one_group(fleet: "Fleet", refs: Sequence[DriveRef], per_host: Mapping[str, dict[str, Any]], *,
+               timeout_s: float, margin_s: float) -> CommandResult:
+    """The one path of a synchronized move: one ``<host>/drive/*`` query per host whose args name
+    its axes (the agent starts them in one cycle); across hosts, prepare on every host, then
+    commit the longest duration and one start time. A drive no live agent reports, or a host in a
+    name conflict, refuses the whole group before anything is sent; any refusal at prepare
+    refuses it too (nothing moves)."""
+    live = set(fleet.roster())
+    conflicts = fleet.conflicts()
+    problems = [f"{h}: {conflicts[h]}" for h in sorted(per_host) if h in conflicts]
+    problems += [f"{r}: no live agent reports this drive" for r in sorted(set(refs)) if r not in live]
+    if problems:
+        why = "group move refused (nothing sent): " + "; ".join(problems)
+        return _refused("move", refs, why)
+    by_host = {h: sorted({r.axis for r in refs if r.host == h}) for h in per_host}
 
     def send(host: str, args: dict[str, Any]) -> CommandResult:
-        # One query per host (``drive/*``): the agent addresses the axes ``targets`` names and
-        # starts them in one cycle.
+        # One query per host (``drive/*``): the agent addresses the axes the args name.
         sel = fleet.selection_of((DriveRef(host, a) for a in by_host[host]), per_host=True)
-        return fleet.command("move", sel, {"targets": by_host[host], "sync": True, **extra, **args},
-                             timeout_s=timeout_s)
+        return fleet.send("move", sel, {**per_host[host], **args}, timeout_s=timeout_s)
 
-    if len(by_host) == 1:
-        return send(next(iter(by_host)), {})
-    with ThreadPoolExecutor(max_workers=len(by_host)) as pool:
-        prepared = list(pool.map(lambda h: send(h, {"prepare": True}), by_host))
+    if len(per_host) == 1:
+        return send(next(iter(per_host)), {})
+    with ThreadPoolExecutor(max_workers=len(per_host)) as pool:
+        prepared = list(pool.map(lambda h: send(h, {"prepare": True}), per_host))
         merged = _merge("move", prepared)
         if not merged.ok:
             # Nothing moved: the drives whose host prepared fine are refused with the others' reasons.
@@ -84,7 +131,7 @@ def group_move(fleet: "Fleet", targets: Mapping[DriveRef | str, float], *, veloc
                 r if not r.ok else dataclasses.replace(r, outcome="rejected", error=why[:400]) for r in merged.results))
         duration = max(r.duration_s for r in merged.results)
         start_at_ns = time.time_ns() + int(margin_s * 1e9)
-        committed = list(pool.map(lambda h: send(h, {"duration_s": duration, "start_at_ns": start_at_ns}), by_host))
+        committed = list(pool.map(lambda h: send(h, {"duration_s": duration, "start_at_ns": start_at_ns}), per_host))
     return _merge("move", committed)
 
 
@@ -97,4 +144,4 @@ def _merge(op: str, parts: Sequence[CommandResult]) -> CommandResult:
                          elapsed_s=max((p.elapsed_s for p in parts), default=0.0))
 
 
-__all__ = ["START_MARGIN_S", "move_args", "group_move"]
+__all__ = ["START_MARGIN_S", "move_args", "group_move", "sync_move"]

@@ -74,6 +74,27 @@ def start_cli_agent(host: str, n_drives: int, router: str, *, ready_timeout_s: f
     return _spawn_ready(f"bus-agent {host}", argv, "bus-agent ready", ready_timeout_s)
 
 
+@contextlib.contextmanager
+def enabled_sim_bed(hosts: Sequence[str], n_drives: int, *, sm_watchdog_s: float = 2.0) -> Iterator[str]:
+    """A router and one agent process for ``hosts`` (``n_drives`` sim drives each), every drive
+    enabled; yields the router's endpoint. SM watchdog 2 s by default, so a starved test machine
+    does not trip it between the steps."""
+    from supervisor.fleet import Fleet
+
+    router, ep = start_router()
+    try:
+        agents = start_agents(hosts, n_drives, ep, sm_watchdog_s=sm_watchdog_s)
+        try:
+            with Fleet(connect=[ep]) as f:
+                assert f.wait_for_agents(hosts, 10, drives=len(hosts) * n_drives)
+                assert f.enable(*(f"{h}/*" for h in hosts)).ok
+            yield ep
+        finally:
+            agents.stop()
+    finally:
+        router.stop()
+
+
 def start_dashboard(router: str, *extra: str, ready_timeout_s: float = 60.0) -> tuple[Proc, str]:
     """``drives-dashboard --connect ROUTER --http 127.0.0.1:<free port> [extra]`` in a child
     process; returns it and its base URL."""

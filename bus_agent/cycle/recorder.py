@@ -10,8 +10,9 @@ overwritten during the copy is cut off) into one of the ``keep`` frozen recordin
 replaced by newer ones. A trigger while a window is open belongs to that window.
 
 :meth:`Recorder.fetch` (any thread but the cycle's) returns a :class:`RecordingData`: the last
-seconds of the ring, or the latest frozen window of a trigger kind, or (``now``) a window frozen
-on request, once it is complete. Channels and their meaning: ``schemas.messages.RECORDING_CHANNELS``.
+seconds of the ring, or the latest window of a trigger kind (one still recording its after part
+is waited for, bounded, so a fetch right after a fault gets that fault's window), or (``now``) a
+window frozen on request, once it is complete. Channels and their meaning: ``schemas.messages.RECORDING_CHANNELS``.
 """
 
 from __future__ import annotations
@@ -84,6 +85,9 @@ class _Window:
     end: int                    # one past the last record index
     asks: list["_Ask"] = field(default_factory=list)
     data: RecordingData | None = None
+    #: Set once the recorder thread has copied the window out (or failed to): a fetch of its
+    #: kind waits for it rather than answer with an older window or none.
+    frozen: threading.Event = field(default_factory=threading.Event)
 
 
 @dataclass
@@ -118,6 +122,7 @@ class Recorder:
         self.written = 0            # records written so far; the next goes to slot written % size
         self.error = ""             # why recording stopped ('' while it runs)
         self._open: _Window | None = None
+        self._latest: _Window | None = None   # the window opened last (cycle thread writes, fetchers read)
         self._requested: collections.deque[_Ask] = collections.deque()
         self._closed: collections.deque[_Window] = collections.deque()
         self._frozen: collections.deque[RecordingData] = collections.deque(maxlen=keep)
@@ -207,6 +212,7 @@ class Recorder:
         w.start = max(0, self.written - 1 - self.pre)
         w.end = self.written + self.post
         self._open = w
+        self._latest = w
 
     # ---- other threads ---------------------------------------------------------------------------
 
@@ -245,11 +251,16 @@ class Recorder:
                     self._frozen.append(w.data)
             except Exception:  # never lose the thread; the log says what broke
                 log.exception("recorder: freezing a %s window failed", w.kind)
+            w.frozen.set()
             for ask in w.asks:
                 ask.done.set()
 
     def fetch(self, what: str = "last", last_s: float = DEFAULT_SECONDS, timeout_s: float = 5.0) -> RecordingData:
-        """A recording (see the module docstring); raises :class:`RecordingUnavailable`. Not from the cycle."""
+        """A recording (see the module docstring); raises :class:`RecordingUnavailable`. Not from the cycle.
+
+        A trigger kind whose latest window is still open (or not yet copied out) waits for it, at
+        most ``timeout_s`` plus the window's after part; only then does an older window or none
+        answer."""
         if what == "now":
             ask = self.request()
             if not ask.done.wait(timeout_s + self.post * self.cycle_us / 1e6) or ask.window is None \
@@ -264,6 +275,19 @@ class Recorder:
             if n <= 0:
                 raise RecordingUnavailable("nothing recorded yet")
             return self._copy(end - n, end, "last", "", "", 0)
+        pending = self._latest
+        if pending is not None and not pending.frozen.is_set() and what in ("any", pending.kind):
+            # A trigger of this kind opened a window whose after part is still being recorded:
+            # the latest window is that one, answered once it is frozen (post_s after the trigger).
+            wait_s = timeout_s + self.post * self.cycle_us / 1e6
+            if not pending.frozen.wait(wait_s):
+                raise RecordingUnavailable(
+                    f"the {pending.kind} window (trigger at cycle {pending.trigger_cycle}) was not frozen within "
+                    f"{wait_s:g} s (is the cycle running?)")
+            if pending.data is None:
+                raise RecordingUnavailable(f"the {pending.kind} window (trigger at cycle {pending.trigger_cycle}) "
+                                           "could not be copied out of the ring" + (f" ({self.error})" if self.error else ""))
+            return pending.data
         with self._lock:
             for data in reversed(self._frozen):
                 if what == "any" or data.reason == what:

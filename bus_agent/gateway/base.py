@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Protocol, Sequence
 import zenoh
 
 from bus_agent import runtime as rt
-from bus_agent.gateway.hostclaim import ConflictTracker, new_instance
+from bus_agent.gateway.hostclaim import ClaimLink, ConflictTracker, new_instance
 from bus_agent.gateway.leases import LeaseTable
 from bus_agent.gateway.requests import RECORDING_QUEUE, Request
 from schemas import messages as m
@@ -46,8 +46,10 @@ HOLD_CYCLES = 3
 #: Remote group member states that trigger the group here.
 BAD_STATES = ("fault", "fault_reaction_active")
 
-#: Ops an agent refuses while another agent uses its host name (lowering ops still work).
-CONFLICT_REFUSED_OPS = frozenset({"enable", "switch_on", "fault_reset", "set_mode", "nmt"})
+#: Ops an agent refuses while another agent uses its host name: whatever raises power, clears a
+#: fault, changes the mode or moves (the other agent may obey the same command); lowering ops
+#: (disable, shutdown, quick_stop, halt, stop) and leases still work.
+CONFLICT_REFUSED_OPS = frozenset({"enable", "switch_on", "fault_reset", "set_mode", "nmt", "move", "jog", "home"})
 #: Request-id memory: size and time to live of finished requests.
 DEDUP_SIZE = 1024
 DEDUP_TTL_S = 300.0
@@ -106,7 +108,10 @@ class RemoteMember:
 class GatewayBase:
     """The gateway's state (created here) and the cross-part calls (declared for the type checker)."""
 
-    def __init__(self, session: zenoh.Session, cycle: CycleLike, settings: GatewaySettings) -> None:
+    def __init__(self, session: zenoh.Session, cycle: CycleLike, settings: GatewaySettings,
+                 claim_config: Any = None) -> None:
+        """``claim_config``: the ``zenoh.Config`` of the host claim's client session
+        (:func:`~bus_agent.gateway.hostclaim.claim_config`), None when this session serves."""
         self.session = session
         self.cycle = cycle
         self.s = settings
@@ -117,6 +122,8 @@ class GatewayBase:
         # Other agents under our host name; a conflict ends after three silent status periods.
         self._conflicts = ConflictTracker(self.host, self.instance, max(1.0, 3 * settings.agent_period_s))
         self._conflict_text = ""
+        self._claim_config = claim_config
+        self._claim: ClaimLink | None = None
         # cycle -> publisher
         self._latest: rt.CycleSnapshot | None = None
         self._events: collections.deque[tuple[rt.CycleEvent, int, int]] = collections.deque(maxlen=8192)

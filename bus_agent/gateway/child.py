@@ -271,6 +271,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     import zenoh
 
     from bus_agent.gateway.gateway import Gateway, GatewaySettings
+    from bus_agent.gateway.hostclaim import claim_config
     from bus_agent.gateway.zenoh_config import ZenohConfigError, from_settings
     from schemas import keys
 
@@ -288,7 +289,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
         log.debug("gateway %s: liveliness get: %s", host, exc)
     sim_control = None
     try:
-        gw = Gateway(session, proxy, GatewaySettings(**settings))
+        gw = Gateway(session, proxy, GatewaySettings(**settings), claim_config=claim_config(zcfg))
         gw.start()
         gws.append(gw)
         if settings.get("rt_priority", 0):

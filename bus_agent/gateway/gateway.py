@@ -36,7 +36,7 @@ from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 from bus_agent.gateway.base import (AGENT_SUPERVISOR, BAD_STATES, CHANGE_FIELDS, CONFLICT_REFUSED_OPS, DEDUP_SIZE,
                                     DEDUP_TTL_S, LEASE_REACTION_OPS, MOTION_FIELDS, CycleLike,
                                     GatewaySettings)
-from bus_agent.gateway.hostclaim import check_host_free
+from bus_agent.gateway.hostclaim import ClaimLink, check_host_free
 from bus_agent.gateway.peers import PeersMixin
 from bus_agent.gateway.publisher import PublisherMixin
 from bus_agent.gateway.requests import (LEASE_OPS, MSGPACK, RECORDING_QUEUE, RECORDING_TIMEOUT_S, TEXT, ParsedCommand, Request, RequestError,
@@ -78,8 +78,20 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         """Check that the host name is free (:class:`~bus_agent.gateway.hostclaim.HostNameTaken`
         otherwise, nothing declared), then declare everything, commands last."""
         s = self.session
+        enqueue = self._inbox.put
+        own_status = keys.agent_status(self.host)
+        on_own_status = lambda smp: enqueue((self._on_own_host_status, (smp,)))  # noqa: E731
+        # The claim goes through a session the routers route for (hostclaim.claim_config): a
+        # peer's own session does not reach another peer behind the same router.
+        claim = None
+        if self._claim_config is not None:
+            self._claim = ClaimLink(self._claim_config, own_status, on_own_status)
+            claim = self._claim.open()
         if self.s.check_host:
-            check_host_free(s, self.host, has_connect=self.s.has_connect)
+            if claim is not None:
+                check_host_free(claim, self.host, has_connect=True)
+            else:  # a client open already waited for a router: check what the own session sees now
+                check_host_free(s, self.host, has_connect=self.s.has_connect and self._claim is None)
         # A cycle already running (behind the process bridge) has a snapshot: drive status goes
         # out in the first publish pass, before the agent status that lists the axes.
         self._latest = self._latest or getattr(self.cycle, "latest", None)
@@ -92,15 +104,13 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
             self._event_pubs[axis] = s.declare_publisher(keys.drive_event(self.host, axis), encoding=MSGPACK,
                                                          congestion_control=zenoh.CongestionControl.BLOCK)
         self._agent_pub = s.declare_publisher(keys.agent_status(self.host), encoding=MSGPACK)
-        enqueue = self._inbox.put
         self._other_decls.append(s.declare_queryable(
             keys.drive_status(self.host, "*"), lambda q: enqueue((self._on_status_query, (q,)))))
         self._other_decls.append(s.declare_queryable(
             keys.agent_status(self.host), lambda q: enqueue((self._on_agent_query, (q,)))))
         self._other_decls.append(s.liveliness().declare_subscriber(
             keys.ALL_SUPERVISORS, lambda smp: enqueue((self._on_supervisor_token, (smp,))), history=True))
-        self._other_decls.append(s.declare_subscriber(
-            keys.agent_status(self.host), lambda smp: enqueue((self._on_own_host_status, (smp,)))))
+        self._other_decls.append(s.declare_subscriber(own_status, on_own_status))
         # The group reflex's path: only the members' own status (not every drive of their hosts),
         # handled on zenoh's callback thread, not queued behind the command thread's work (see
         # PeersMixin._on_remote_status).
@@ -115,6 +125,8 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
                          threading.Thread(target=self._recording_loop, name="gw-record", daemon=True)]
         for t in self._threads:
             t.start()
+        if self._claim is not None and claim is None:
+            self._threads.append(self._claim.retry(self._stop))
         if hasattr(self.cycle, "event_sink"):  # a cycle behind the process bridge forwards events apart
             self.cycle.event_sink = self.on_events
         self.cycle.snapshot_sink = self.on_snapshot
@@ -161,6 +173,8 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
         for decl in self._other_decls:
             _undeclare(decl)
         self._other_decls.clear()
+        if self._claim is not None:
+            self._claim.close()
         if self._token is not None:
             _undeclare(self._token)
             self._token = None

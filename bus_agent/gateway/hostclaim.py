@@ -12,13 +12,23 @@ one name would both obey every command sent to it. So:
   partitions that healed, or an agent started where the check could not reach the other) is a
   conflict, tracked by :class:`ConflictTracker` (pure: instance ids and times in, the conflict
   text out) until the other instance has been silent for ``hold_s``.
+
+Both go through a session the routers route for, whatever the agent's own session mode
+(:func:`claim_config`): zenoh's routers do not forward between two *peers* (peer-to-peer
+routing: peers are expected to link directly), so two ``bus-agent --connect ROUTER`` in peer
+mode without ``--listen`` never saw each other's token or status and both ran under one name.
+A peer with ``connect`` endpoints therefore checks through a small *client* session to the same
+endpoints (a client's traffic the router always routes), opened at start and, while the router
+is unreachable, again in the background.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 import uuid
+from types import SimpleNamespace
 from typing import Any
 
 from schemas import keys
@@ -33,6 +43,12 @@ SETTLE_S = 1.0
 QUERY_TIMEOUT_S = 1.0
 
 
+#: How long the claim's client session waits for a router in ``open``; then it retries every
+#: :data:`CLAIM_RETRY_S` in the background.
+CLAIM_OPEN_TIMEOUT_MS = 2000
+CLAIM_RETRY_S = 1.0
+
+
 class HostNameTaken(RuntimeError):
     """Another agent holds this host name (its liveliness token answered)."""
 
@@ -40,6 +56,21 @@ class HostNameTaken(RuntimeError):
 def new_instance() -> str:
     """A random id for this agent process (12 hex digits)."""
     return uuid.uuid4().hex[:12]
+
+
+def claim_config(zc: Any) -> Any:
+    """The ``zenoh.Config`` of the claim's client session for an agent whose zenoh settings are
+    ``zc`` (``bus_agent.config.ZenohConfig``), or None when the agent's own session serves: a
+    client or router session is routed by the routers it links to, and a session without
+    ``connect`` endpoints is reached directly by whoever connects to it. Same endpoints and
+    identity as the agent's session; listens nowhere."""
+    if getattr(zc, "mode", "peer") != "peer" or not getattr(zc, "connect", ()):
+        return None
+    from bus_agent.gateway.zenoh_config import from_settings
+
+    kept = ("connect", "scouting", "multicast_scouting", "link_lease_ms", "config_file", "pki", "identity")
+    client = SimpleNamespace(**{k: getattr(zc, k) for k in kept if hasattr(zc, k)}, mode="client", listen=())
+    return from_settings(client, extra={"listen/endpoints": [], "connect/timeout_ms": CLAIM_OPEN_TIMEOUT_MS})
 
 
 def _linked(session: Any) -> bool:
@@ -106,3 +137,56 @@ class ConflictTracker:
             return ""
         return (f"host name {self.host} is also used by agent instance(s) {', '.join(sorted(self._others))} "
                 f"(this one: {self.instance}): stop one of them")
+
+
+class ClaimLink:
+    """The claim's own client session (:func:`claim_config`) and its subscriber to the status
+    published under our host name. :meth:`open` tries once (bounded by the client's connect
+    timeout); :meth:`retry` keeps trying in the background until it opens or ``stop`` is set."""
+
+    def __init__(self, config: Any, status_key: str, on_status: Any) -> None:
+        self._config = config
+        self._key = status_key
+        self._on_status = on_status
+        self._lock = threading.Lock()
+        self._closed = False
+        self.session: Any = None
+        self._sub: Any = None
+
+    def open(self) -> Any:
+        """The opened session, or None (no router reachable yet: the reason is logged)."""
+        import zenoh
+
+        try:
+            session = zenoh.open(self._config)
+        except zenoh.ZError as exc:
+            log.warning("host claim: no router reachable for the claim's client session yet (%s): "
+                        "retrying every %.0f s", exc, CLAIM_RETRY_S)
+            return None
+        with self._lock:
+            if self._closed:
+                session.close()
+                return None
+            self.session = session
+            self._sub = session.declare_subscriber(self._key, self._on_status)
+        return session
+
+    def retry(self, stop: threading.Event) -> threading.Thread:
+        """Start thread ``gw-claim``: :meth:`open` every :data:`CLAIM_RETRY_S` until it succeeds."""
+        def loop() -> None:
+            while not stop.wait(CLAIM_RETRY_S) and self.open() is None:
+                pass
+        t = threading.Thread(target=loop, name="gw-claim", daemon=True)
+        t.start()
+        return t
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            sub, session, self._sub, self.session = self._sub, self.session, None, None
+        for close in ((sub.undeclare if sub is not None else None), (session.close if session is not None else None)):
+            if close is not None:
+                try:
+                    close()
+                except Exception as exc:  # closing must finish
+                    log.warning("host claim: close: %s", exc)

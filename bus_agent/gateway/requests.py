@@ -126,12 +126,20 @@ def parse_command(payload: Any, query_key: str, host: str, axes: Sequence[str], 
         raise RequestError(f"op {req.op!r} in the payload does not match the key {query_key} "
                            "(the key's last chunk is the op)")
     args = m.validate_args(req.op, req.args)
-    if req.op == "move" and "targets" in args:
+    if req.op == "move" and ("targets" in args or "axes" in args):
         # A group move addresses the axes it names (one query for a part of a host's axes).
-        missing = sorted(set(args["targets"]) - set(addressed))
+        if "targets" in args and "axes" in args:
+            raise RequestError("args: give targets (absolute, per axis) or axes (with to/by), not both")
+        field = "targets" if "targets" in args else "axes"
+        if field == "axes" and not args.get("sync"):
+            raise RequestError("args.axes names the axes of a synchronized move: it needs sync true")
+        named = set(args[field])
+        if not named:
+            raise RequestError(f"args.{field}: empty (name the axes of the group move)")
+        missing = sorted(named - set(addressed))
         if missing:
-            raise RequestError(f"args.targets: {', '.join(missing)} not addressed by {query_key} on {host}")
-        addressed = tuple(a for a in addressed if a in args["targets"])
+            raise RequestError(f"args.{field}: {', '.join(missing)} not addressed by {query_key} on {host}")
+        addressed = tuple(a for a in addressed if a in named)
     if req.op in LEASE_OPS and req.supervisor and args["holder"] != req.supervisor:
         raise RequestError(f"args.holder {args['holder']!r} differs from supervisor {req.supervisor!r}")
     return ParsedCommand(req, args, addressed, principal)

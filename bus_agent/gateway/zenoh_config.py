@@ -167,11 +167,11 @@ def _apply(conf: zenoh.Config, settings: Mapping[str, Any]) -> zenoh.Config:
     return conf
 
 
-def from_settings(zc: Any) -> zenoh.Config:
+def from_settings(zc: Any, extra: Mapping[str, Any] | None = None) -> zenoh.Config:
     """Build from an object with ``mode``, ``listen``, ``connect`` and optional ``scouting``
     (multicast), ``link_lease_ms``, ``connect_timeout_ms``, ``config_file`` attributes (the
     agent's ``[zenoh]`` section, ``bus_agent.config.ZenohConfig``). A ``config_file`` (JSON5: TLS, ACL, auth) is loaded first and the
-    other settings are applied on top of it."""
+    other settings are applied on top of it, ``extra`` (as in :func:`make_zenoh_config`) last."""
     base = None
     path = getattr(zc, "config_file", None)
     if path:
@@ -189,4 +189,5 @@ def from_settings(zc: Any) -> zenoh.Config:
         base=base,
         pki=getattr(zc, "pki", None),
         identity=getattr(zc, "identity", None),
+        extra=extra,
     )

@@ -69,7 +69,8 @@ def register(add_verb: Callable[..., argparse.ArgumentParser]) -> None:
     m.add_argument("--velocity", type=_positive, default=None, metavar="V", help="max velocity (default: axis limit)")
     m.add_argument("--accel", type=_positive, default=None, metavar="A", help="max acceleration (default: axis limit)")
     m.add_argument("--jerk", type=_positive, default=None, metavar="J", help="max jerk (default: axis limit)")
-    m.add_argument("--sync", action="store_true", help="the axes of each host start in one cycle and arrive together")
+    m.add_argument("--sync", action="store_true", help="one group move: every selected axis, on any host, starts together and arrives "
+                   "together, or the whole move is refused (nothing moves)")
     j = add_verb("jog", "jog at a velocity until --for elapses (default: the timeout), then stop",
                  _handler(_run("jog", _jog_args)))
     j.add_argument("--velocity", type=_number, required=True, metavar="V", help="velocity (signed, unit/s)")

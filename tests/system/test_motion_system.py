@@ -12,7 +12,7 @@ from typing import Iterator
 import pytest
 
 from supervisor.fleet import Fleet
-from supervisor.testbed import _env, start_agents, start_router
+from supervisor.testbed import _env, enabled_sim_bed
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -21,20 +21,9 @@ HOSTS = ("m1", "m2")
 
 @pytest.fixture(scope="module")
 def bed() -> Iterator[str]:
-    router, ep = start_router()
-    try:
-        # One process, one agent (and Zenoh session) per host; the simulated slaves' SM watchdog
-        # at 2 s so a starved test machine does not trip it between the steps.
-        agents = start_agents(HOSTS, 2, ep, sm_watchdog_s=2.0)
-        try:
-            with Fleet(connect=[ep]) as f:
-                assert f.wait_for_agents(HOSTS, 10, drives=4)
-                assert f.enable("m*/*").ok
-            yield ep
-        finally:
-            agents.stop()
-    finally:
-        router.stop()
+    # One process, one agent (and Zenoh session) per host.
+    with enabled_sim_bed(HOSTS, 2) as ep:
+        yield ep
 
 
 def drivectl(ep: str, *args: str) -> subprocess.CompletedProcess:

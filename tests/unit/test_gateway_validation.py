@@ -107,3 +107,21 @@ def test_lease_args_defaults_and_holder_identity():
         parse_command(req(op="lease", args={"holder": "supA", "ttl_s": 0.0}), key(op="lease"), HOST, AXES)
     with pytest.raises(RequestError, match="holder"):
         parse_command(req(op="release", args={}), key(op="release"), HOST, AXES)
+
+
+def test_group_move_names_its_axes_on_a_host_wide_key():
+    """A synchronized move of part of a host's axes: one ``drive/*`` query, the args name the
+    axes (``targets`` absolute per axis, or ``axes`` with to/by); the agent takes exactly those."""
+    wide = key("*", "move")
+    p = parse_command(req("move", args={"by": 5.0, "sync": True, "axes": ["x1", "y1"]}), wide, HOST, AXES)
+    assert p.axes == ("x1", "y1")
+    p = parse_command(req("move", args={"targets": {"x2": 1.0}, "sync": True}), wide, HOST, AXES)
+    assert p.axes == ("x2",)
+    for args, words in (({"by": 5.0, "axes": ["x1"]}, "needs sync true"),
+                        ({"to": 1.0, "sync": True, "axes": []}, "empty"),
+                        ({"to": 1.0, "sync": True, "axes": ["x1", "z9"]}, "z9 not addressed"),
+                        ({"sync": True, "axes": ["x1"], "targets": {"x1": 1.0}}, "not both")):
+        with pytest.raises(RequestError, match=words):
+            parse_command(req("move", args=args), wide, HOST, AXES)
+    with pytest.raises(RequestError, match="x2 not addressed"):
+        parse_command(req("move", args={"by": 1.0, "sync": True, "axes": ["x1", "x2"]}), key("x1", "move"), HOST, AXES)

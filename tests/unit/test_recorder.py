@@ -200,3 +200,49 @@ def test_cycle_records_an_injected_fault_with_the_cycles_before_it():
     assert set(periods) == {1_000_000}  # the fake clock: every period exactly 1 ms
     last = h.cycle.recording("last", last_s=0.1)
     assert last.n_cycles == 100 and last.channels["cycle"][-1] == h.cycle.cycles
+
+
+def test_fetch_of_a_trigger_kind_waits_for_the_window_still_recording():
+    """``record --trigger last-fault`` right after a fault: the window whose after part is still
+    being recorded is the answer (not "none yet", nor an older fault's window)."""
+    rec = Recorder(["a"], cycle_us=1000, seconds=0.2, pre_s=0.02, post_s=0.05)
+    rec.start()
+    try:
+        c = 0
+
+        def run(n: int, fault_at: int = 0) -> None:
+            nonlocal c
+            for _ in range(n):
+                c += 1
+                evs = (CycleEvent(axis="a", kind="fault", detail=f"fault at {c}"),) if c == fault_at else ()
+                rec.record(c, c, 1, 3, drives(1), evs)
+
+        run(100, fault_at=30)   # an older fault, frozen
+        rec.freeze_closed()
+        run(10, fault_at=105)   # a new fault: its window is open (50 cycles after it to record)
+        result: list = []
+        asker = threading.Thread(target=lambda: result.append(rec.fetch("fault", timeout_s=30.0)))
+        asker.start()
+        asker.join(0.2)
+        assert asker.is_alive(), "answered before the open window was frozen"
+        while asker.is_alive() and c < 10_000:
+            run(10)
+            asker.join(0.005)
+        asker.join(30)
+        data = result[0]
+        assert data.trigger_cycle == 105 and data.detail == "fault at 105"
+        assert data.channels["cycle"][-1] == 105 + 50
+        # Nothing pending: an older kind answers at once, a kind never seen says so at once.
+        assert rec.fetch("fault").trigger_cycle == 105
+        with pytest.raises(RecordingUnavailable, match="no window frozen by a reflex trigger"):
+            rec.fetch("reflex", timeout_s=30.0)
+    finally:
+        rec.stop()
+
+
+def test_fetch_waiting_for_a_window_is_bounded_with_the_reason():
+    rec = Recorder(["a"], cycle_us=1000, seconds=0.2, pre_s=0.02, post_s=0.05)
+    for c in range(1, 20):  # the cycle stops right after the fault: the window never closes
+        rec.record(c, c, 1, 3, drives(1), (CycleEvent(axis="a", kind="fault"),) if c == 10 else ())
+    with pytest.raises(RecordingUnavailable, match=r"fault window \(trigger at cycle 10\) was not frozen within"):
+        rec.fetch("fault", timeout_s=0.05)
