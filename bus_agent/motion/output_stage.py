@@ -90,12 +90,15 @@ class OutputStage:
     # ---- position (CSP) ---------------------------------------------------------------------
 
     def _follow_position(self, x: int) -> None:
+        # Limiting may resume from rest (enable: the targets held at a standing drive's actual
+        # position, whose steps are noise) or moving with the followed steps (a halt released
+        # while the drive still moves): the exact step may be anything between.
         smax = self.step_max
         u = x - self.position
-        lo, hi = max(u - ROUND_STEP, -smax), min(u + ROUND_STEP, smax)
-        if lo > hi:  # a jump (not limited here): the next limited step starts from rest
-            lo = hi = 0.0
-        self._lo, self._hi = lo, hi
+        if -smax - ROUND_STEP <= u <= smax + ROUND_STEP:
+            self._lo, self._hi = max(min(u - ROUND_STEP, 0), -smax), min(max(u + ROUND_STEP, 0), smax)
+        else:  # a jump (not limited here): from rest
+            self._lo = self._hi = 0.0
         self.position = self._last_in = x
         self._pos = float(x)
 
