@@ -23,6 +23,7 @@ from bus_agent.runtime import DriveCommand, Outcome
 
 
 _FAULTS = (State.FAULT, State.FAULT_REACTION_ACTIVE)
+_ENABLED = State.OPERATION_ENABLED
 
 
 class MotionMixin(CycleBase):
@@ -202,7 +203,7 @@ def write_targets(d: Drive, hold_target: bool) -> None:
     Cycle thread."""
     st = d.stage
     mode = (d.inputs.modes_of_operation_display
-            if d.state is State.OPERATION_ENABLED and not hold_target and not d.ctrl.halt else 0)
+            if d.state is _ENABLED and not hold_target and not d.ctrl.halt else 0)
     st.step(mode, d.target_position, d.target_velocity)
     o = d.out
     o.target_position = st.position

@@ -48,7 +48,7 @@ class OutputStage:
     counts/s^2, the nominal cycle period in seconds."""
 
     __slots__ = ("step_max", "change_max", "velocity_max", "velocity_change_max", "position", "velocity",
-                 "clamps", "settled", "_pos", "_lo", "_hi", "_last_in", "_vlo", "_vhi")
+                 "clamps", "settled", "_mode", "_pos", "_lo", "_hi", "_last_in", "_pprev", "_vlo", "_vhi")
 
     def __init__(self, max_velocity: float, max_acceleration: float, period_s: float) -> None:
         if not (max_velocity > 0 and max_acceleration > 0 and period_s > 0):
@@ -66,58 +66,103 @@ class OutputStage:
         self.clamps = 0
         #: The last targets were written as given (nothing left to catch up).
         self.settled = True
-        self._pos = 0.0         # position of the exact path (float counts)
+        self._mode = 0          # the mode of the last step: what was followed
+        self._pos = 0.0         # while not settled: position of the exact path (float counts) ...
+        self._last_in = 0       # ... and the position target given last (its step: the target's velocity)
         self._lo = 0.0          # interval of the exact path's step (counts per cycle)
         self._hi = 0.0
-        self._last_in = 0       # position target given last (its own step: the target's velocity)
+        self._pprev = 0         # while following: the position target before the last one
         self._vlo = 0.0         # interval of the exact velocity (counts/s)
         self._vhi = 0.0
 
     def step(self, mode: int, position: int, velocity: int) -> None:
         """This cycle's targets in; :attr:`position` and :attr:`velocity` are what to write.
-        ``mode``: 8 limits the position, 9 the velocity, anything else follows both."""
+        ``mode``: 8 limits the position, 9 the velocity, anything else follows both. Cycle-safe;
+        the common case (a target within the limits) is a few comparisons."""
+        last_mode = self._mode
         if mode == MODE_CSP:
-            self._limit_position(position)
-            self._follow_velocity(velocity)
+            if last_mode != MODE_CSP:
+                self._resume_position()
+                self._mode = MODE_CSP
+            # inline: the exact steps reachable from the last one, and those that round to u
+            u = position - self.position
+            smax = self.step_max
+            lo = self._lo - self.change_max
+            hi = self._hi + self.change_max
+            if lo < -smax:
+                lo = -smax
+            if hi > smax:
+                hi = smax
+            if u - ROUND_STEP > lo:
+                lo = u - ROUND_STEP
+            if u + ROUND_STEP < hi:
+                hi = u + ROUND_STEP
+            if lo <= hi:  # some exact path within the limits rounds to it: written as given
+                self._lo = lo
+                self._hi = hi
+                self.position = position
+                self.settled = True
+            else:
+                self._limit_position(position)
+            self.velocity = velocity
         elif mode == MODE_CSV:
-            self._limit_velocity(velocity)
-            self._follow_position(position)
+            if last_mode != MODE_CSV:
+                self._resume_velocity()
+                self._mode = MODE_CSV
+            vmax = self.velocity_max
+            lo = self._vlo - self.velocity_change_max
+            hi = self._vhi + self.velocity_change_max
+            if lo < -vmax:
+                lo = -vmax
+            if hi > vmax:
+                hi = vmax
+            if velocity - 0.5 > lo:
+                lo = velocity - 0.5
+            if velocity + 0.5 < hi:
+                hi = velocity + 0.5
+            if lo <= hi:
+                self._vlo = lo
+                self._vhi = hi
+                self.velocity = velocity
+                self.settled = True
+            else:
+                self._limit_velocity(velocity)
+            self._pprev = self.position
+            self.position = position
         else:
-            self._follow_position(position)
-            self._follow_velocity(velocity)
+            self._mode = 0
+            self._pprev = self.position
+            self.position = position
+            self.velocity = velocity
             self.settled = True
 
     # ---- position (CSP) ---------------------------------------------------------------------
 
-    def _follow_position(self, x: int) -> None:
-        # Limiting may resume from rest (enable: the targets held at a standing drive's actual
-        # position, whose steps are noise) or moving with the followed steps (a halt released
-        # while the drive still moves): the exact step may be anything between.
+    def _resume_position(self) -> None:
+        """Limiting 0x607A after following it. It may resume from rest (enable: the targets held
+        at a standing drive's actual position, whose steps are noise) or moving with the followed
+        steps (a halt released while the drive still moves): the exact step may be anything
+        between. A jump (beyond the limits) was not limited: from rest."""
         smax = self.step_max
-        u = x - self.position
+        u = self.position - self._pprev
+        self._pos = float(self.position)
+        self._last_in = self.position
         if -smax - ROUND_STEP <= u <= smax + ROUND_STEP:
             self._lo, self._hi = max(min(u - ROUND_STEP, 0), -smax), min(max(u + ROUND_STEP, 0), smax)
-        else:  # a jump (not limited here): from rest
+        else:
             self._lo = self._hi = 0.0
-        self.position = self._last_in = x
-        self._pos = float(x)
 
     def _limit_position(self, x: int) -> None:
         smax, dmax = self.step_max, self.change_max
-        u = x - self.position
         slo = max(self._lo - dmax, -smax)   # the exact steps reachable from the last one
         shi = min(self._hi + dmax, smax)
-        lo, hi = max(slo, u - ROUND_STEP), min(shi, u + ROUND_STEP)
-        if lo <= hi:  # some exact path within the limits rounds to x: written as given
-            self._lo, self._hi = lo, hi
-            self.position = self._last_in = x
-            self._pos = float(x)
-            self.settled = True
-            return
-        # Limited: towards x at the limits. The target moves by r per cycle: moving with it
-        # leaves the gap g = x - pos - r; closing it by w more this cycle leaves g - w, which
-        # the braking curve must still cover decelerating by dmax per cycle:
-        # w = |g|/m + (m - 1) dmax / 2 over the m cycles that takes.
+        if self.settled:  # written as given until now: the exact path is there
+            self._pos = float(self.position)
+            self._last_in = self.position
+        # Towards x at the limits. The target moves by r per cycle: moving with it leaves the gap
+        # g = x - pos - r; closing it by w more this cycle leaves g - w, which the braking curve
+        # must still cover decelerating by dmax per cycle: w = |g|/m + (m - 1) dmax / 2 over the
+        # m cycles that takes.
         r = min(max(x - self._last_in, -smax), smax)
         g = x - self._pos - r
         a = abs(g)
@@ -136,21 +181,14 @@ class OutputStage:
 
     # ---- velocity (CSV) ---------------------------------------------------------------------
 
-    def _follow_velocity(self, v: int) -> None:
-        vmax = self.velocity_max
+    def _resume_velocity(self) -> None:
+        """Limiting 0x60FF after following it: from the velocity written last."""
+        vmax, v = self.velocity_max, self.velocity
         self._vlo, self._vhi = max(min(v - 0.5, vmax), -vmax), min(max(v + 0.5, -vmax), vmax)
-        self.velocity = v
 
     def _limit_velocity(self, v: int) -> None:
         vmax, amax = self.velocity_max, self.velocity_change_max
-        wlo, whi = max(self._vlo - amax, -vmax), min(self._vhi + amax, vmax)
-        lo, hi = max(wlo, v - 0.5), min(whi, v + 0.5)
-        if lo <= hi:
-            self._vlo, self._vhi = lo, hi
-            self.velocity = v
-            self.settled = True
-            return
-        w = min(max(float(v), wlo), whi)
+        w = min(max(float(v), self._vlo - amax, -vmax), self._vhi + amax, vmax)
         self._vlo = self._vhi = w
         self.velocity = round(w)
         self.clamps += 1
