@@ -22,6 +22,9 @@ Jitter |period - cycle| p99/p99.9/max of each phase, and the agent's over the ba
 ``tick()`` with the drives at rest skipped, with every drive stepped (``Cycle.fast_paths =
 False``) and with one drive moving, next to the bare exchange; best of interleaved runs.
 
+``stage`` (``--stage-only`` alone, no root): the output stage's CPU per axis per cycle, and a
+cycle over SimBus with every axis moving with and without it (:func:`stage_figures`).
+
 ``codec``: the CPU of one cycle's decode + encode of every drive, in this process (best of many
 short runs of thread CPU time): the fixed 13/15-byte structs inline (the decode before per-drive
 codecs), ``DriveCodec`` for the default layout and for an Omron-like predefined mapping, and
@@ -269,6 +272,98 @@ def codec_figures(drives: int, cycles: int) -> dict:
             "ratio_default": round(best["default"] / f, 2), "ratio_predefined": round(best["predefined"] / f, 2)}
 
 
+class _PassThrough:
+    """What the cycle did before the output stage: the targets copied as they are."""
+
+    __slots__ = ("position", "velocity", "clamps", "settled")
+
+    def __init__(self) -> None:
+        self.position = self.velocity = self.clamps = 0
+        self.settled = True
+
+    def step(self, mode: int, position: int, velocity: int) -> None:
+        self.position = position
+        self.velocity = velocity
+
+
+def _moving_sim_cycle(drives: int, stage: bool):
+    """A cycle over SimBus (injected clock: no waiting) with every drive enabled in CSP and in a
+    long move; with its output stages, or with them replaced by :class:`_PassThrough`."""
+    from bus_agent.bus.sim_bus import SimBus
+    from bus_agent.config import AgentConfig
+    from bus_agent.cycle.cycle import Cycle
+
+    clock = [1_000_000_000]
+    bus = SimBus(drives, "generic", clock=lambda: clock[0] / 1e9)
+    cyc = Cycle(bus, AgentConfig(host="bench", sim_drives=drives), clock_ns=lambda: clock[0],
+                wall_ns=lambda: clock[0], manage_gc=False, switch_interval_s=None)
+    cyc.open()
+    if not stage:
+        for d in cyc.drives:
+            d.stage = _PassThrough()  # type: ignore[assignment]
+
+    def tick() -> None:
+        clock[0] += 1_000_000
+        cyc.tick()
+
+    for _ in range(20):
+        tick()
+    done: list = []
+    from bus_agent.runtime import DriveCommand
+    cyc.submit(DriveCommand(request_id="bench-enable", op="enable", axes=cyc.axes, on_outcome=done.append,
+                            received_ns=clock[0], timeout_s=5.0))
+    while len(done) < drives:
+        tick()
+    moving: list = []
+    for a in cyc.axes:
+        cyc.submit(_move(a, moving))
+    for _ in range(300):  # past the acceleration: every axis at speed
+        tick()
+    return cyc, tick, moving
+
+
+def stage_figures(drives: int, runs: int) -> dict:
+    """The output stage's CPU (bus_agent/motion/output_stage.py; in this process, no root):
+    ``step_us`` one ``OutputStage.step`` of one axis as the cycle calls it for a moving axis in
+    CSP (the target within the limits: written as given), for a target beyond them (limited),
+    and following (not enabled); ``tick_us``: one cycle over SimBus (its simulated drives
+    included) with ``drives`` axes all moving, with the stages and with them replaced by a
+    pass-through (the targets copied, as before the stage), best of ``runs`` interleaved runs of
+    100 ticks; ``stage_us_per_axis`` the difference per axis and ``ratio`` the two ticks."""
+    from bus_agent.motion.output_stage import MODE_CSP, OutputStage
+
+    s_pass, s_limit, s_follow = (OutputStage(100_000, 1_000_000, 0.001) for _ in range(3))
+    x = [0]
+
+    def passing() -> None:
+        x[0] += 50
+        s_pass.step(MODE_CSP, x[0], 0)
+
+    flip = [1]
+
+    def limited() -> None:
+        flip[0] = -flip[0]
+        s_limit.step(MODE_CSP, flip[0] * 1_000_000, 0)
+
+    def follow() -> None:
+        s_follow.step(0, 5, 0)
+
+    micro = _best_of({"csp_within_limits": passing, "csp_limited": limited, "follow": follow}, runs, 2000)[0]
+    with_stage, tick_stage, m1 = _moving_sim_cycle(drives, True)
+    without, tick_plain, m2 = _moving_sim_cycle(drives, False)
+    try:
+        best = _best_of({"with_stage": tick_stage, "pass_through": tick_plain}, runs)[0]
+        if m1 or m2 or any(d.stage.clamps for d in with_stage.drives):
+            raise RuntimeError(f"a move ended or was clamped during the runs: {m1 + m2}")
+    finally:
+        with_stage.stop(ordered=False)
+        without.stop(ordered=False)
+    return {"drives": drives, "runs": runs, "step_us": {k: round(v, 3) for k, v in micro.items()},
+            "tick_us": {k: round(v, 1) for k, v in best.items()},
+            "stage_us_per_axis": round((best["with_stage"] - best["pass_through"]) / drives, 3),
+            "ratio": round(best["with_stage"] / best["pass_through"], 3)}
+
+
 def _run_phase(name: str, ifname: str, drives: int, args, seconds: float, log_file: str) -> dict:
     return run_json([sys.executable, "-m", "bench.bench_cycle", "--phase", name, "--ifname", ifname, "--drives",
                      str(drives), "--seconds", str(seconds), "--cycle-us", str(args.cycle_us), "--rt-priority",
@@ -318,6 +413,7 @@ def run(args) -> dict:
     return {"drives": args.drives, "cycle_us": args.cycle_us, "seconds_per_phase": args.seconds, "rounds": args.rounds,
             "rt_priority": args.rt_priority, "sizes": sizes,
             "codec": codec_figures(max(args.drives), args.codec_cycles),
+            "stage": stage_figures(min(args.drives), args.tick_runs),
             "loadavg_start": load_start, "loadavg": list(os.getloadavg()), "cpus": os.cpu_count(),
             "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
@@ -335,9 +431,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--codec-cycles", type=int, default=3000, help="cycles of the codec microbenchmark (default 3000)")
     p.add_argument("--tick-runs", type=int, default=30, help="interleaved runs of 100 ticks each (default 30)")
     p.add_argument("--phase", choices=sorted(PHASES) + ["ticks"], help=argparse.SUPPRESS)
+    p.add_argument("--stage-only", action="store_true",
+                   help="only the output stage's figures (no root; printed, not written)")
     p.add_argument("--ifname", help=argparse.SUPPRESS)
     p.add_argument("--log-file", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.stage_only:
+        print(json.dumps(stage_figures(min(args.drives), args.tick_runs), indent=2), flush=True)
+        return 0
     if args.phase:
         args.drives = args.drives[0]
         print(json.dumps(phase_ticks(args) if args.phase == "ticks" else PHASES[args.phase](args)), flush=True)

@@ -86,6 +86,8 @@ class DriveSnapshot:
     target_position: int = 0
     following_error: int = 0
     motion_request_id: str = ""
+    #: Cycles in which the output stage limited a target (bus_agent.motion.output_stage).
+    target_clamps: int = 0
     #: A lost drive (``state`` "unknown"): the state it was in when it was lost; '' otherwise.
     last_known_state: str = ""
 

@@ -9,7 +9,8 @@ Per drive: ``drives_drive_state{host,axis,state}`` (1 for the current CiA 402 st
 others), ``drives_drive_error_code``, ``drives_drive_lost``, ``drives_drive_al_state{...,al_state}``,
 ``drives_drive_following_error_increments{host,axis,source}`` when known (source ``0x60F4``: the
 drive's own, mapped; ``agent``: 0x607A written last minus 0x6064, cyclic synchronous position in
-Operation enabled; see :func:`dashboard.view.following_error`). Position units are the drive's
+Operation enabled; see :func:`dashboard.view.following_error`), ``drives_drive_target_clamps_total``
+(cycles the agent's output stage limited a target, docs/motion.md). Position units are the drive's
 increments, not an SI unit: the suffix names them.
 Per agent: ``drives_agent_up``, ``drives_cycle_period_seconds{host,quantile}`` (0.5, 0.99, 1 = max
 of the agent's statistics window), ``drives_cycles_total``, ``drives_cycle_overruns_total``,
@@ -52,6 +53,8 @@ class FleetCollector(Collector):
         ferr = GaugeMetricFamily("drives_drive_following_error_increments", "following error (0x60F4 from the "
                                  "drive, else target written last minus 0x6064 from the agent in CSP), when known",
                                  labels=["host", "axis", "source"])
+        clamps = CounterMetricFamily("drives_drive_target_clamps", "cycles in which the agent's output stage "
+                                     "limited a target to the axis velocity/acceleration limits", labels=["host", "axis"])
         for (host, axis), st in sorted(statuses.items()):
             for s in DRIVE_STATES:
                 state.add_metric([host, axis, s], 1.0 if st.state == s else 0.0)
@@ -62,7 +65,8 @@ class FleetCollector(Collector):
             fe = following_error(st)
             if fe is not None:
                 ferr.add_metric([host, axis, fe[1]], fe[0])
-        yield from (state, error, lost, al, ferr)
+            clamps.add_metric([host, axis], getattr(st, "target_clamps", 0))
+        yield from (state, error, lost, al, ferr, clamps)
 
         up = GaugeMetricFamily("drives_agent_up", "1 while the agent's liveliness token is present", labels=["host"])
         period = GaugeMetricFamily("drives_cycle_period_seconds", "measured cycle period over the agent's "

@@ -167,6 +167,8 @@ class DriveStatus:
     target_position: int = _f(0, range=I32, doc="0x607A target position written last")
     following_error: int = _f(0, range=I32, doc="target position written last minus 0x6064 (counts)")
     motion_request_id: str = _f("", max_len=128, doc="request id of the running motion command ('' if none)")
+    target_clamps: int = _f(0, range=U64, doc="cycles in which the output stage limited 0x607A/0x60FF to the axis "
+                            "velocity/acceleration limits, since the agent started (0 in older agents)")
     last_known_state: str = _f("", choices=DRIVE_STATES + ("",), doc="a lost drive (state 'unknown'): the CiA 402 state it was in when it was lost; '' while not lost")
 
 

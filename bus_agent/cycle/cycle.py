@@ -39,7 +39,7 @@ from bus_agent.cycle.base import INBOX_MAX, SPIN_MIN_NS, SPIN_NS, STATS_EVERY, S
 from bus_agent.cycle.commands import CommandsMixin
 from bus_agent.cycle.drive import ARMED_STATES, DOWN_STATES, FAULT_STATES, UPWARD_GOALS, Drive
 from bus_agent.cycle.management import RECOVER_EVERY_CYCLES, SdoJob
-from bus_agent.cycle.motion import MotionMixin
+from bus_agent.cycle.motion import MotionMixin, write_targets
 from bus_agent.cycle.nmt import NmtMixin
 from bus_agent.cycle.output import OutputMixin
 from bus_agent.cycle.realtime import helper_priority, name_thread, set_thread_fifo, set_timer_slack_ns
@@ -464,9 +464,7 @@ class Cycle(StartupMixin, CommandsMixin, SlavesMixin, NmtMixin, MotionMixin, Tim
                 d.target_position = d.inputs.position_actual
                 d.target_velocity = 0
                 d.target_torque = 0
-            o.target_position = d.target_position
-            o.target_velocity = d.target_velocity
-            o.target_torque = d.target_torque
+            write_targets(d, out.hold_target)  # through the output stage: the axis limits on the wire
             bus.set_outputs(d.slave, o)
             if out.events:
                 self._controller_events(d, out.events, prev, now_ns)

@@ -14,6 +14,7 @@ from bus_agent.cia402.controller import DriveController, Goal
 from bus_agent.cia402.states import Mode, State
 from bus_agent.config import DriveConfig
 from bus_agent.motion.axis import AxisMotion
+from bus_agent.motion.output_stage import OutputStage
 from bus_agent.runtime import AgentCommand, DriveCommand, DriveSnapshot
 
 #: Goals that move a drive towards torque; withdrawn when nobody waits for them any more.
@@ -82,6 +83,12 @@ class Drive:
     # the last published snapshot and the values it was built from (Cycle._drive_snapshots)
     snapshot: DriveSnapshot | None = None
     snapshot_key: tuple = ()
+    #: The axis limits on the targets written to the wire (``out``); built from ``motion``.
+    stage: OutputStage = field(init=False)
+
+    def __post_init__(self) -> None:
+        lim = self.motion.limits
+        self.stage = OutputStage(lim.velocity, lim.acceleration, self.motion.lead_s)
 
 
 @dataclass(slots=True)

@@ -15,7 +15,7 @@ from bus_agent.cia402.states import State
 from bus_agent.cycle.base import CycleBase
 from bus_agent.cycle.drive import Drive
 from bus_agent.cycle.management import SdoJob
-from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected
+from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected, retime_group
 from bus_agent.motion.homing import MODE_HOMING
 from bus_agent.motion.profile import MODE_PP, MODE_PV
 from bus_agent.motion.planner import PlanError, plan_group
@@ -23,6 +23,7 @@ from bus_agent.runtime import DriveCommand, Outcome
 
 
 _FAULTS = (State.FAULT, State.FAULT_REACTION_ACTIVE)
+_ENABLED = State.OPERATION_ENABLED
 
 
 class MotionMixin(CycleBase):
@@ -122,6 +123,17 @@ class MotionMixin(CycleBase):
                                         note="; ".join(prep[3]), synchronized=True)
             self._motion_finished(d, ended, now_ns)
 
+    def _retime(self, d: Drive, now_ns: int) -> None:
+        """``d``'s synchronized move fell behind after a stall: re-time it with the other axes of
+        the same group move here (one command, :meth:`_group_move`), so they keep arriving
+        together (see :func:`~bus_agent.motion.axis.retime_group`). The drives stepped later in
+        this cycle sample the new plans already; those stepped before continue from them."""
+        a = d.motion.active
+        cmd = a.token[0] if a is not None else None
+        members = [x.motion for x in self.drives if not x.lost and x.motion.active is not None
+                   and x.motion.active.token[0] is cmd] if cmd is not None else [d.motion]
+        retime_group(members or [d.motion], now_ns / 1e9)
+
     def _motion_abort(self, d: Drive, reason: str, now_ns: int, *, drop: bool = False) -> None:
         """End the running motion command of ``d`` (aborted); ``drop``: forget the plan too (the
         drive is leaving Operation enabled or is lost), else decelerate on the profile."""
@@ -160,6 +172,8 @@ class MotionMixin(CycleBase):
                   mode=i.modes_of_operation_display, halted=d.ctrl.halt, commanded=d.target_position,
                   statusword=i.statusword)
         ended = m.step(now_ns / 1e9)
+        if m.retime_due:
+            self._retime(d, now_ns)
         if m.mode_request is not None or m.sdo_request is not None:
             self._motion_requests(d, now_ns)
         if m.write and not hold_target:
@@ -179,9 +193,27 @@ class MotionMixin(CycleBase):
             self._motion_finished(d, ended, now_ns)
 
 
+def write_targets(d: Drive, hold_target: bool) -> None:
+    """Copy the drive's targets into its output record through its output stage
+    (:class:`~bus_agent.motion.output_stage.OutputStage`): the single point every target passes
+    on its way to the wire, whoever produced it. The stage limits 0x607A in CSP and 0x60FF in
+    CSV while the drive is in Operation enabled and not halted (it follows the drive's mode as
+    0x6061 reports it: that is how the drive reads the targets); otherwise it follows them.
+    ``d.target_*`` stay what the producers asked for, so a limited target catches up with them.
+    Cycle thread."""
+    st = d.stage
+    mode = (d.inputs.modes_of_operation_display
+            if d.state is _ENABLED and not hold_target and not d.ctrl.halt else 0)
+    st.step(mode, d.target_position, d.target_velocity)
+    o = d.out
+    o.target_position = st.position
+    o.target_velocity = st.velocity
+    o.target_torque = d.target_torque
+
+
 def following_error(d: Drive) -> int:
     """Target position written last minus the actual position (CSP in Operation enabled), else 0."""
     if d.state is State.OPERATION_ENABLED and d.inputs.modes_of_operation_display == MODE_CSP:
-        return d.target_position - d.inputs.position_actual
+        return d.out.target_position - d.inputs.position_actual
     return 0
 

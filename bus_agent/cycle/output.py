@@ -48,7 +48,7 @@ class OutputMixin(CycleBase):
         output depends on the two inputs only), the motion is idle (:attr:`AxisMotion.idle`), the
         targets did not move (the motion observes them), no command pending, no automatic fault
         reset running (its backoff reads the clock), no emergency text that may change. Cycle thread only."""
-        if d.pending is not None or not d.ctrl.settled or not d.motion.idle:
+        if d.pending is not None or not d.ctrl.settled or not d.motion.idle or not d.stage.settled:
             return False
         if (d.target_position, d.target_velocity, d.target_torque) != targets_before:
             return False
@@ -75,7 +75,8 @@ class OutputMixin(CycleBase):
             key = (d.state, i.statusword, d.controlword, c.goal, c.halt, c.mode, i.modes_of_operation_display,
                    i.position_actual, i.velocity_actual, i.torque_actual, i.error_code,
                    texts.get(d.slave) if i.error_code else None, d.al, d.lost, d.absent, d.object_names, i.extra,
-                   d.dc, m.axis_state, m.homed, d.target_position, m.request_id, d.lost_reason if d.lost else "")
+                   d.dc, m.axis_state, m.homed, d.out.target_position, m.request_id, d.stage.clamps,
+                   d.lost_reason if d.lost else "")
             if d.lost:
                 if d.snapshot is None or key != d.snapshot_key:
                     d.snapshot = self._lost_snapshot(d)
@@ -94,8 +95,8 @@ class OutputMixin(CycleBase):
                     self._error_text(d.slave, i.error_code),                           # error_text
                     d.al.state.wire_name if d.al.state in ALState else "none", d.lost,  # al_state lost
                     d.absent, d.object_names, i.extra, d.dc,                           # absent object_names objects dc
-                    m.axis_state.value, m.homed, d.target_position,                    # axis_state homed target_position
-                    following_error(d), m.request_id)                                 # following_error motion_request_id
+                    m.axis_state.value, m.homed, d.out.target_position,                # axis_state homed target_position
+                    following_error(d), m.request_id, d.stage.clamps)                 # following_error motion_request_id target_clamps
                 d.snapshot_key = key
                 snaps[d.index] = d.snapshot
                 changed = True
@@ -114,8 +115,8 @@ class OutputMixin(CycleBase):
         return DriveSnapshot(
             d.axis, d.slave, "unknown", 0, d.controlword, c.goal.value, c.halt, c.mode, 0, 0, 0, 0, 0,
             d.lost_reason, d.al.state.wire_name if d.al.state in ALState else "none", True,
-            LOST_ABSENT, (), (), d.dc, m.axis_state.value, m.homed, d.target_position, 0, m.request_id,
-            d.state.value)
+            LOST_ABSENT, (), (), d.dc, m.axis_state.value, m.homed, d.out.target_position, 0, m.request_id,
+            d.stage.clamps, d.state.value)
 
     def _error_text(self, slave: int, error_code: int) -> str:
         """The text of the bus's last emergency of ``slave`` when it is about this error code."""

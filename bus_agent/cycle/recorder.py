@@ -54,9 +54,7 @@ class RecordedDrive(Protocol):
     inputs: Any           # DriveInputs: statusword, position_actual, velocity_actual, torque_actual, ...
     index: int            # position in the recorder's axes
     controlword: int
-    target_position: int
-    target_velocity: int
-    target_torque: int
+    out: Any              # DriveOutputs as written: target_position, target_velocity, target_torque
 
 
 @dataclass(frozen=True)
@@ -172,9 +170,10 @@ class Recorder:
                 inp = drv.inputs
                 sw[k] = inp.statusword
                 cw[k] = drv.controlword
-                tp[k] = drv.target_position
-                tv[k] = drv.target_velocity
-                tt[k] = drv.target_torque
+                out = drv.out  # the targets as written to the wire (after the output stage)
+                tp[k] = out.target_position
+                tv[k] = out.target_velocity
+                tt[k] = out.target_torque
                 pos[k] = inp.position_actual
                 vel[k] = inp.velocity_actual
                 tq[k] = inp.torque_actual

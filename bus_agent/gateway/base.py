@@ -34,7 +34,7 @@ LEASE_REACTION_OPS: dict[str, tuple[str, ...]] = {
 #: ``motion_period_s`` and with every heartbeat.
 CHANGE_FIELDS = ("state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                  "error_code", "error_text", "al_state", "lost", "axis_state", "homed", "motion_request_id")
-MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following_error", "objects")
+MOTION_FIELDS = ("position", "velocity", "torque", "target_position", "following_error", "objects", "target_clamps")
 #: What the agent asks of a drive (0x6040, the goal, the halt bit, 0x6060): a change of these
 #: alone is answered by the drive within a cycle or two (0x6041, 0x6061), and the status waits
 #: for that answer to go out with it, at most :data:`HOLD_CYCLES` cycles (docs/agent-gateway.md).

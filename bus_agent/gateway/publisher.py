@@ -189,7 +189,7 @@ class PublisherMixin(GatewayBase):
             "absent": list(d.absent), "objects": dict(zip(d.object_names, d.objects)),
             "axis_state": d.axis_state, "homed": d.homed, "target_position": d.target_position,
             "following_error": max(-2**31, min(2**31 - 1, d.following_error)),
-            "motion_request_id": d.motion_request_id[:128],
+            "motion_request_id": d.motion_request_id[:128], "target_clamps": d.target_clamps,
             "last_known_state": d.last_known_state if d.last_known_state in m.DRIVE_STATES else "",
         })
 

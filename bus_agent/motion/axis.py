@@ -26,20 +26,20 @@ from typing import Any, Mapping
 from bus_agent.motion.config import MotionConfig
 from bus_agent.motion.drive_runs import DriveRunsMixin
 from bus_agent.motion.homing import Homing
-from bus_agent.motion.planner import Kinematic, Limits, Plan, PlanError, plan_position, plan_stop, plan_velocity
+from bus_agent.motion.planner import (Kinematic, Limits, Plan, PlanError, plan_group, plan_position, plan_stop,
+                                      plan_velocity)
 from bus_agent.motion.profile import MODE_PP, MODE_PV, ProfileRun
 from bus_agent.motion.records import (ACCEPTS, MODE_CSP, MODE_CSV, MOTION_OPS, REFUSAL, Active, AxisState, Finished,
                                       Rejected)
 from bus_agent.motion.records import num as _num
 
 __all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMotion", "Rejected", "MODE_CSP",
-           "MODE_CSV"]
+           "MODE_CSV", "retime_group"]
 
 _Active = Active
-#: A cycle may catch up at most this many periods of its profile (see step()): a longer gap
-#: pauses the profile for the rest. 5 periods at the velocity limit are far inside any following
-#: error window, and short stalls (a loaded host) keep cross-host synchronized moves in time.
-STALL_PERIODS = 5
+#: A gap between two steps longer than this many periods lost at least one frame slot: a stall
+#: (counted in ``AxisMotion.stalls``; a synchronized move is re-timed after it, see step()).
+STALL_GAP_PERIODS = 1.5
 
 
 
@@ -55,9 +55,17 @@ class AxisMotion(DriveRunsMixin):
         #: Targets take effect at the next exchange: plans are sampled one period ahead.
         self.lead_s = period_s
         #: The last step's time while a plan runs (None when the last step ended without one),
-        #: and how many cycle stalls paused the profile (see step()).
+        #: how many cycle stalls paused the profile, and how far the profile is behind the wall
+        #: clock since the plan started (see step()).
         self._last_step_s: float | None = None
         self.stalls = 0
+        self._lag_s = 0.0
+        #: When the running plan was to arrive (wall clock, this module's seconds) and its duration
+        #: as planned: a re-timed synchronized move keeps both.
+        self._arrive_s = 0.0
+        self._planned_s = 0.0
+        #: A synchronized move fell behind (a stall): re-time its group (taken by the cycle).
+        self.retime_due = False
         self.homed = False
         self.stop_latched = False
         self.active: _Active | None = None
@@ -149,6 +157,7 @@ class AxisMotion(DriveRunsMixin):
 
     def _current(self, now_s: float) -> Kinematic:
         """The set-point being written now: where a new plan starts (no jump)."""
+        self._advance(now_s)
         if self.plan is not None:
             p, v, a = self.plan.sample(now_s - self.plan_t0)
             return Kinematic(p, v, a)
@@ -257,6 +266,8 @@ class AxisMotion(DriveRunsMixin):
         """Make ``plan`` the axis's trajectory from ``now_s``; the running command is aborted."""
         ended = self.abort(f"aborted by {request_id} ({kind})", now_s, decelerate=False)
         self.plan, self.plan_t0, self.plan_kind = plan, now_s, kind
+        self._last_step_s, self._lag_s = None, 0.0  # its profile time starts now (or at its start_at)
+        self._arrive_s, self._planned_s = now_s + plan.duration, plan.duration
         self.active = _Active(token, request_id, "jog" if kind == "jog" else "move", deadline_s, end_s=end_s,
                               synchronized=synchronized, note=note, limit_ahead=limit_ahead)
         return ended
@@ -359,20 +370,38 @@ class AxisMotion(DriveRunsMixin):
     def step(self, now_s: float) -> list[Finished]:
         """Sample the plan for this cycle's targets and decide outcomes. Call after :meth:`observe`.
 
-        A stalled cycle (more than :data:`STALL_PERIODS` periods since the last step) catches up
-        at most that many periods and pauses the profile for the rest: the drive held the last
-        target meanwhile (no frames), so a target sampled at the wall-clock time would jump by
-        velocity x stall and trip the drive's following error (0x8611). The profile then ends
-        later by the stall beyond those periods. Only a plan that ran at the last step can have
-        stalled: one a command started since then begins at its own start time (the cycle may
-        skip the steps of an idle axis, see :attr:`idle`)."""
-        last = self._last_step_s
-        if last is not None and self.plan is not None and now_s - last > STALL_PERIODS * self.lead_s:
-            self.plan_t0 += now_s - last - STALL_PERIODS * self.lead_s
-            self.stalls += 1
+        The profile advances one period per step, whatever the time since the last one (see
+        :meth:`_advance`): a stalled cycle never catches up at once. A synchronized move that
+        fell behind by more than a frame slot sets :attr:`retime_due`: the cycle re-times its
+        group (:func:`retime_group`) to keep the common arrival within the axis limits. The output stage (bus_agent.motion.output_stage) keeps
+        the limits on the wire whatever this writes."""
+        self._advance(now_s)
+        if self._lag_s > STALL_GAP_PERIODS * self.lead_s and self.plan_kind == "sync":
+            self.retime_due = True
         ended = self._step(now_s)
         self._last_step_s = now_s if self.plan is not None else None
         return ended
+
+    def _advance(self, now_s: float) -> None:
+        """Advance the running profile by one period since the last step (idempotent within a
+        cycle). The drive takes one target per period: a frame late by jitter or a stall (slots
+        without frames, the drive held the last target) continues from where the last target
+        left off, so the step on the wire is one period's worth, not velocity x gap. The profile
+        falls behind the wall clock by what the stall lost (``_lag_s``; jitter averages out on
+        the loop's drift-free deadlines). Only a plan that ran at the last step advances: one a
+        command started since then begins at its own start time (the cycle may skip the steps of
+        an idle axis, see :attr:`idle`)."""
+        last = self._last_step_s
+        if last is None or self.plan is None or now_s <= last:
+            return
+        gap = now_s - last
+        self._last_step_s = now_s
+        if last < self.plan_t0:
+            return  # not under way yet (a synchronized start_at): its start is a wall-clock time
+        self.plan_t0 += gap - self.lead_s
+        self._lag_s += gap - self.lead_s
+        if gap > STALL_GAP_PERIODS * self.lead_s:
+            self.stalls += 1
 
     def _step(self, now_s: float) -> list[Finished]:
         if self.homing is not None:
@@ -450,7 +479,7 @@ class AxisMotion(DriveRunsMixin):
         if err <= self.cfg.position_window and at_rest:
             self.active = None
             self.plan = None
-            return [Finished(a.token, a.request_id, "done", a.note, plan.duration)]
+            return [Finished(a.token, a.request_id, "done", a.note, self._planned_s)]
         if t >= plan.duration + self.cfg.settle_s:
             self.active = None
             self.plan = None
@@ -480,3 +509,32 @@ class AxisMotion(DriveRunsMixin):
     def _drop(self) -> list[Finished]:
         self.plan = None
         return []
+
+
+def retime_group(members: list[AxisMotion], now_s: float) -> None:
+    """Re-time the synchronized move of ``members`` (the axes of one group move on this host)
+    that fell behind the wall clock after a stall: each is planned again from the set-point
+    being written to its target, all to one duration (:func:`plan_group`): the planned arrival
+    when every axis's limits allow it (a move's own velocity was the group's choice, so an axis
+    may go up to its axis limit), else the earliest arrival the slowest allows. Never a jump:
+    the new plans start from the set-points. Cycle-safe (ruckig, once per stall)."""
+    runs = []
+    for m in members:
+        m.retime_due = False
+        m._lag_s = 0.0
+        m._advance(now_s)
+        plan = m.plan
+        if plan is not None and m.plan_kind == "sync" and not math.isnan(plan.target) \
+                and 0.0 < now_s - m.plan_t0 < plan.duration:
+            runs.append(m)
+    if not runs:
+        return
+    starts = [Kinematic(*m.plan.sample(now_s - m.plan_t0)) for m in runs]  # type: ignore[union-attr]
+    arrive = max(m._arrive_s for m in runs)
+    try:
+        plans = plan_group(starts, [m.plan.target for m in runs], [m.limits for m in runs],  # type: ignore[union-attr]
+                           max(arrive - now_s, 0.0))
+    except PlanError:
+        return  # keep the paused profiles: they arrive later, together and within the limits
+    for m, p in zip(runs, plans):
+        m.plan, m.plan_t0 = p, now_s

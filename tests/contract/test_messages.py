@@ -393,3 +393,14 @@ def test_published_messages_ignore_unknown_fields_and_words():
     assert reply.outcome == "aborted"
     with pytest.raises(SchemaError, match="unknown field"):
         m.from_dict(m.to_dict(EXAMPLES[6]) | {"principal": "bob"})
+
+
+def test_drive_status_target_clamps_is_optional_both_ways():
+    """``target_clamps`` (issue 23) evolves the contract as it allows: a status of an older agent
+    (without it) decodes with 0, and a reader that does not know it ignores it (not strict)."""
+    full = m.encode(drive_status(target_clamps=12))
+    body = msgpack.unpackb(full, raw=False)
+    assert m.decode(full).target_clamps == 12
+    del body["target_clamps"]
+    assert m.decode(msgpack.packb(body)).target_clamps == 0
+    assert not m.DriveStatus.STRICT

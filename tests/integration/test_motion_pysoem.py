@@ -88,6 +88,45 @@ def test_sync_move_of_four_over_ecat_sim_arrives_within_one_cycle(agent4):
             assert abs(d1[i][0] - d0[i][0]) <= CFG.max_velocity * dt + 2, (i, c1, d0[i], d1[i], dt)
 
 
+
+def test_stalled_cycle_keeps_the_limits_on_the_wire_over_ecat_sim(agent4):
+    """Issue 23 #3 over the real path: the cycle thread stalls in its exchange (30 ms without a
+    frame, twice) during a synchronized move at 95000 counts/s on axes limited to 100000 (100
+    counts per 1 ms cycle). Every target step between consecutive cycles stays within the limits
+    (before: up to 475 counts), the output stage had nothing to clamp, and the move ends done
+    at its targets."""
+    a, _control, axes = agent4
+    stalls: list[float] = []
+    exchange = a.cycle.bus.exchange
+
+    def stalling_exchange() -> int:
+        if len(stalls) < 2 and a.cycle.latest is not None and any(
+                d.axis_state == "synchronized_motion" and abs(d.velocity) > 50_000 for d in a.cycle.latest.drives):
+            if not stalls or time.monotonic() - stalls[-1] > 0.2:
+                time.sleep(0.030)
+                stalls.append(time.monotonic())
+        return exchange()
+
+    a.cycle.bus.exchange = stalling_exchange  # type: ignore[method-assign]
+    targets = {"axis0": 150_000.0, "axis1": -150_000.0}
+    n0 = len(a.rows)
+    got = a.do("move", ("axis0", "axis1"), sync=True, targets=targets, velocity=95_000)
+    assert {o.outcome for o in got} == {"done"}, got
+    assert len(stalls) == 2, stalls
+    rows = list(a.rows[n0:])
+    step_max, change_max = CFG.max_velocity * 1e-3 + 1, CFG.max_acceleration * 1e-6 + 2
+    for i in (0, 1):
+        for (c0, _, d0), (c1, _, d1), (c2, _, d2) in zip(rows, rows[1:], rows[2:]):
+            if c2 - c0 != 2:
+                continue  # a snapshot not seen: not consecutive cycles
+            s1, s2 = d1[i][0] - d0[i][0], d2[i][0] - d1[i][0]
+            assert abs(s2) <= step_max and abs(s2 - s1) <= change_max, (i, c2, s1, s2)
+    latest = {d.axis: d for d in a.cycle.latest.drives}
+    assert latest["axis0"].position == 150_000 and latest["axis1"].position == -150_000
+    assert all(latest[x].target_clamps == 0 for x in ("axis0", "axis1"))
+    assert min(d.motion.stalls for d in a.cycle.drives[:2]) >= 2
+
+
 def test_fault_fails_and_quick_stop_aborts_a_move_over_ecat_sim(agent4):
     a, control, axes = agent4
     move = a.send("move", ("axis0",), to=500_000)

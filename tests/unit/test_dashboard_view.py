@@ -130,3 +130,17 @@ def test_following_error_and_dc_offset_only_when_known():
     assert rows == {"a": -12, "b": 40, "c": None, "d": None, "e": None}
     hosts = {h["host"]: (h["dc_offset_p50_us"], h["dc_offset_p99_us"]) for h in v.snapshot()["hosts"]}
     assert hosts == {"h1": (480.5, 512.0), "h2": (None, None)}
+
+
+def test_target_clamps_counter_per_drive():
+    """The output stage's clamps (drive status ``target_clamps``) as a counter per drive; a status
+    from an older agent without the field reads 0."""
+    v = FleetView()
+    v.on_alive("h1", True)
+    v.on_agent(agent())
+    v.on_status(status("a", "operation_enabled", target_clamps=365))
+    v.on_status(status("b"))
+    fams = {f.name: f for f in text_string_to_metric_families(render(registry_for(v)).decode())}
+    got = {s.labels["axis"]: s.value for s in fams["drives_drive_target_clamps"].samples
+           if s.name == "drives_drive_target_clamps_total"}
+    assert got == {"a": 365.0, "b": 0.0}

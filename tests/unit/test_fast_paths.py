@@ -110,7 +110,7 @@ def test_the_statusword_table_equals_the_standards_patterns():
 SNAPSHOT_FIELDS = ("axis", "slave", "state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                    "position", "velocity", "torque", "error_code", "error_text", "al_state", "lost", "absent",
                    "object_names", "objects", "dc", "axis_state", "homed", "target_position", "following_error",
-                   "motion_request_id", "last_known_state")
+                   "motion_request_id", "target_clamps", "last_known_state")
 
 
 def test_the_snapshot_fields_are_the_ones_the_change_key_covers():

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from bus_agent.bus.pdo import DriveInputs
+from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.cia402.states import State, decode_statusword
 from bus_agent.config import AgentConfig, ConfigError, RecorderConfig
 from bus_agent.cycle.recorder import CYCLE_CODES, DRIVE_CODES, Recorder, RecordingUnavailable
@@ -23,7 +23,7 @@ from test_cycle import Harness  # tests/unit is on sys.path (rootdir-relative im
 def drives(n: int, base: int = 0) -> list[SimpleNamespace]:
     return [SimpleNamespace(inputs=DriveInputs(statusword=0x0237, position_actual=base + i, velocity_actual=-i,
                                                torque_actual=i, modes_of_operation_display=8, error_code=0),
-                            controlword=0x000F, target_position=base + i, target_velocity=0, target_torque=0)
+                            controlword=0x000F, out=DriveOutputs(target_position=base + i, target_velocity=0, target_torque=0))
             for i in range(n)]
 
 
@@ -162,7 +162,7 @@ def test_record_of_the_cycle_s_own_drives_keeps_nothing_and_builds_nothing_up():
 def test_value_beyond_its_channel_stops_recording_not_the_caller():
     rec = Recorder(["a"], cycle_us=1000, seconds=0.1, pre_s=0.02, post_s=0.01)
     d = drives(1)
-    d[0].target_position = 2**70
+    d[0].out.target_position = 2**70
     rec.record(1, 1, 1, 3, d, ())
     assert "recording stopped at cycle 1" in rec.error
     with pytest.raises(RecordingUnavailable, match="recording stopped"):
