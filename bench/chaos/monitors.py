@@ -170,6 +170,7 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
         if e.kind == "reflex":
             reflexes[e.ref].append(e)
     deadline_ns = int(remote_deadline_ms * 1e6)
+    lost_events = [e for e in trace.events if e.kind == "lost"]
     for e in trace.events:
         if e.kind not in ("fault", "lost") or _bad(last_before(by_ref.get(e.ref, []), e.time_ns)):
             continue
@@ -180,16 +181,18 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
                 if m == e.ref:
                     continue
                 host = m.split("/")[0]
-                if (disrupted(trace, host, e.time_ns - SETTLE_NS, e.time_ns + deadline_ns)
-                        or disrupted(trace, e.host, e.time_ns - SETTLE_NS, e.time_ns + deadline_ns)):
+                local = host == e.host
+                if disrupted(trace, host, e.time_ns, e.time_ns + deadline_ns) \
+                        or disrupted(trace, e.host, e.time_ns, e.time_ns + deadline_ns):
                     r.skipped += 1
                     continue
                 before = last_before(by_ref.get(m, []), e.time_ns)
-                if before is None or before.lost:
+                if before is None or before.lost or any(
+                        x.ref == m and (x.cycle == e.cycle if local else abs(x.time_ns - e.time_ns) <= deadline_ns)
+                        for x in lost_events):
                     r.skipped += 1  # a lost member does not react (its slave takes no commands)
                     continue
                 r.checked += 1
-                local = host == e.host
                 seen = [x for x in reflexes.get(m, ()) if
                         (x.cycle == e.cycle if local else e.time_ns - deadline_ns <= x.time_ns <= e.time_ns + deadline_ns)]
                 if not seen:
@@ -259,8 +262,9 @@ def malformed_refused(trace: Trace) -> Result:
             if not refused:
                 add(r, "not refused", request_id=c.request_id, flaw=c.malformed, host=host,
                     errors=[e.text for e in errs], outcomes={x.ref: x.outcome for x in oks})
-        acted = [e for e in trace.events if c.request_id and e.request_id == c.request_id
-                 and not (e.kind == "command" and "refused" in e.detail)]
+        # the audit trail's entry (kind command) and a rejected outcome are the refusal itself
+        acted = [e for e in trace.events if c.request_id and e.request_id == c.request_id and e.kind != "command"
+                 and not (e.kind == "outcome" and " rejected" in e.detail)]
         if acted:
             add(r, "acted on", request_id=c.request_id, flaw=c.malformed,
                 events=[(e.ref, e.kind, e.detail) for e in acted[:EXAMPLES]])

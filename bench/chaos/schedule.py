@@ -98,8 +98,7 @@ def _command(rng: random.Random, at: float, fleet: dict[str, Any]) -> Step:
     return Step(round(at, 3), "command", op, target, args, timeout_s=timeout)
 
 
-def _injection(rng: random.Random, at: float, fleet: dict[str, Any]) -> Step:
-    kind = _pick(rng, INJECTION_WEIGHTS)
+def _injection(rng: random.Random, at: float, fleet: dict[str, Any], kind: str) -> Step:
     lo, hi = INJECTION_WEIGHTS[kind][1]
     hold = round(rng.uniform(lo, hi), 2)
     if kind in ("fault", "unplug"):
@@ -116,16 +115,18 @@ def _injection(rng: random.Random, at: float, fleet: dict[str, Any]) -> Step:
 
 def make_schedule(seed: int, seconds: float, fleet: dict[str, Any] = FLEET) -> list[Step]:
     """Every step of a soak of ``seconds`` with ``seed``, in time order (commands from 0.5 s,
-    injections from 1 s; an injection episode's nominal end plus 0.5-2 s starts the next)."""
+    injections from 3 s; an injection episode's nominal end plus 0.5-2 s starts the next). The
+    first injection episodes are every kind once, in a seeded order, so a short soak meets them all."""
     rng = random.Random(seed)
     steps: list[Step] = []
     t = 0.5
     while t < seconds:
         steps.append(_command(rng, t, fleet))
         t += rng.uniform(0.1, 0.4)
-    t = 1.0
+    t = 3.0  # the first enables have gone out
+    first = rng.sample(list(INJECTION_WEIGHTS), len(INJECTION_WEIGHTS))  # every kind once, early
     while t < seconds:
-        s = _injection(rng, t, fleet)
+        s = _injection(rng, t, fleet, first.pop(0) if first else _pick(rng, INJECTION_WEIGHTS))
         steps.append(s)
         t += s.hold_s + rng.uniform(0.5, 2.0)
     steps.sort(key=lambda s: (s.at_s, s.lane))
