@@ -59,7 +59,7 @@ def verdict(soak: Soak, seed: int, seconds: float, backend: str, reflex_deadline
         },
         "reflex_remote_deadline_ms": reflex_deadline_ms,
         "monitors": {n: {"promise": MONITORS[n][0], "checked": r.checked, "skipped": r.skipped,
-                         "violations": len(r.violations)} for n, r in results.items()},
+                         "violations": len(r.violations), **r.figures} for n, r in results.items()},
         "violations_total": len(violations),
         "violations": violations[:MAX_LISTED],
         "harness_errors": c.harness_errors,

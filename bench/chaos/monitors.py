@@ -171,6 +171,7 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
             reflexes[e.ref].append(e)
     deadline_ns = int(remote_deadline_ms * 1e6)
     lost_events = [e for e in trace.events if e.kind == "lost"]
+    remote_ms: list[float] = []
     for e in trace.events:
         if e.kind not in ("fault", "lost") or _bad(last_before(by_ref.get(e.ref, []), e.time_ns)):
             continue
@@ -195,11 +196,16 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
                 r.checked += 1
                 seen = [x for x in reflexes.get(m, ()) if
                         (x.cycle == e.cycle if local else e.time_ns - deadline_ns <= x.time_ns <= e.time_ns + deadline_ns)]
+                if seen and not local:
+                    remote_ms.append(min(x.time_ns - e.time_ns for x in seen) / 1e6)
                 if not seen:
                     later = [x.time_ns - e.time_ns for x in reflexes.get(m, ()) if x.time_ns >= e.time_ns]
                     add(r, "no reflex in the same cycle" if local else f"no reflex within {remote_deadline_ms:g} ms",
                         group=group, origin=e.ref, origin_kind=e.kind, origin_cycle=e.cycle, origin_time_ns=e.time_ns,
                         member=m, next_reflex_after_ms=round(min(later) / 1e6, 3) if later else None)
+    if remote_ms:
+        v = sorted(remote_ms)
+        r.figures["remote_reflex_ms"] = {"n": len(v), "p50": round(v[len(v) // 2], 3), "max": round(v[-1], 3)}
     return r
 
 

@@ -39,6 +39,8 @@ class Result:
     checked: int = 0
     skipped: int = 0
     violations: list[Violation] = field(default_factory=list)
+    #: What the monitor measured on the way (e.g. reflex latencies), for the result.
+    figures: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
