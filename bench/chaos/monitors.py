@@ -21,9 +21,12 @@ from .trace import BAD_STATES, DOWN_STATES, REFUSED, UP, Command, Event, Injecti
 #: be missing (the 3 s link lease, then the reconnection): its cases are skipped, not judged.
 SETTLE_NS = 5_000_000_000
 #: A remote group member reacts within this long of its origin's fault or loss (agent time stamps).
-#: The README promises "within milliseconds"; bench_reflex measures 3-5 ms p99 on this machine,
-#: this bound leaves room for a loaded 2-core machine running the whole twin without real-time.
-REFLEX_REMOTE_DEADLINE_MS = 20.0
+#: The README promises "within milliseconds"; the latency target (p99 <= 3 ms, real-time priority,
+#: a quiet machine) is bench_reflex's. The soak runs a whole twin without real-time priority on a
+#: shared 2-core machine (36 ms seen once at load 3.5), so its bound catches a reflex that is
+#: missing or late by a scheduling stall or more, not one off the latency target; the result
+#: reports the latencies it saw (``remote_reflex_ms``).
+REFLEX_REMOTE_DEADLINE_MS = 50.0
 #: A fault, unplug or WKC fault reaches the agent's next cycle; a status stamped later than this
 #: after the simulator applied it must not show the drive enabled and healthy.
 INJECTION_MARGIN_NS = 10_000_000
