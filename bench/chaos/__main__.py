@@ -26,6 +26,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from twin import TwinError
+
 from bench.common import RESULTS, bench_parser, loadavg, run_stamp, write_result
 
 from .monitors import MONITORS, REFLEX_REMOTE_DEADLINE_MS, group_reflex, run_monitors
@@ -99,7 +101,10 @@ def main(argv: list[str] | None = None) -> int:
           file=sys.stderr, flush=True)
     load0, t0 = loadavg(), time.monotonic()
     soak = Soak(steps, args.seed)
-    soak.run(args.backend)
+    try:
+        soak.run(args.backend)
+    except TwinError as exc:  # the twin did not start: nothing was judged, and the result says why
+        soak.counts.harness_errors.append(f"the twin did not start: {exc}")
     result = verdict(soak, args.seed, args.seconds, args.backend, args.reflex_deadline_ms, load0,
                      time.monotonic() - t0, schedule_out)
     write_result(result, args.out)

@@ -17,9 +17,10 @@ from typing import Any, Callable, Iterable
 from .limits import check_limits
 from .trace import BAD_STATES, DOWN_STATES, REFUSED, UP, Command, Event, Injection, Result, Status, Trace, Violation
 
-#: Within this long after a host's link, agent or the router came back, its messages may still
-#: be missing (the 3 s link lease, then the reconnection): its cases are skipped, not judged.
-SETTLE_NS = 5_000_000_000
+#: Within this long after a host's link, agent or the router came back (the twin saw every drive
+#: of the host answer again), other sessions' routes to it may still be forming: its cases are
+#: skipped, not judged.
+SETTLE_NS = 2_000_000_000
 #: A remote group member reacts within this long of its origin's fault or loss (agent time stamps).
 #: The README promises "within milliseconds"; the latency target (p99 <= 3 ms, real-time priority,
 #: a quiet machine) is bench_reflex's. The soak runs a whole twin without real-time priority on a
@@ -360,7 +361,8 @@ def lost_is_unknown(trace: Trace) -> Result:
 def _faulted_windows(trace: Trace, by_ref: dict[str, list[Status]]) -> list[tuple[str, int, int, Injection]]:
     """(drive, from, to, injection): when its slave was faulted, unplugged or without valid process
     data. A fault lasts until a fault_reset done for the drive; an unplug until plugged again; a
-    WKC fault until it is off and the drive was next seen healthy and down (or an enable sent)."""
+    WKC fault until it is off and the drive was next seen healthy and down (or an enable sent).
+    With the drives simulated in the agent's process, any of them ends when that agent is killed."""
     resets: dict[str, list[int]] = defaultdict(list)
     enables: dict[str, list[int]] = defaultdict(list)
     for c in trace.commands:
@@ -384,6 +386,9 @@ def _faulted_windows(trace: Trace, by_ref: dict[str, list[Status]]) -> list[tupl
             else:
                 after = [s.time_ns for s in by_ref.get(ref, ()) if s.time_ns > inj.end_ns and not s.lost and s.state != UP]
                 t1 = min([*after[:1], *(t for t in enables.get(ref, ()) if t > inj.end_ns), trace.final_ns or 2**63])
+            if trace.sim_in_agent:
+                t1 = min([t1, *(k.start_ns for k in trace.injections
+                                if k.kind == "agent_restart" and k.host == inj.host and k.start_ns > inj.start_ns)])
             out.append((ref, t0, t1, inj))
     return out
 

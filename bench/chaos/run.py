@@ -77,6 +77,7 @@ class Soak:
     # ---- the run --------------------------------------------------------------------------------
 
     def run(self, backend: str = "sim") -> Trace:
+        self.trace.sim_in_agent = backend == "sim"
         twin = self.twin = Twin(soak_fleet(self.fleet), backend=backend, log_level="WARNING")
         twin.start()
         try:

@@ -208,6 +208,9 @@ class Trace:
     unexpected_exits: list[str] = field(default_factory=list)
     #: Processes watched by the no-death monitor.
     processes: int = 0
+    #: The simulated drives live in the agent's process (the sim backend): a killed agent takes
+    #: its drives' faults with it, and the restarted one starts with fresh drives.
+    sim_in_agent: bool = True
     #: Every drive's status after the final disable (None: no answer).
     final: dict[str, Status | None] = field(default_factory=dict)
     final_ns: int = 0

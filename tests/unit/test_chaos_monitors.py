@@ -92,3 +92,14 @@ def test_limits_judge_only_cycles_the_drive_follows_and_each_cycle_once():
     tr.recordings = [Recording(0, "h2", 1000, n, ("a",), chans)] * 2
     r = check_limits(tr)
     assert r.violations and r.violations[0].detail["count"] == 1  # the same cycles fetched twice: judged once
+
+
+def test_a_fault_of_a_drive_simulated_in_its_agent_ends_when_that_agent_is_killed():
+    from bench.chaos.monitors import no_stale_found
+    tr = _trace()
+    tr.injections = [Injection("fault", "h1/a", _t(0), _t(0), _t(0)),
+                     Injection("agent_restart", "h1", _t(100), _t(100), _t(900))]
+    tr.statuses = [_st(1000, "h1/a", 3, "operation_enabled", goal="enabled")]
+    assert not no_stale_found(tr).violations  # the new agent's drive never had the fault
+    tr.sim_in_agent = False  # ecat-sim outlives the agent: its drive is still in fault
+    assert no_stale_found(tr).violations
