@@ -34,6 +34,7 @@ from .monitors import MONITORS, REFLEX_REMOTE_DEADLINE_MS, group_reflex, run_mon
 from .run import Soak
 from .schedule import make_schedule, schedule_json
 from .selftest import self_test
+from .trace import Trace
 
 #: Most violations listed in full in the result (every one is counted).
 MAX_LISTED = 200
@@ -66,6 +67,14 @@ def verdict(soak: Soak, seed: int, seconds: float, backend: str, reflex_deadline
         "violations": violations[:MAX_LISTED],
         "harness_errors": c.harness_errors,
     }
+
+
+def trace_json(tr: Trace) -> dict[str, Any]:
+    """The trace as JSON, without the flight recordings (large; their verdict is in the result)."""
+    return {k: [asdict(x) for x in v] if isinstance(v, list) and k != "unexpected_exits" else v
+            for k, v in ((f, getattr(tr, f)) for f in ("hosts", "groups", "statuses", "agents", "events", "commands",
+                                                        "injections", "unexpected_exits", "final_ns"))} | {
+        "final": {r: asdict(s) if s else None for r, s in tr.final.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -108,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     result = verdict(soak, args.seed, args.seconds, args.backend, args.reflex_deadline_ms, load0,
                      time.monotonic() - t0, schedule_out)
     write_result(result, args.out)
+    trace_out = args.out.with_name(args.out.stem + ".trace.json")
+    trace_out.write_text(json.dumps(trace_json(soak.trace)) + "\n")
+    print(f"chaos: what was seen (without the recordings): {trace_out}", file=sys.stderr)
     for name, m in result["monitors"].items():
         print(f"chaos: {name}: {m['checked']} checked, {m['skipped']} skipped, {m['violations']} violations",
               file=sys.stderr)
