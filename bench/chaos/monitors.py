@@ -31,6 +31,9 @@ QUERY_SETTLE_NS = 5_000_000_000
 #: missing or late by a scheduling stall or more, not one off the latency target; the result
 #: reports the latencies it saw (``remote_reflex_ms``).
 REFLEX_REMOTE_DEADLINE_MS = 50.0
+#: A host's stall (its agent's longest cycle period) is looked up in the agent statuses received
+#: this long after an origin: each covers the last 1000 cycles and comes every second.
+STALL_LOOKUP_NS = 2_500_000_000
 #: A fault, unplug or WKC fault reaches the agent's next cycle; a status stamped later than this
 #: after the simulator applied it must not show the drive enabled and healthy.
 INJECTION_MARGIN_NS = 10_000_000
@@ -166,10 +169,19 @@ def _bad(s: Status | None) -> bool:
     return s is not None and (s.lost or s.state in BAD_STATES)
 
 
+def stall_ns(trace: Trace, host: str, t0: int) -> int:
+    """The longest cycle period ``host``'s agent reported in the statuses received within
+    :data:`STALL_LOOKUP_NS` after ``t0`` (0 if none): how long its cycle could not run."""
+    return int(1000 * max((a.period_max_us for a in trace.agents
+                           if a.host == host and t0 <= a.t_ns <= t0 + STALL_LOOKUP_NS), default=0.0))
+
+
 def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLINE_MS) -> Result:
     """When a group member turns bad (event ``fault`` or ``lost`` after a healthy status), every
     other member not lost gets its ``reflex`` event: in the same cycle on the same host, within
-    ``remote_deadline_ms`` (agent time stamps) on another host."""
+    ``remote_deadline_ms`` (agent time stamps) on another host, plus the longest cycle period
+    that host's agent reported around then (a stalled host reacts with its first cycle after the
+    stall; the reflex cannot be earlier, and the result counts those ``late_by_stall``)."""
     r = Result("group_reflex")
     by_ref = statuses_by_ref(trace)
     reflexes: dict[str, list[Event]] = defaultdict(list)
@@ -201,14 +213,18 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
                     r.skipped += 1  # a lost member does not react (its slave takes no commands)
                     continue
                 r.checked += 1
+                allowed = deadline_ns if local else deadline_ns + stall_ns(trace, host, e.time_ns)
                 seen = [x for x in reflexes.get(m, ()) if
-                        (x.cycle == e.cycle if local else e.time_ns - deadline_ns <= x.time_ns <= e.time_ns + deadline_ns)]
+                        (x.cycle == e.cycle if local else e.time_ns - deadline_ns <= x.time_ns <= e.time_ns + allowed)]
                 if seen and not local:
-                    remote_ms.append(min(x.time_ns - e.time_ns for x in seen) / 1e6)
+                    late = min(x.time_ns - e.time_ns for x in seen)
+                    remote_ms.append(late / 1e6)
+                    if late > deadline_ns:
+                        r.figures["late_by_stall"] = r.figures.get("late_by_stall", 0) + 1
                 if not seen:
                     later = [x.time_ns - e.time_ns for x in reflexes.get(m, ()) if x.time_ns >= e.time_ns]
-                    add(r, "no reflex in the same cycle" if local else f"no reflex within {remote_deadline_ms:g} ms",
-                        group=group, origin=e.ref, origin_kind=e.kind, origin_cycle=e.cycle, origin_time_ns=e.time_ns,
+                    add(r, "no reflex in the same cycle" if local else f"no reflex within {remote_deadline_ms:g} ms "
+                        "and the host's stall", allowed_ms=round(allowed / 1e6, 3), group=group, origin=e.ref, origin_kind=e.kind, origin_cycle=e.cycle, origin_time_ns=e.time_ns,
                         member=m, next_reflex_after_ms=round(min(later) / 1e6, 3) if later else None)
     if remote_ms:
         v = sorted(remote_ms)

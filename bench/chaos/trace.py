@@ -75,6 +75,8 @@ class AgentInfo:
     seq: int
     instance: str
     state: str = "running"
+    #: The longest cycle period of the agent's last statistics window (1000 cycles): a stall.
+    period_max_us: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -107,7 +107,7 @@ class WireClient:
     def _on_agent(self, sample: zenoh.Sample) -> None:
         if (d := self._decoded(sample, "agent_status")) is not None:
             self.trace.agents.append(AgentInfo(time.time_ns(), d["host"], d["seq"], d.get("instance", ""),
-                                               d.get("state", "")))
+                                               d.get("state", ""), float(d.get("period_max_us", 0.0))))
 
     # ---- queries ---------------------------------------------------------------------------------
 

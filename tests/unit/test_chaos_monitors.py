@@ -103,3 +103,16 @@ def test_a_fault_of_a_drive_simulated_in_its_agent_ends_when_that_agent_is_kille
     assert not no_stale_found(tr).violations  # the new agent's drive never had the fault
     tr.sim_in_agent = False  # ecat-sim outlives the agent: its drive is still in fault
     assert no_stale_found(tr).violations
+
+
+def test_a_remote_reflex_late_by_its_hosts_own_stall_is_not_a_violation():
+    from bench.chaos.trace import AgentInfo
+    tr = _trace()
+    tr.statuses = [_st(0, r, 1, "operation_enabled", goal="enabled") for r in ("h1/a", "h1/b", "h2/a")]
+    tr.events = [_ev(100, "h1/a", "fault", cycle=100), _ev(100, "h1/b", "reflex", cycle=100),
+                 _ev(220, "h2/a", "reflex", cycle=900)]
+    (v,) = group_reflex(tr).violations
+    assert v.detail["member"] == "h2/a" and v.detail["next_reflex_after_ms"] == 120.0
+    tr.agents = [AgentInfo(_t(1100), "h2", 7, "i1", "running", period_max_us=100_000.0)]  # h2's cycle stalled 100 ms
+    r = group_reflex(tr)
+    assert not r.violations and r.figures["late_by_stall"] == 1
