@@ -34,6 +34,8 @@ KEPT_CHANNELS = ("time_ns", "statusword", "controlword", "mode_display", "target
 #: How long the end waits for every host to answer, and for every drive to be found again.
 HEAL_TIMEOUT_S = 60.0
 COMMAND_WORKERS = 16
+#: After the final disable, how long a drive reported lost may take to be found again.
+FINAL_FOUND_S = 5.0
 
 
 def soak_fleet(fleet: dict[str, Any] = FLEET) -> dict[str, Any]:
@@ -265,4 +267,10 @@ class Soak:
             self.counts.commands["disable"] = self.counts.commands.get("disable", 0) + 1
         time.sleep(0.5)
         self.trace.final_ns = time.time_ns()
-        self.trace.final = {r: self.client.status(*r.split("/")) for r in self.trace.refs()}
+        final = self.trace.final
+        deadline = time.monotonic() + FINAL_FOUND_S
+        for r in self.trace.refs():
+            # a slave lost by a host stall right now (its SM watchdog) is found again within moments
+            while (s := self.client.status(*r.split("/"))) is not None and s.lost and time.monotonic() < deadline:
+                time.sleep(0.1)
+            final[r] = s
