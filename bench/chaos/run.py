@@ -34,6 +34,8 @@ KEPT_CHANNELS = ("time_ns", "statusword", "controlword", "mode_display", "target
 #: How long the end waits for every host to answer, and for every drive to be found again.
 HEAL_TIMEOUT_S = 60.0
 COMMAND_WORKERS = 16
+#: How long an unplug or WKC fault is asked to be undone before the soak gives up (a harness error).
+UNDO_TIMEOUT_S = 15.0
 #: After the final disable, how long a drive reported lost may take to be found again.
 FINAL_FOUND_S = 5.0
 
@@ -179,7 +181,13 @@ class Soak:
             ok, detail = self._sim(target, "unplug") if kind == "unplug" else self._sim(target, "wkc_fault", on=True)
             applied = time.time_ns()
             time.sleep(hold)
-            ok2, detail2 = self._sim(target, "plug") if kind == "unplug" else self._sim(target, "wkc_fault", on=False)
+            undo = time.monotonic() + UNDO_TIMEOUT_S
+            while True:  # idempotent: asked again until the simulator says it is done
+                ok2, detail2 = self._sim(target, "plug") if kind == "unplug" else \
+                    self._sim(target, "wkc_fault", on=False)
+                if ok2 or time.monotonic() > undo:
+                    break
+                time.sleep(0.2)
             if not ok2:
                 self.counts.harness_errors.append(f"{kind} {target}: could not be undone: {detail2}")
             return Injection(kind, target, start, applied, time.time_ns(), ok, f"{detail}; {detail2}")
