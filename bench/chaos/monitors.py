@@ -301,11 +301,12 @@ def malformed_refused(trace: Trace) -> Result:
             a = c.after.get(ref)
             if a is None:
                 continue
-            others = [e for e in trace.events if e.ref == ref and b.time_ns < e.time_ns <= a.time_ns
-                      and (e.kind in _OTHER_CAUSES or e.request_id not in ("", c.request_id))]
-            others += [x for x in trace.commands if x is not c and ref in x.addressed and x.sent_ns <= c.done_ns
-                       and x.done_ns >= c.sent_ns]  # type: ignore[misc]
-            if others or disrupted(trace, ref.split("/")[0], c.sent_ns, c.done_ns, QUERY_SETTLE_NS):
+            other_events = any(e.ref == ref and b.time_ns < e.time_ns <= a.time_ns
+                               and (e.kind in _OTHER_CAUSES or e.request_id not in ("", c.request_id))
+                               for e in trace.events)
+            other_commands = any(x is not c and ref in x.addressed and x.sent_ns <= a.t_ns and x.done_ns >= b.t_ns
+                                 for x in trace.commands)
+            if other_events or other_commands or disrupted(trace, ref.split("/")[0], c.sent_ns, c.done_ns, QUERY_SETTLE_NS):
                 r.skipped += 1
                 continue
             r.checked += 1

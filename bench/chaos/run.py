@@ -18,7 +18,7 @@ import time
 from array import array
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 from twin import Twin, TwinError
 
@@ -134,12 +134,12 @@ class Soak:
         cmd = Command(rid, op, drive_key(host, axis, f"cmd/{op}"), self._addressed(step.target), 0,
                       args=dict(step.args), malformed=step.flaw)
         if cmd.malformed:
-            cmd.before = {r: s for r in cmd.addressed if (s := self.client.status(*r.split("/"))) is not None}
+            cmd.before = {r: s for r in cmd.addressed if (s := self.client.status(r)) is not None}
         try:
             self.client.command(cmd, payload, step.timeout_s)
         finally:
             if cmd.malformed:
-                cmd.after = {r: s for r in cmd.addressed if (s := self.client.status(*r.split("/"))) is not None}
+                cmd.after = {r: s for r in cmd.addressed if (s := self.client.status(r)) is not None}
             self.trace.commands.append(cmd)
             key = "malformed" if cmd.malformed else cmd.op
             self.counts.commands[key] = self.counts.commands.get(key, 0) + 1
@@ -243,7 +243,7 @@ class Soak:
         na = len(rec.axes)
         if times:
             self._rec_last[rec.host] = times[-1]
-        chans = {}
+        chans: dict[str, Sequence[int]] = {}
         for name in KEPT_CHANNELS:
             values = rec.channels.get(name, [])
             per = 1 if name == "time_ns" else na
@@ -262,7 +262,7 @@ class Soak:
             self.counts.harness_errors.append(f"after the schedule: {exc}")
         deadline = time.monotonic() + HEAL_TIMEOUT_S
         while time.monotonic() < deadline:
-            st = [self.client.status(*r.split("/")) for r in self.trace.refs()]
+            st = [self.client.status(r) for r in self.trace.refs()]
             if all(s is not None and not s.lost for s in st):
                 break
             time.sleep(0.2)
@@ -279,6 +279,6 @@ class Soak:
         deadline = time.monotonic() + FINAL_FOUND_S
         for r in self.trace.refs():
             # a slave lost by a host stall right now (its SM watchdog) is found again within moments
-            while (s := self.client.status(*r.split("/"))) is not None and s.lost and time.monotonic() < deadline:
+            while (s := self.client.status(r)) is not None and s.lost and time.monotonic() < deadline:
                 time.sleep(0.1)
             final[r] = s

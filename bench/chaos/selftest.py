@@ -44,8 +44,8 @@ def _cmd(rid: str, op: str, refs: tuple[str, ...], sent: float, done: float, rep
          flaw: str = "", errors: tuple[tuple[str, str], ...] = ()) -> Command:
     c = Command(rid, op, f"drives/@v1/{refs[0].split('/')[0]}/drive/*/cmd/{op}", refs, _t(sent), _t(done),
                 malformed=flaw)
-    c.replies = [Reply(_t(done), *ref.split("/"), rid, op, outcome, reason="why" if outcome != "done" else "")
-                 for ref, outcome in replies]
+    c.replies = [Reply(_t(done), ref.split("/")[0], ref.split("/")[1], rid, op, outcome,
+                       reason="why" if outcome != "done" else "") for ref, outcome in replies]
     c.errors = [ErrReply(_t(done), h, f"{h}: {text}") for h, text in errors]
     return c
 

@@ -10,7 +10,7 @@ by hand.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 #: CiA 402 states a drive is "down" in (not powered for motion).
 UP = "operation_enabled"
@@ -182,7 +182,7 @@ class Recording:
     cycle_us: int
     n_cycles: int
     axes: tuple[str, ...]
-    channels: dict[str, list[int]]
+    channels: dict[str, Sequence[int]]
 
 
 @dataclass(frozen=True)

@@ -138,8 +138,9 @@ class WireClient:
         cmd.done_ns = time.time_ns()
         return cmd
 
-    def status(self, host: str, axis: str, timeout_s: float = 2.0) -> Status | None:
-        """The drive's current status (a get on its status key), None without an answer."""
+    def status(self, ref: str, timeout_s: float = 2.0) -> Status | None:
+        """Drive ``host/axis``'s current status (a get on its status key), None without an answer."""
+        host, _, axis = ref.partition("/")
         try:
             for rep in self.session.get(drive_key(host, axis, "status"), timeout=timeout_s):
                 if rep.ok is not None and (d := unpack(rep.ok.payload.to_bytes())) is not None \
@@ -171,7 +172,7 @@ class WireClient:
                 if rep.ok is not None:
                     d = unpack(rep.ok.payload.to_bytes()) or {}
                     texts.append(str(d.get("detail", "")))
-                else:
+                elif rep.err is not None:
                     ok = False
                     d = unpack(rep.err.payload.to_bytes()) or {}
                     texts.append(str(d.get("error", "refused")))
