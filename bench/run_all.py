@@ -134,6 +134,11 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "bench.chaos", ("--seconds", "240", "--seed", "1", "--report-only"),
               ("--seconds", "60", "--seed", "1", "--report-only"), False,
               sf.chaos_figures, sf.chaos_headline, sf.chaos_targets),
+    Benchmark("chaos_ecat", "chaos soak over pysoem and ecat-sim: the same twin with each host's agent and segment "
+              "in a network namespace", "bench.chaos",
+              ("--backend", "ecat", "--seconds", "120", "--seed", "1", "--report-only"),
+              ("--backend", "ecat", "--seconds", "30", "--seed", "1", "--report-only"), True,
+              sf.chaos_figures, sf.chaos_headline, sf.chaos_targets),
 )
 
 
