@@ -34,7 +34,7 @@ from .monitors import MONITORS, REFLEX_REMOTE_DEADLINE_MS, group_reflex, run_mon
 from .run import Soak
 from .schedule import make_schedule, schedule_json
 from .selftest import self_test
-from .trace import Trace
+from .trace import Trace, trace_from_json
 
 #: Most violations listed in full in the result (every one is counted).
 MAX_LISTED = 200
@@ -73,7 +73,8 @@ def trace_json(tr: Trace) -> dict[str, Any]:
     """The trace as JSON, without the flight recordings (large; their verdict is in the result)."""
     return {k: [asdict(x) for x in v] if isinstance(v, list) and k != "unexpected_exits" else v
             for k, v in ((f, getattr(tr, f)) for f in ("hosts", "groups", "statuses", "agents", "events", "commands",
-                                                        "injections", "unexpected_exits", "final_ns"))} | {
+                                                        "injections", "unexpected_exits", "processes", "sim_in_agent",
+                                                        "final_ns"))} | {
         "final": {r: asdict(s) if s else None for r, s in tr.final.items()}}
 
 
@@ -92,7 +93,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="exit 0 when the soak ran, whatever it found (run_all: the violations are its target)")
     p.add_argument("--self-test", action="store_true", help="feed each monitor a trace that breaks it and one that "
                                                              "keeps it; exit 1 unless each tells them apart")
+    p.add_argument("--judge", type=Path, metavar="TRACE",
+                   help="judge a saved *.trace.json again (no recordings: wire_limits checks nothing) and print the "
+                        "monitors' verdicts")
     args = p.parse_args(argv)
+    if args.judge:
+        tr = trace_from_json(json.loads(args.judge.read_text()))
+        results = run_monitors(tr)
+        results["group_reflex"] = group_reflex(tr, args.reflex_deadline_ms)
+        print(json.dumps({n: {"checked": r.checked, "skipped": r.skipped, **r.figures,
+                              "violations": [asdict(v) for v in r.violations]} for n, r in results.items()}, indent=1))
+        return 1 if any(r.violations for r in results.values()) else 0
     if args.self_test:
         out = self_test()
         print(json.dumps(out, indent=2))

@@ -74,7 +74,7 @@ def _reflex(broken: bool) -> Trace:
     tr = _trace()
     tr.statuses = [_st(0, r, 1, "operation_enabled", goal="enabled") for r in ("h1/a", "h1/b", "h2/a")]
     tr.events = [_ev(100, "h1/a", "fault", cycle=100), _ev(100, "h1/b", "reflex", cycle=100),
-                 _ev(160 if broken else 104, "h2/a", "reflex", cycle=900)]
+                 _ev(300 if broken else 104, "h2/a", "reflex", cycle=900)]
     return tr
 
 

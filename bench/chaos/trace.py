@@ -18,6 +18,8 @@ UP = "operation_enabled"
 BAD_STATES = frozenset({"fault", "fault_reaction_active"})
 #: States a drive may be in after a final disable.
 DOWN_STATES = frozenset({"switch_on_disabled", "not_ready_to_switch_on", "fault"})
+#: Goals that keep a drive in a down state (a group reflex may set quick_stop on a disabled drive).
+DOWN_GOALS = frozenset({"disabled", "quick_stop"})
 #: Outcomes that mean a command was not taken up at all.
 REFUSED = frozenset({"rejected", "busy"})
 
@@ -219,3 +221,19 @@ class Trace:
 
     def refs(self) -> list[str]:
         return [f"{h}/{a}" for h, axes in self.hosts.items() for a in axes]
+
+
+def trace_from_json(d: dict[str, Any]) -> Trace:
+    """A trace written by ``python -m bench.chaos`` (``*.trace.json``), to judge it again
+    (``--judge``); it has no flight recordings."""
+    def command(c: dict[str, Any]) -> Command:
+        return Command(**{**c, "addressed": tuple(c["addressed"]), "replies": [Reply(**x) for x in c["replies"]],
+                          "errors": [ErrReply(**x) for x in c["errors"]],
+                          "before": {k: Status(**v) for k, v in c["before"].items()},
+                          "after": {k: Status(**v) for k, v in c["after"].items()}})
+    return Trace(hosts={h: tuple(a) for h, a in d["hosts"].items()}, groups={g: tuple(m) for g, m in d["groups"].items()},
+                 statuses=[Status(**x) for x in d["statuses"]], agents=[AgentInfo(**x) for x in d["agents"]],
+                 events=[Event(**x) for x in d["events"]], commands=[command(c) for c in d["commands"]],
+                 injections=[Injection(**x) for x in d["injections"]], unexpected_exits=list(d["unexpected_exits"]),
+                 processes=d.get("processes", 0), sim_in_agent=d.get("sim_in_agent", True),
+                 final={r: Status(**s) if s else None for r, s in d["final"].items()}, final_ns=d["final_ns"])
