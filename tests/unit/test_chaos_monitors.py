@@ -116,3 +116,25 @@ def test_a_remote_reflex_late_by_its_hosts_own_stall_is_not_a_violation():
     tr.agents = [AgentInfo(_t(1100), "h2", 7, "i1", "running", period_max_us=100_000.0)]  # h2's cycle stalled 100 ms
     r = group_reflex(tr)
     assert not r.violations and r.figures["late_by_stall"] == 1
+
+
+def test_a_fault_ends_with_a_power_cycle_and_a_saved_trace_is_judged_alike():
+    import json
+
+    from bench.chaos.__main__ import trace_json
+    from bench.chaos.monitors import no_stale_found, run_monitors
+    from bench.chaos.trace import trace_from_json
+    tr = _trace()
+    tr.sim_in_agent = False
+    tr.injections = [Injection("fault", "h1/a", _t(0), _t(0), _t(0))]
+    tr.statuses = [_st(1000, "h1/a", 3, "operation_enabled", goal="enabled")]
+    assert no_stale_found(tr).violations
+    tr.injections.append(Injection("unplug", "h1/a", _t(200), _t(200), _t(600)))  # plugged back: power-cycled
+    assert not no_stale_found(tr).violations
+    tr.commands = [_cmd("e1", "enable", ("h1/a",), 10, 60, [("h1/a", "rejected")])]
+    again = trace_from_json(json.loads(json.dumps(trace_json(tr))))
+    assert again.limits == {}  # no recordings in a saved trace: nothing for the limits
+    again.limits = tr.limits
+    assert again == tr
+    assert {n: len(r.violations) for n, r in run_monitors(again).items()} == \
+        {n: len(r.violations) for n, r in run_monitors(tr).items()}
