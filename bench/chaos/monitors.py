@@ -179,10 +179,12 @@ def stall_ns(trace: Trace, host: str, t0: int) -> int:
 
 def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLINE_MS) -> Result:
     """When a group member turns bad (event ``fault`` or ``lost`` after a healthy status), every
-    other member not lost gets its ``reflex`` event: in the same cycle on the same host, within
-    ``remote_deadline_ms`` (agent time stamps) on another host, plus the longest cycle period
-    that host's agent reported around then (a stalled host reacts with its first cycle after the
-    stall; the reflex cannot be earlier, and the result counts those ``late_by_stall``)."""
+    other member not lost gets its ``reflex`` event: in the same cycle on the same host; on
+    another host within ``remote_deadline_ms`` (agent time stamps) of the origin's bad status
+    being on the wire (the soak's subscriber saw it: a starved origin gateway publishes late,
+    ``origin_on_wire_ms`` reports how late), plus the longest cycle period the reacting host's
+    agent reported around then (a stalled host reacts with its first cycle after the stall; the
+    result counts reflexes later than the deadline as ``late_by_stall``)."""
     r = Result("group_reflex")
     by_ref = statuses_by_ref(trace)
     reflexes: dict[str, list[Event]] = defaultdict(list)
@@ -192,6 +194,7 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
     deadline_ns = int(remote_deadline_ms * 1e6)
     lost_events = [e for e in trace.events if e.kind == "lost"]
     remote_ms: list[float] = []
+    publish_ms: list[float] = []  # origin's event to its bad status seen on the wire
     for e in trace.events:
         if e.kind not in ("fault", "lost") or _bad(last_before(by_ref.get(e.ref, []), e.time_ns)):
             continue
@@ -214,22 +217,28 @@ def group_reflex(trace: Trace, remote_deadline_ms: float = REFLEX_REMOTE_DEADLIN
                     r.skipped += 1  # a lost member does not react (its slave takes no commands)
                     continue
                 r.checked += 1
-                allowed = deadline_ns if local else deadline_ns + stall_ns(trace, host, e.time_ns)
+                # remotely: from when the origin's bad status was on the wire (seen by the soak's own
+                # subscriber, through the same router) plus the reacting host's own stall
+                on_wire = next((x.t_ns for x in by_ref.get(e.ref, ()) if x.time_ns >= e.time_ns and _bad(x)), e.time_ns)
+                publish_ms.append(max(0, on_wire - e.time_ns) / 1e6)
+                allowed = deadline_ns if local else \
+                    max(0, on_wire - e.time_ns) + deadline_ns + stall_ns(trace, host, e.time_ns)
                 seen = [x for x in reflexes.get(m, ()) if
                         (x.cycle == e.cycle if local else e.time_ns - deadline_ns <= x.time_ns <= e.time_ns + allowed)]
                 if seen and not local:
                     late = min(x.time_ns - e.time_ns for x in seen)
                     remote_ms.append(late / 1e6)
                     if late > deadline_ns:
-                        r.figures["late_by_stall"] = r.figures.get("late_by_stall", 0) + 1
+                        r.figures["late_by_stall"] = r.figures.get("late_by_stall", 0) + 1  # or a late publish
                 if not seen:
                     later = [x.time_ns - e.time_ns for x in reflexes.get(m, ()) if x.time_ns >= e.time_ns]
                     add(r, "no reflex in the same cycle" if local else f"no reflex within {remote_deadline_ms:g} ms "
                         "and the host's stall", allowed_ms=round(allowed / 1e6, 3), group=group, origin=e.ref, origin_kind=e.kind, origin_cycle=e.cycle, origin_time_ns=e.time_ns,
                         member=m, next_reflex_after_ms=round(min(later) / 1e6, 3) if later else None)
-    if remote_ms:
-        v = sorted(remote_ms)
-        r.figures["remote_reflex_ms"] = {"n": len(v), "p50": round(v[len(v) // 2], 3), "max": round(v[-1], 3)}
+    for name, values in (("remote_reflex_ms", remote_ms), ("origin_on_wire_ms", publish_ms)):
+        if values:
+            v = sorted(values)
+            r.figures[name] = {"n": len(v), "p50": round(v[len(v) // 2], 3), "max": round(v[-1], 3)}
     return r
 
 

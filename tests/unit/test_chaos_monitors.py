@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from array import array
 
 import pytest
@@ -138,3 +139,15 @@ def test_a_fault_ends_with_a_power_cycle_and_a_saved_trace_is_judged_alike():
     assert again == tr
     assert {n: len(r.violations) for n, r in run_monitors(again).items()} == \
         {n: len(r.violations) for n, r in run_monitors(tr).items()}
+
+
+def test_a_remote_reflex_counts_from_the_origins_bad_status_on_the_wire():
+    tr = _trace()
+    tr.statuses = [_st(0, r, 1, "operation_enabled", goal="enabled") for r in ("h1/a", "h1/b", "h2/a")]
+    tr.events = [_ev(100, "h1/a", "fault", cycle=100), _ev(100, "h1/b", "reflex", cycle=100),
+                 _ev(420, "h2/a", "reflex", cycle=900)]
+    assert group_reflex(tr).violations
+    late = _st(100, "h1/a", 2, "fault")
+    tr.statuses.append(dataclasses.replace(late, t_ns=_t(400)))  # h1's gateway published it 300 ms late
+    r = group_reflex(tr)
+    assert not r.violations and r.figures["origin_on_wire_ms"]["max"] == 300.0
