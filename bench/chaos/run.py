@@ -98,11 +98,11 @@ class Soak:
             lanes[1].join()
             self._finish()
         finally:
-            self.trace.unexpected_exits = list(twin.unexpected_exits)
             self.trace.processes = len(twin.pids())
             if self.client is not None:
                 self.client.close()
-            twin.stop()
+            twin.stop()  # its last look at the children comes before it stops them
+            self.trace.unexpected_exits = list(twin.unexpected_exits)
         return self.trace
 
     def _wait_until(self, at_s: float) -> None:
