@@ -129,6 +129,16 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "the bare router and agents", "bench.bench_twin", ("--hosts", "3,10,32", "--rest-s", "10"),
               ("--hosts", "3,10", "--rest-s", "3", "--settle-s", "2"), False,
               sf.twin_figures, sf.twin_headline, sf.twin_targets),
+    Benchmark("chaos", "chaos soak: a 3-host twin under a seeded schedule of commands, malformed commands, faults, "
+              "unplugs, WKC faults, link cuts, agent and router kills; every promise checked from outside",
+              "bench.chaos", ("--seconds", "240", "--seed", "1", "--report-only"),
+              ("--seconds", "60", "--seed", "1", "--report-only"), False,
+              sf.chaos_figures, sf.chaos_headline, sf.chaos_targets),
+    Benchmark("chaos_ecat", "chaos soak over pysoem and ecat-sim: the same twin with each host's agent and segment "
+              "in a network namespace", "bench.chaos",
+              ("--backend", "ecat", "--seconds", "120", "--seed", "1", "--report-only"),
+              ("--backend", "ecat", "--seconds", "30", "--seed", "1", "--report-only"), True,
+              sf.chaos_figures, sf.chaos_headline, sf.chaos_targets),
 )
 
 

@@ -245,3 +245,27 @@ def twin_targets(r: Mapping[str, Any]) -> list[Target]:
             at_most("the twin's own process at rest, 10 hosts, % of a core", twin10.get("cpu_pct_twin_process"),
                     TWIN_OWN_CPU_PCT_MAX),
             at_most("processes left after SIGTERM, every size", max(left) if left and None not in left else None, 0)]
+
+
+# ---- bench.chaos ----------------------------------------------------------------------------------
+
+
+def chaos_figures(r: Mapping[str, Any]) -> dict[str, Any]:
+    return {"seed": r["seed"], "seconds": r["seconds"], "backend": r["backend"], "counts": r["counts"],
+            "monitors": {n: {k: m[k] for k in ("checked", "skipped", "violations")} for n, m in r["monitors"].items()},
+            "violations_total": r["violations_total"], "harness_errors": len(r.get("harness_errors") or [])}
+
+
+def chaos_headline(r: Mapping[str, Any]) -> str:
+    c = r["counts"]
+    broken = [f"{n} {m['violations']}" for n, m in r["monitors"].items() if m["violations"]]
+    return (f"seed {r['seed']}, {r['seconds']:g} s ({r['backend']}): {c['commands']} commands ({c['malformed']} "
+            f"malformed), {c['faults_injected']} injections ({', '.join(f'{k} {v}' for k, v in c['injections'].items())}), "
+            f"{sum(m['checked'] for m in r['monitors'].values())} cases checked by {len(r['monitors'])} monitors; "
+            f"violations: {', '.join(broken) if broken else 'none'}")
+
+
+def chaos_targets(r: Mapping[str, Any]) -> list[Target]:
+    broken = ", ".join(f"{n} {m['violations']}" for n, m in r["monitors"].items() if m["violations"])
+    return [at_most("violations, every monitor", r["violations_total"], 0, note=broken),
+            at_most("harness errors (a part the twin could not bring back)", len(r.get("harness_errors") or []), 0)]

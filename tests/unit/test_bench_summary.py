@@ -281,3 +281,18 @@ def test_cycle_row_targets_include_the_tick_at_rest_and_tolerate_a_run_without_i
     assert {t.name: t.met for t in s.cycle_targets(r)}["64 drives at rest: one tick's CPU beyond the bare exchange, per drive"] is False
     del size["ticks"]  # an older result: no tick figures, no tick target
     assert not any("tick" in t.name for t in s.cycle_targets(r)) and "one tick" not in s.cycle_headline(r)
+
+
+def test_chaos_targets_are_zero_violations_and_zero_harness_errors() -> None:
+    run = {"seed": 1, "seconds": 60.0, "backend": "sim",
+           "counts": {"commands": 200, "malformed": 15, "faults_injected": 30, "injections": {"fault": 10, "cut": 2}},
+           "monitors": {"one_terminal_reply": {"checked": 180, "skipped": 20, "violations": 0},
+                        "lost_state_unknown": {"checked": 40, "skipped": 0, "violations": 3}},
+           "violations_total": 3, "harness_errors": []}
+    violations, harness = sf.chaos_targets(run)
+    assert (violations.measured, violations.met, violations.note) == (3, False, "lost_state_unknown 3")
+    assert (harness.measured, harness.met) == (0, True)
+    assert "violations: lost_state_unknown 3" in sf.chaos_headline(run)
+    assert sf.chaos_figures(run)["monitors"]["one_terminal_reply"] == {"checked": 180, "skipped": 20, "violations": 0}
+    clean = {**run, "monitors": {"one_terminal_reply": run["monitors"]["one_terminal_reply"]}, "violations_total": 0}
+    assert sf.chaos_targets(clean)[0].met is True and "violations: none" in sf.chaos_headline(clean)
