@@ -34,8 +34,9 @@ from bus_agent.bus.emergency import EmergencyLog
 from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
-from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_FMMU0, REG_SM0, STATE_ACK, PysoemStartup,
-                                          al_state)
+from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_FMMU0, REG_SM0, SOEM_CALL_S, STATE_ACK,
+                                          PysoemStartup, al_state)
+from bus_agent.startup_guard import StartupSteps
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,7 @@ class PysoemBus(PysoemStartup):
     express_exchange = True
 
     def __init__(self, ifname: str, receive_timeout_us: int = 1000, release_gil: bool = True,
-                 config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S) -> None:
+                 config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S, soem_call_s: float = SOEM_CALL_S) -> None:
         import pysoem  # imported here so the sim backend needs no pysoem
 
         self._pysoem = pysoem
@@ -67,6 +68,10 @@ class PysoemBus(PysoemStartup):
         self.receive_timeout_us = receive_timeout_us
         self.release_gil = release_gil
         self.config_init_deadline_s = config_init_deadline_s
+        self.soem_call_s = soem_call_s
+        #: Deadlines only, until the agent sets its guarded steps (stop signal, guard process)
+        self.startup_steps = StartupSteps()
+        self._map_phase = False
         self._master: Any = None
         self._slaves: list[Any] = []
         self._inputs: list[DriveInputs] = []

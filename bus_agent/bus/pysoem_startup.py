@@ -21,12 +21,20 @@ from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort
                                    plan_writes, read_mapping)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import PysoemDc
+from bus_agent.startup_guard import StartupAbandoned, StartupSteps
 
 log = logging.getLogger("bus_agent.bus.pysoem_bus")
 
 STATE_ACK = 0x10
 #: How long open() keeps retrying config_init when no slave answers.
 CONFIG_INIT_DEADLINE_S = 10.0
+#: Deadline of each SOEM call start-up cannot interrupt (one config_init, config_dc, and in
+#: config_map: SOEM's own reading of one slave's PDO sizes (CoE, else its SII), our reading and
+#: writing of one slave's mapping): SOEM's own CoE reads of one slave are about 20 uploads of up
+#: to 700 ms each when its mailbox stalls. ``[startup] soem_call_s`` in the agent's configuration.
+SOEM_CALL_S = 30.0
+#: Deadline of opening the NIC and of reading back one slave's registers.
+OPEN_S = 5.0
 #: Deadlines of the AL transitions in start().
 SAFEOP_DEADLINE_S = 5.0
 OP_DEADLINE_S = 5.0
@@ -82,6 +90,10 @@ class PysoemStartup(PysoemDc):
     _expected_wkc: int
     _opened: bool
     config_init_deadline_s: float
+    #: The steps of start-up with their deadlines (the agent sets its own, guarded, before open)
+    startup_steps: StartupSteps
+    soem_call_s: float
+    _map_phase: bool
     _on_emergency: Callable[[int, Any], None]                      # PysoemBus
     #: Held for every mailbox exchange (SDO transfer, mailbox read): a mailbox read on one thread
     #: would take the answer an SDO transfer on another waits for.
@@ -95,23 +107,34 @@ class PysoemStartup(PysoemDc):
     def open(self) -> list[SlaveInfo]:
         """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
         pysoem = self._pysoem
+        steps = self.startup_steps
         m = pysoem.Master()
         try:
-            m.open(self.ifname)
+            with steps.step(f"{self.ifname}: open the interface", OPEN_S):
+                m.open(self.ifname)
+        except StartupAbandoned:
+            raise
         except Exception as e:
             raise BusError(f"{self.ifname}: cannot open the interface: {e}") from None
         self._master = m
         deadline = time.monotonic() + self.config_init_deadline_s
         n = 0
-        while True:
-            try:
-                n = m.config_init(release_gil=True)
-            except Exception as e:
-                self._abort_open()
-                raise BusError(f"{self.ifname}: config_init failed: {e}") from None
-            if n > 0 or time.monotonic() >= deadline:
-                break
-            time.sleep(0.2)
+        try:
+            while True:
+                try:
+                    with steps.step(f"{self.ifname}: config_init (SOEM finds the slaves, reads their SII, "
+                                    "brings them to PRE-OP)", self.soem_call_s):
+                        n = m.config_init(release_gil=True)
+                except StartupAbandoned:
+                    raise
+                except Exception as e:
+                    raise BusError(f"{self.ifname}: config_init failed: {e}") from None
+                if n > 0 or time.monotonic() >= deadline:
+                    break
+                steps.sleep(0.2)
+        except BaseException:
+            self._abort_open()
+            raise
         if n <= 0:
             self._abort_open()
             raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
@@ -138,8 +161,22 @@ class PysoemStartup(PysoemDc):
         self._master = None
 
     def _config_func(self, position: int) -> None:
-        """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs."""
+        """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs.
+        SOEM calls it for each slave, then reads that slave's PDO sizes itself: each is a step."""
+        name = f"slave {position} ({self._slaves[position].name!r})"
+        self._config_map_phase(f"config_map: {name}: reading (and per policy writing) its PDO mapping by SDO")
         self._configure_slave(position)
+        self._config_map_phase(f"config_map: SOEM reading the PDO sizes of {name} (CoE, else its SII) and the "
+                               "slaves after it")
+
+    def _config_map_phase(self, name: str | None) -> None:
+        """End config_map's current step and begin ``name`` (None: none), each with soem_call_s."""
+        if self._map_phase:
+            self._map_phase = False
+            self.startup_steps.end()
+        if name is not None:
+            self.startup_steps.begin(name, self.soem_call_s)
+            self._map_phase = True
 
     def _configure_slave(self, position: int) -> SlaveMapping:
         """In PRE-OP: read the drive's PDO mapping, write what its policy wants (only what
@@ -221,6 +258,7 @@ class PysoemStartup(PysoemDc):
         abort, which is the slave's definite no) is made again up to ``attempts`` times in all:
         only for transfers that may be repeated (uploads)."""
         for attempt in range(1, attempts + 1):
+            self.startup_steps.check()  # a transfer is up to 700 ms: a stop or deadline between them
             try:
                 with self._mailbox_lock:
                     return transfer()
@@ -321,7 +359,8 @@ class PysoemStartup(PysoemDc):
         if self._sync0:
             # PRE-OP: find the DC slaves, latch and set offsets and delays; from here on every
             # process-data frame carries the FRMW of the reference clock (master.dc_time)
-            found = m.config_dc()
+            with self.startup_steps.step(f"{self.ifname}: config_dc (SOEM measures the DC delays)", self.soem_call_s):
+                found = m.config_dc()
             if not found:
                 raise BusError(f"{self.ifname}: config_dc found no DC slave, although slave(s) "
                                f"{sorted(self._sync0)} report DC in 0x0008")
@@ -329,8 +368,12 @@ class PysoemStartup(PysoemDc):
         for pos, s in enumerate(self._slaves):
             s.config_func = self._config_func
         try:
-            m.config_map()
-        except BusError:
+            self._config_map_phase(f"{self.ifname}: config_map (SOEM maps the process data)")
+            try:
+                m.config_map()
+            finally:
+                self._config_map_phase(None)
+        except (BusError, StartupAbandoned):
             raise
         except pysoem.ConfigMapError as e:
             details = "; ".join(str(x) for x in e.error_list)
@@ -357,7 +400,8 @@ class PysoemStartup(PysoemDc):
             self._wait_sync0_start()
             m.state = pysoem.SAFEOP_STATE
             m.write_state()
-        self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
+        with self.startup_steps.step(f"{self.ifname}: to SAFE-OP", SAFEOP_DEADLINE_S + 1.0):
+            self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
         if self._sync0 and not before_safeop:
             self._start_sync0(sorted(self._sync0))
         self._expected_wkc = m.expected_wkc
@@ -368,9 +412,11 @@ class PysoemStartup(PysoemDc):
         self._wait_sync0_start(exchange=True)
         m.state = pysoem.OP_STATE
         m.write_state()
-        self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
-        self._read_esc_config()
-        self._read_dc_delays()
+        with self.startup_steps.step(f"{self.ifname}: to OP", OP_DEADLINE_S + 1.0):
+            self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
+        with self.startup_steps.step(f"{self.ifname}: reading back SM, FMMU and DC registers", OPEN_S):
+            self._read_esc_config()
+            self._read_dc_delays()
         log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
                  self._expected_wkc)
         return self._expected_wkc
@@ -398,7 +444,9 @@ class PysoemStartup(PysoemDc):
         deadline = start + deadline_s
         rewrite_at = start + STATE_REWRITE_S
         refused: tuple[int, ...] = ()
+        steps = self.startup_steps
         while True:
+            steps.check()  # the loop's own deadline is checked below; a stop signal here
             if exchange:
                 self.exchange()
             if m.state_check(int(state), STATE_POLL_US) == int(state):

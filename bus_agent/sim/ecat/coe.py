@@ -447,6 +447,9 @@ class Mailbox:
         #: the uploads of that object, the next ``skip`` are answered and the ``count`` after
         #: them get no answer at all, as from a mailbox answer lost for good. Kept over reset.
         self.mute: list[int] | None = None
+        #: False for a mailbox without CoE (profile modifier ``no-coe``): every request is
+        #: answered with the mailbox error "unsupported protocol".
+        self.coe = True
 
     def _muted(self, body: memoryview) -> bool:
         """True for an SDO upload request that the ``mute`` fault swallows (counts it down)."""
@@ -492,7 +495,7 @@ class Mailbox:
         if length < 2 or length > MBX_OUT_SIZE - MBX_HEADER.size:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.INVALID_SIZE)))
             return
-        if mtype != MbxType.COE:
+        if mtype != MbxType.COE or not self.coe:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.UNSUPPORTED_PROTOCOL)))
             return
         body = buf[MBX_HEADER.size: MBX_HEADER.size + length]
