@@ -135,6 +135,12 @@ class BusError(RuntimeError):
     """Start-up or management failure; the message names the slave and the AL status code."""
 
 
+class NoAnswer(BusError):
+    """A transfer that got no answer in time: the answer may have been lost, so it may be made
+    again. Every other BusError of a transfer is the slave's definite answer (an SDO abort, a
+    mailbox error, a slave without CoE): made again, it gets the same answer."""
+
+
 class Bus(Protocol):
     """An EtherCAT segment of CiA 402 drives, one per slave position."""
 

@@ -31,6 +31,7 @@ from typing import Any, Callable, Sequence
 from bus_agent.bus.base import ALState, BusError, SlaveALStatus, al_status_text
 from bus_agent.bus.codec import DriveCodec
 from bus_agent.bus.emergency import EmergencyLog
+from bus_agent.bus.mailbox import SiiMailbox
 from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
@@ -102,6 +103,7 @@ class PysoemBus(PysoemStartup):
         self._mailbox_turn = -1
         self._mailbox_lock = threading.Lock()
         self._sdo_retries = 0
+        self._mailboxes: list[SiiMailbox] = []
         #: position -> (error code, text) of its last CoE emergency (read by the cycle for error_text)
         self.error_texts = self._emcy.error_texts
 
@@ -342,15 +344,16 @@ class PysoemBus(PysoemStartup):
             self._mailbox_lock.release()
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
-        """CoE SDO upload. Raises BusError with the abort code. Not cycle-safe (mailbox round trips)."""
+        """CoE SDO upload. Raises BusError with the abort code or mailbox error (NoAnswer: none came).
+        Not cycle-safe (mailbox round trips)."""
         s = self._slaves[position]
-        return bytes(self._sdo(lambda: s.sdo_read(index, subindex, size, release_gil=True),
+        return bytes(self._sdo(position, lambda: s.sdo_read(index, subindex, size, release_gil=True),
                                f"slave {position}: SDO upload 0x{index:04X}:{subindex}"))
 
     def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
         """CoE SDO download. Raises BusError with the abort code."""
         s = self._slaves[position]
-        self._sdo(lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
+        self._sdo(position, lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
                   f"slave {position}: SDO download 0x{index:04X}:{subindex}")
 
     def close(self) -> None:

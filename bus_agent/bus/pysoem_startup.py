@@ -15,7 +15,8 @@ import threading
 import time
 from typing import Any, Callable, Mapping
 
-from bus_agent.bus.base import ALState, BusError, SlaveInfo, SlaveIdentity, al_status_text
+from bus_agent.bus.base import ALState, BusError, NoAnswer, SlaveInfo, SlaveIdentity, al_status_text
+from bus_agent.bus.mailbox import SII_MAILBOX_WORD, SII_PROTOCOLS_WORD, SiiMailbox, transfer_failure
 from bus_agent.bus.codec import DriveCodec, segment_decoder
 from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort_hint, check_mapping, describe,
                                    plan_writes, read_mapping)
@@ -61,14 +62,6 @@ class ProcessDataSizeError(BusError):
     """The process data SOEM sized for a slave disagrees with the slave's PDO mapping."""
 
 
-def transfer_failure_text(e: BaseException) -> str:
-    """What a failed pysoem mailbox transfer says; pysoem's WkcError says nothing by itself: the
-    exchange got no answer in time."""
-    if type(e).__name__ == "WkcError":
-        return "WkcError: no answer from the slave's mailbox"
-    return str(e) or type(e).__name__
-
-
 def al_state(value: int) -> ALState:
     """The AL state in bits 0-3 of an AL status word (NONE for a value outside the states)."""
     try:
@@ -89,6 +82,8 @@ class PysoemStartup(PysoemDc):
     _esc_config: dict[int, tuple[bytes, bytes]]
     _expected_wkc: int
     _opened: bool
+    #: Per slave: its mailbox as its SII describes it (read at open)
+    _mailboxes: list[SiiMailbox]
     config_init_deadline_s: float
     #: The steps of start-up with their deadlines (the agent sets its own, guarded, before open)
     startup_steps: StartupSteps
@@ -145,6 +140,7 @@ class PysoemStartup(PysoemDc):
             s.add_emergency_callback(functools.partial(self._on_emergency, pos))
         self._inputs = [DriveInputs() for _ in self._slaves]
         self._dc_capable = [self._read_dc_capable(s) for s in self._slaves]
+        self._mailboxes = [self._read_sii_mailbox(pos, s) for pos, s in enumerate(self._slaves)]
         self._opened = True
         infos = []
         for pos, s in enumerate(self._slaves):
@@ -152,6 +148,28 @@ class PysoemStartup(PysoemDc):
             log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.ifname, pos, s.name, s.man, s.id, s.rev)
         return infos
+
+    def _read_sii_mailbox(self, position: int, s: Any) -> SiiMailbox:
+        """The slave's mailbox sizes and protocols from its SII (EEPROM words 0x19, 0x1B, 0x1C)."""
+        try:
+            with self.startup_steps.step(f"slave {position}: reading its SII mailbox words", OPEN_S):
+                w18 = bytes(s.eeprom_read(SII_MAILBOX_WORD, 20000))
+                w1a = bytes(s.eeprom_read(SII_MAILBOX_WORD + 2, 20000))
+                w1c = bytes(s.eeprom_read(SII_PROTOCOLS_WORD, 20000))
+        except StartupAbandoned:
+            self._abort_open()
+            raise
+        except Exception as e:
+            self._abort_open()
+            raise BusError(f"slave {position} ({s.name!r}): its SII (mailbox words 0x18-0x1C) not readable: {e}") from None
+        return SiiMailbox(receive_size=struct.unpack_from("<H", w18, 2)[0], send_size=struct.unpack_from("<H", w1a, 2)[0],
+                          protocols=struct.unpack_from("<H", w1c, 0)[0])
+
+    def _coe_check(self, position: int, what: str) -> None:
+        """A transfer with a slave that has no mailbox or no CoE fails at once, saying so."""
+        problem = self._mailboxes[position].coe_problem() if position < len(self._mailboxes) else None
+        if problem:
+            raise BusError(f"{what}: slave {position} {problem}")
 
     def _abort_open(self) -> None:
         try:
@@ -189,7 +207,7 @@ class PysoemStartup(PysoemDc):
         def read(index: int, sub: int, size: int) -> bytes:
             what = f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}"
             for _ in range(MAPPING_READ_ATTEMPTS):
-                data = bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True), what,
+                data = bytes(self._sdo(position, lambda: s.sdo_read(index, sub, size, release_gil=True), what,
                                        attempts=MAPPING_READ_ATTEMPTS))
                 if len(data) == size:
                     return data
@@ -204,7 +222,7 @@ class PysoemStartup(PysoemDc):
         policy = setup.policy
         steps = plan_writes(policy, current)
         for step in steps:
-            self._sdo(lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
+            self._sdo(position, lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
                       f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X}", hint=True)
         if steps:
             current = self._read_mapping_twice(read, who)
@@ -217,7 +235,8 @@ class PysoemStartup(PysoemDc):
             raise BusError(f"{who}: its PDO mapping cannot run the cycle: {'; '.join(problems)} "
                            f"(mapping policy {policy.policy!r}: {describe(current)}); {hint}")
         for sdo in setup.sdos:
-            self._sdo(lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True), f"{who}: start-up SDO {sdo}")
+            self._sdo(position, lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True),
+                      f"{who}: start-up SDO {sdo}")
         if setup.sdos:
             log.info("%s: %d start-up SDO(s) applied", who, len(setup.sdos))
         if position < len(self._codecs) and self._codecs[position].mapping != current:
@@ -226,7 +245,7 @@ class PysoemStartup(PysoemDc):
         self._mappings[position] = current
         try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
             self._preop_values[(position, 0x6502)] = bytes(self._sdo(
-                lambda: s.sdo_read(0x6502, 0, 4, release_gil=True), f"{who}: SDO upload 0x6502:00",
+                position, lambda: s.sdo_read(0x6502, 0, 4, release_gil=True), f"{who}: SDO upload 0x6502:00",
                 attempts=MAPPING_READ_ATTEMPTS))
         except BusError as e:
             self._preop_values[(position, 0x6502)] = e
@@ -252,11 +271,16 @@ class PysoemStartup(PysoemDc):
         raise BusError(f"{who}: its PDO mapping could not be read twice alike without lost answers "
                        f"({MAPPING_READ_ATTEMPTS + 1} reads; the last: {describe(current)}); check the link")
 
-    def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False, attempts: int = 1) -> Any:
-        """One SDO transfer; its failure as a BusError naming ``what``, the abort code and its
-        meaning (with ``hint``: what to do instead). A transfer that got no answer (not an
-        abort, which is the slave's definite no) is made again up to ``attempts`` times in all:
-        only for transfers that may be repeated (uploads)."""
+    def _sdo(self, position: int, transfer: Callable[[], Any], what: str, hint: bool = False,
+             attempts: int = 1) -> Any:
+        """One SDO transfer with the slave at ``position``; its failure as a BusError naming
+        ``what`` and what the slave answered: an SDO abort code and its meaning (with ``hint``:
+        what to do instead), a mailbox error and its meaning, or no answer (:class:`NoAnswer`).
+        Only a transfer that got no answer, whose answer may have been lost, is made again, up to
+        ``attempts`` times in all (for transfers that may be repeated: uploads); a definite
+        answer is the same every time: reported at once. A slave without a mailbox or without
+        CoE is named as such, without a transfer."""
+        self._coe_check(position, what)
         for attempt in range(1, attempts + 1):
             self.startup_steps.check()  # a transfer is up to 700 ms: a stop or deadline between them
             try:
@@ -267,12 +291,14 @@ class PysoemStartup(PysoemDc):
                 raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"
                                + (f": {abort_hint(code)}" if hint else "")) from None
             except Exception as e:
-                why = transfer_failure_text(e)
+                why, lost = transfer_failure(e)
+                if not lost:
+                    raise BusError(f"{what} failed: {why}") from None
                 if attempt < attempts:
                     self._sdo_retries += 1
                     log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)
                     continue
-                raise BusError(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
+                raise NoAnswer(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
         raise AssertionError("unreachable")
 
     def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
@@ -364,6 +390,10 @@ class PysoemStartup(PysoemDc):
             if not found:
                 raise BusError(f"{self.ifname}: config_dc found no DC slave, although slave(s) "
                                f"{sorted(self._sync0)} report DC in 0x0008")
+        no_coe = [f"slave {pos} ({s.name!r}) {problem}" for pos, s in enumerate(self._slaves)
+                  if (problem := self._mailboxes[pos].coe_problem())]
+        if no_coe:  # its PDO mapping cannot be read: named now, before any transfer is tried
+            raise BusError(f"{self.ifname}: " + "; ".join(no_coe))
         m.manual_state_change = before_safeop  # config_map requests SAFE-OP by itself otherwise
         for pos, s in enumerate(self._slaves):
             s.config_func = self._config_func

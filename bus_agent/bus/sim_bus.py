@@ -28,6 +28,7 @@ from typing import Callable, Mapping, Sequence
 from bus_agent.bus.base import (
     ALState,
     BusError,
+    NoAnswer,
     SlaveALStatus,
     SlaveIdentity,
     SlaveInfo,
@@ -369,9 +370,9 @@ class SimBus:
     def _mailbox_slave(self, position: int, what: str, index: int, subindex: int) -> _Slave:
         sl = self._slave(position)
         if not sl.plugged:
-            raise BusError(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: no answer (unplugged)")
-        if sl.al_state in (ALState.INIT, ALState.NONE):
-            raise BusError(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: mailbox not available in INIT")
+            raise NoAnswer(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: no answer (unplugged)")
+        if sl.al_state in (ALState.INIT, ALState.NONE):  # as over EtherCAT: no mailbox, no answer
+            raise NoAnswer(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: mailbox not available in INIT")
         return sl
 
     def close(self) -> None:

@@ -15,7 +15,7 @@ import threading
 from dataclasses import dataclass
 from typing import Callable
 
-from bus_agent.bus.base import ALState, Bus, SlaveALStatus
+from bus_agent.bus.base import ALState, Bus, NoAnswer, SlaveALStatus
 from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 
 log = logging.getLogger(__name__)
@@ -258,11 +258,13 @@ class Management:
         except Exception as e:  # BusError with the abort code: the cycle answers the command with it
             what = job.kind if job.kind == "error_code" else ("mode_write" if "0x6060" in str(e) else "mode_display")
             job.attempts += 1
-            if what == "mode_write" and "aborted" not in str(e):
-                job.written = False  # no answer (a mailbox timeout under load): write again; an abort is final
-            if (what != "mode_write" or not job.written) and job.attempts < SDO_ATTEMPTS and now_ns < job.deadline_ns:
-                # no answer in time (a mailbox timeout under load, or a backend that fails the
-                # upload on the fault's own EMCY): read again
+            # Only a transfer without an answer (a mailbox timeout under load) is made again; an
+            # abort or a mailbox error is the drive's definite answer: reported at once
+            lost = isinstance(e, NoAnswer)
+            if what == "mode_write" and lost:
+                job.written = False  # write again
+            if lost and (what != "mode_write" or not job.written) and job.attempts < SDO_ATTEMPTS \
+                    and now_ns < job.deadline_ns:
                 return True
             self.reports.append(("sdo", job.slave, what, None, str(e)))
             return False

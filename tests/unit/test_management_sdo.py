@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import struct
 
-from bus_agent.bus.base import BusError
+from bus_agent.bus.base import BusError, NoAnswer
 from bus_agent.cycle.management import Management, SdoJob
 
 
@@ -21,7 +21,7 @@ class MailboxBus:
             raise BusError(f"slave {slave}: SDO download 0x{index:04X}:{subindex} aborted 0x06090030 (value range)")
         if self.timeouts:
             self.timeouts -= 1
-            raise BusError(f"slave {slave}: SDO download 0x{index:04X}:{subindex} failed: ")
+            raise NoAnswer(f"slave {slave}: SDO download 0x{index:04X}:{subindex} failed: no answer")
         self.mode = struct.unpack("<b", data)[0]
 
     def sdo_read(self, slave: int, index: int, subindex: int, size: int) -> bytes:
@@ -50,6 +50,41 @@ def test_a_refused_mode_download_is_reported_once_and_not_retried():
     reports = _run(bus)
     assert bus.writes == 1
     assert [r[2] for r in reports] == ["mode_write"] and "aborted 0x06090030" in reports[0][4]
+
+
+class AbortingBus:
+    """0x603F and 0x6061 uploads: each is refused (abort 0x06020000), or gets no answer."""
+
+    def __init__(self, lost: bool = False) -> None:
+        self.lost, self.reads = lost, 0
+
+    def sdo_read(self, slave: int, index: int, subindex: int, size: int) -> bytes:
+        self.reads += 1
+        if self.lost:
+            raise NoAnswer(f"slave {slave}: SDO upload 0x{index:04X}:{subindex} failed: no answer")
+        raise BusError(f"slave {slave}: SDO upload 0x{index:04X}:{subindex} aborted 0x06020000 (object does not exist)")
+
+
+def _run_job(bus, job: SdoJob) -> list:
+    m = Management(bus, lambda: 0, 1_000_000, "h1")  # type: ignore[arg-type]
+    steps = 0
+    while m._sdo_step(job, 0) and steps < 20:
+        steps += 1
+    return list(m.reports)
+
+
+def test_an_aborted_upload_is_reported_at_once_and_one_without_answer_is_read_again():
+    """A definite answer (an abort: the object does not exist) is the same when asked again."""
+    for kind in ("error_code", "mode_display"):
+        bus = AbortingBus()
+        job = SdoJob(0, kind, 8, deadline_ns=10**9)
+        job.written = True
+        reports = _run_job(bus, job)
+        assert bus.reads == 1, kind
+        assert len(reports) == 1 and "aborted 0x06020000" in reports[0][4]
+    bus = AbortingBus(lost=True)
+    reports = _run_job(bus, SdoJob(0, "error_code", deadline_ns=10**9))
+    assert bus.reads > 1 and "no answer" in reports[-1][4]
 
 
 class PolledBus:
