@@ -37,6 +37,9 @@ from typing import Callable, Iterator
 STOP_GRACE_S = 1.0
 #: The guard kills a step this long after its deadline (the agent's own check goes first).
 GUARD_MARGIN_S = 1.0
+#: SCHED_FIFO priority of the guard (when allowed): it must act on time on a loaded machine, and
+#: it only ever sleeps in select (below any cycle thread's priority).
+GUARD_RT_PRIORITY = 1
 #: How often a cooperative wait (:meth:`StartupSteps.sleep`) looks for a stop.
 POLL_S = 0.05
 
@@ -192,6 +195,10 @@ def _guard_main(pid: int, what: str, signal_fd: int) -> int:
     # Stop signals are for the agent: the guard stays until the agent is gone.
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(GUARD_RT_PRIORITY))
+    except OSError:
+        pass  # not allowed: ordinary scheduling
     steps = sys.stdin.buffer.raw
     buf = b""
     step, limit, deadline = "", "", None  # the step under way, its deadline (s) as told, and when
