@@ -29,6 +29,7 @@ import select
 import signal
 import subprocess
 import sys
+import threading
 import time
 from contextlib import contextmanager
 from typing import Callable, Iterator
@@ -169,11 +170,9 @@ class Guard:
                 os.close(fd)
             except OSError:
                 pass
-        try:
-            self.proc.wait(2.0)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
+        # Not waited for here: after a short start-up the guard may still be booting (it reads
+        # "done", or EOF, and leaves); a daemon thread reaps it.
+        threading.Thread(target=self.proc.wait, name="startup-guard-reaper", daemon=True).start()
 
 
 def start_guard(what: str = "bus-agent") -> Guard:
