@@ -30,13 +30,18 @@ from enum import Enum
 from typing import Any, Callable
 
 from bus_agent.gateway.bridge import BridgeError, GatewayProcess
+from bus_agent.gateway.wire import READY_TIMEOUT_S
 from bus_agent.gateway.zenoh_config import zenoh_error_text
 from bus_agent.bus.base import Bus, BusError
 from bus_agent.config import AgentConfig, ConfigError
 from bus_agent.cycle.cycle import Cycle
 from bus_agent.cycle.realtime import helper_priority
+from bus_agent.startup_guard import StartupAbandoned, StartupSteps
 
 log = logging.getLogger(__name__)
+
+#: Deadline of the gateway's start-up step (the bridge's own ready timeout, and a margin).
+GATEWAY_START_S = READY_TIMEOUT_S + 2.0
 
 
 class AgentError(RuntimeError):
@@ -62,10 +67,33 @@ def make_bus(config: AgentConfig) -> Bus:
             from bus_agent.bus.pysoem_bus import PysoemBus
         except ImportError as exc:
             raise AgentError(f"pysoem backend unavailable: {exc}") from None
-        return PysoemBus(config.ifname)
+        return PysoemBus(config.ifname, soem_call_s=config.soem_call_s)
     from bus_agent.bus.sim_bus import SimBus
 
     return SimBus(config.sim_drives, config.sim_profile, segment_name=config.host)
+
+
+def _run_checked(fn: Callable[[], None], steps: StartupSteps) -> None:
+    """``fn()`` on a helper thread while this one checks ``steps`` (a stop signal, the deadline):
+    a wait that cannot look at them itself (the gateway process's readiness) ends with
+    :class:`StartupAbandoned`; the caller then closes what ``fn`` opened (the helper thread's
+    late error, if any, is dropped)."""
+    done = threading.Event()
+    error: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            fn()
+        except BaseException as exc:
+            error.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="startup-step", daemon=True).start()
+    while not done.wait(0.05):
+        steps.check()
+    if error:
+        raise error[0]
 
 
 class Agent:
@@ -89,11 +117,32 @@ class Agent:
     def axes(self) -> tuple[str, ...]:
         return self.cycle.axes if self.cycle else ()
 
-    def start(self) -> None:
-        """Bring everything up; raise :class:`AgentError` (after closing what was opened)."""
+    def start(self, steps: StartupSteps | None = None) -> None:
+        """Bring everything up; raise :class:`AgentError` (after closing what was opened).
+
+        ``steps``: the start-up's steps and deadlines (the CLI's, guarded, ends on a stop signal);
+        the bus and the gateway start go through it. Raises :class:`StartupAbandoned` when it
+        ends start-up (after closing what was opened)."""
+        cfg = self.config
+        steps = steps or StartupSteps()
+        try:
+            self._start(steps)
+        except StartupAbandoned:
+            self._abort()
+            raise
+        finally:
+            steps.finish()
+        self.state = AgentState.RUNNING
+        assert self.bus is not None
+        log.info("agent %s running: %d drive(s) on %s, gateway in %s", cfg.host, len(self.axes), self.bus.backend,
+                 f"process {self.bridge.pid}" if self.bridge else "this process")
+
+    def _start(self, steps: StartupSteps) -> None:
         cfg = self.config
         try:
             self.bus = self.bus or make_bus(cfg)
+            if hasattr(self.bus, "startup_steps"):
+                self.bus.startup_steps = steps  # type: ignore[attr-defined]
             self.cycle = Cycle(self.bus, cfg, rt_priority=cfg.rt_priority)
             self.cycle.express_reflex = cfg.express_reflex
             self.cycle.spin_at_rest = cfg.spin_at_rest
@@ -102,19 +151,17 @@ class Agent:
             self._abort()
             raise AgentError(f"agent {cfg.host}: bus start-up failed: {exc}") from None
         if cfg.gateway == "process":
-            self._start_process_gateway()
+            self._start_process_gateway(steps)
         else:
-            self._start_thread_gateway()
-        self.state = AgentState.RUNNING
-        log.info("agent %s running: %d drive(s) on %s, gateway in %s", cfg.host, len(self.axes), self.bus.backend,
-                 f"process {self.bridge.pid}" if self.bridge else "this process")
+            with steps.step("zenoh session and gateway", GATEWAY_START_S):
+                self._start_thread_gateway()
 
     def _zenoh_error(self, exc: object) -> AgentError:
         z = self.config.zenoh
         return AgentError(f"agent {self.config.host}: zenoh session failed (listen {', '.join(z.listen) or '-'}, "
                           f"connect {', '.join(z.connect) or '-'}): {zenoh_error_text(exc)}")
 
-    def _start_process_gateway(self) -> None:
+    def _start_process_gateway(self, steps: StartupSteps) -> None:
         assert self.cycle is not None and self.bus is not None
         sim = self.bus.control_handlers() if self.bus.backend == "sim" and hasattr(self.bus, "control_handlers") \
             else None
@@ -126,7 +173,10 @@ class Agent:
             # beyond a slave's SM watchdog (~100 ms) without process data. Drives stay disabled
             # until a command comes, and commands come only through the gateway.
             self.cycle.start()
-            self.bridge.start()
+            with steps.step("gateway process (zenoh session, declarations)", GATEWAY_START_S):
+                _run_checked(self.bridge.start, steps)
+        except StartupAbandoned:
+            raise
         except BridgeError as exc:
             self._abort()
             if exc.what == "zenoh":

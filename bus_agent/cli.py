@@ -8,7 +8,11 @@
 
 Flags override the configuration file. Once everything is up it prints one line,
 ``bus-agent ready host=<host> drives=<a,b,..> backend=<sim|pysoem> listen=<eps> connect=<eps>``.
-SIGINT/SIGTERM run the ordered shutdown of every drive, then AL INIT, and exit 0.
+SIGINT/SIGTERM run the ordered shutdown of every drive, then AL INIT, and exit 0. During start-up
+they end it within 2 s in any step (what was opened is closed; no drive is enabled before
+start-up is over), and every blocking start-up step has a deadline (exit 3). A call into C that
+cannot be interrupted (SOEM's config_map on a malformed SII) is ended by the start-up guard
+process: it prints the step to stderr and kills the agent (SIGKILL).
 The Zenoh gateway runs in a child process (``bus_agent.gateway.bridge``) unless ``--gateway-thread``
 (or ``gateway = "thread"`` in the file); if that child dies, the agent runs the same ordered
 shutdown and exits 1.
@@ -35,11 +39,14 @@ log = logging.getLogger("bus_agent.cli")
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_STARTUP = 0, 1, 2, 3
 EXIT_CODES_HELP = """exit codes:
-  0  stopped cleanly (SIGINT/SIGTERM: ordered shutdown of every drive, then AL INIT)
+  0  stopped cleanly (SIGINT/SIGTERM: ordered shutdown of every drive, then AL INIT;
+     during start-up: start-up abandoned, what was opened closed)
   1  the cycle or the gateway process failed while running (same ordered shutdown)
   2  bad command line or configuration (nothing started)
-  3  start-up failed: bus, slave identity, AL state, zenoh session, or the host name is held
-     by another running agent (one agent per host name)"""
+  3  start-up failed: bus, slave identity, AL state, zenoh session, a start-up step past its
+     deadline, or the host name is held by another running agent (one agent per host name)
+  killed (SIGKILL) by the start-up guard: a start-up step that cannot be interrupted did not
+     return by its deadline, or within 1 s of SIGINT/SIGTERM (the reason is on stderr)"""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -147,13 +154,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = StopSignals()  # SIGTERM/SIGINT; the handler takes no lock (a burst of signals must not hang)
 
     from bus_agent.agent import Agent, AgentError  # after arg parsing: `--help` stays fast
+    from bus_agent.startup_guard import StartupAbandoned, StartupSteps, start_guard
 
     agent = Agent(config, on_failure=lambda _reason: stop.request())
+    # Every blocking start-up step has a deadline; a stop signal ends start-up in any step: in
+    # order where Python runs, else by the guard process (bus_agent/startup_guard.py).
+    guard = start_guard()
     try:
-        agent.start()
+        agent.start(StartupSteps(stopped=lambda: stop.stopped, report=guard.report))
+    except StartupAbandoned as exc:
+        print(f"bus-agent: agent {config.host}: {exc}", file=sys.stderr)
+        return EXIT_OK if exc.signalled else EXIT_STARTUP
     except AgentError as exc:
         print(f"bus-agent: {exc}", file=sys.stderr)
         return EXIT_STARTUP
+    finally:
+        guard.close()
     z = config.zenoh
     assert agent.bus is not None  # started
     print(f"bus-agent ready host={config.host} drives={','.join(agent.axes)} backend={agent.bus.backend} "

@@ -158,6 +158,8 @@ class AgentConfig:
     dc: DcConfig = DcConfig()           # [dc]: distributed clocks (SYNC0, the cycle kept in step)
     recorder: RecorderConfig = RecorderConfig()
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
+    #: [startup] soem_call_s: deadline of each SOEM call start-up cannot interrupt (pysoem backend)
+    soem_call_s: float = 30.0
 
     def __post_init__(self) -> None:
         if self.zenoh.pki and not self.zenoh.identity:  # an agent's principal is its host name
@@ -257,6 +259,8 @@ def _validate(c: AgentConfig) -> None:
         raise ConfigError(f"gateway: {c.gateway!r} is not one of {', '.join(GATEWAY_MODES)}")
     if isinstance(c.rt_priority, bool) or not isinstance(c.rt_priority, int) or not 0 <= c.rt_priority <= 99:
         raise ConfigError(f"cycle.rt_priority: {c.rt_priority!r} must be 0 (off) or a SCHED_FIFO priority 1..99")
+    if not 1.0 <= c.soem_call_s <= 600.0:
+        raise ConfigError(f"startup.soem_call_s: {c.soem_call_s:g} must be 1..600 s")
     r = c.recorder
     if r.seconds and not (0 <= r.pre_s and 0 <= r.post_s and r.pre_s + r.post_s < r.seconds <= 600):
         raise ConfigError(f"recorder: need 0 <= pre_s + post_s < seconds <= 600 (got pre_s {r.pre_s:g}, "
@@ -445,6 +449,9 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
     recorder = RecorderConfig(seconds=rc.get("seconds", _NUM, 10.0), pre_s=rc.get("pre_s", _NUM, 5.0),
                               post_s=rc.get("post_s", _NUM, 1.0))
     rc.done()
+    st = t.table("startup")
+    soem_call_s = st.get("soem_call_s", _NUM, 30.0)
+    st.done()
     defaults_t = t.table("defaults")
     defaults = _policy(defaults_t, DrivePolicy())
     default_motion = _motion(defaults_t, MotionConfig())
@@ -501,6 +508,7 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         dc=dc,
         recorder=recorder,
         can=can_from_table(t.table("can")) if "can" in t.data else None,
+        soem_call_s=float(soem_call_s),
     )
     t.done()
     return cfg

@@ -135,19 +135,10 @@ class BusError(RuntimeError):
     """Start-up or management failure; the message names the slave and the AL status code."""
 
 
-class SdoRefused(BusError):
-    """An SDO transfer the slave refused with an abort code: a definite answer, never repeated
-    (a transfer that got no answer is a plain :class:`BusError`, and may be)."""
-
-    def __init__(self, text: str, abort_code: int) -> None:
-        super().__init__(text)
-        self.abort_code = abort_code
-
-
-def sdo_abort_code(e: BaseException) -> int:
-    """The abort code of a refused SDO transfer (any backend's error with ``abort_code``), 0 when
-    the transfer got no answer or failed otherwise."""
-    return int(getattr(e, "abort_code", 0) or 0)
+class NoAnswer(BusError):
+    """A transfer that got no answer in time: the answer may have been lost, so it may be made
+    again. Every other BusError of a transfer is the slave's definite answer (an SDO abort, a
+    mailbox error, a slave without CoE): made again, it gets the same answer."""
 
 
 class Bus(Protocol):

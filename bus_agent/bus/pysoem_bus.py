@@ -31,11 +31,13 @@ from typing import Any, Callable, Sequence
 from bus_agent.bus.base import ALState, BusError, SlaveALStatus, al_status_text
 from bus_agent.bus.codec import DriveCodec
 from bus_agent.bus.emergency import EmergencyLog
+from bus_agent.bus.mailbox import SiiMailbox
 from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
-from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_FMMU0, REG_SM0, STATE_ACK, PysoemStartup,
-                                          al_state)
+from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_FMMU0, REG_SM0, SOEM_CALL_S, STATE_ACK,
+                                          PysoemStartup, al_state)
+from bus_agent.startup_guard import StartupSteps
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +61,7 @@ class PysoemBus(PysoemStartup):
     express_exchange = True
 
     def __init__(self, ifname: str, receive_timeout_us: int = 1000, release_gil: bool = True,
-                 config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S) -> None:
+                 config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S, soem_call_s: float = SOEM_CALL_S) -> None:
         import pysoem  # imported here so the sim backend needs no pysoem
 
         self._pysoem = pysoem
@@ -67,6 +69,10 @@ class PysoemBus(PysoemStartup):
         self.receive_timeout_us = receive_timeout_us
         self.release_gil = release_gil
         self.config_init_deadline_s = config_init_deadline_s
+        self.soem_call_s = soem_call_s
+        #: Deadlines only, until the agent sets its guarded steps (stop signal, guard process)
+        self.startup_steps = StartupSteps()
+        self._map_phase = False
         self._master: Any = None
         self._slaves: list[Any] = []
         self._inputs: list[DriveInputs] = []
@@ -97,6 +103,7 @@ class PysoemBus(PysoemStartup):
         self._mailbox_turn = -1
         self._mailbox_lock = threading.Lock()
         self._sdo_retries = 0
+        self._mailboxes: list[SiiMailbox] = []
         #: position -> (error code, text) of its last CoE emergency (read by the cycle for error_text)
         self.error_texts = self._emcy.error_texts
 
@@ -337,15 +344,16 @@ class PysoemBus(PysoemStartup):
             self._mailbox_lock.release()
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
-        """CoE SDO upload. Raises BusError with the abort code. Not cycle-safe (mailbox round trips)."""
+        """CoE SDO upload. Raises BusError with the abort code or mailbox error (NoAnswer: none came).
+        Not cycle-safe (mailbox round trips)."""
         s = self._slaves[position]
-        return bytes(self._sdo(lambda: s.sdo_read(index, subindex, size, release_gil=True),
+        return bytes(self._sdo(position, lambda: s.sdo_read(index, subindex, size, release_gil=True),
                                f"slave {position}: SDO upload 0x{index:04X}:{subindex}"))
 
     def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
         """CoE SDO download. Raises BusError with the abort code."""
         s = self._slaves[position]
-        self._sdo(lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
+        self._sdo(position, lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
                   f"slave {position}: SDO download 0x{index:04X}:{subindex}")
 
     def close(self) -> None:

@@ -15,18 +15,27 @@ import threading
 import time
 from typing import Any, Callable, Mapping
 
-from bus_agent.bus.base import ALState, BusError, SdoRefused, SlaveInfo, SlaveIdentity, al_status_text
+from bus_agent.bus.base import ALState, BusError, NoAnswer, SlaveInfo, SlaveIdentity, al_status_text
+from bus_agent.bus.mailbox import SII_MAILBOX_WORD, SII_PROTOCOLS_WORD, SiiMailbox, transfer_failure
 from bus_agent.bus.codec import DriveCodec, segment_decoder
 from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort_hint, check_mapping, describe,
                                    plan_writes, read_mapping)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import PysoemDc
+from bus_agent.startup_guard import StartupAbandoned, StartupSteps
 
 log = logging.getLogger("bus_agent.bus.pysoem_bus")
 
 STATE_ACK = 0x10
 #: How long open() keeps retrying config_init when no slave answers.
 CONFIG_INIT_DEADLINE_S = 10.0
+#: Deadline of each SOEM call start-up cannot interrupt (one config_init, config_dc, and in
+#: config_map: SOEM's own reading of one slave's PDO sizes (CoE, else its SII), our reading and
+#: writing of one slave's mapping): SOEM's own CoE reads of one slave are about 20 uploads of up
+#: to 700 ms each when its mailbox stalls. ``[startup] soem_call_s`` in the agent's configuration.
+SOEM_CALL_S = 30.0
+#: Deadline of opening the NIC and of reading back one slave's registers.
+OPEN_S = 5.0
 #: Deadlines of the AL transitions in start().
 SAFEOP_DEADLINE_S = 5.0
 OP_DEADLINE_S = 5.0
@@ -53,14 +62,6 @@ class ProcessDataSizeError(BusError):
     """The process data SOEM sized for a slave disagrees with the slave's PDO mapping."""
 
 
-def transfer_failure_text(e: BaseException) -> str:
-    """What a failed pysoem mailbox transfer says; pysoem's WkcError says nothing by itself: the
-    exchange got no answer in time."""
-    if type(e).__name__ == "WkcError":
-        return "WkcError: no answer from the slave's mailbox"
-    return str(e) or type(e).__name__
-
-
 def al_state(value: int) -> ALState:
     """The AL state in bits 0-3 of an AL status word (NONE for a value outside the states)."""
     try:
@@ -81,7 +82,13 @@ class PysoemStartup(PysoemDc):
     _esc_config: dict[int, tuple[bytes, bytes]]
     _expected_wkc: int
     _opened: bool
+    #: Per slave: its mailbox as its SII describes it (read at open)
+    _mailboxes: list[SiiMailbox]
     config_init_deadline_s: float
+    #: The steps of start-up with their deadlines (the agent sets its own, guarded, before open)
+    startup_steps: StartupSteps
+    soem_call_s: float
+    _map_phase: bool
     _on_emergency: Callable[[int, Any], None]                      # PysoemBus
     #: Held for every mailbox exchange (SDO transfer, mailbox read): a mailbox read on one thread
     #: would take the answer an SDO transfer on another waits for.
@@ -95,23 +102,34 @@ class PysoemStartup(PysoemDc):
     def open(self) -> list[SlaveInfo]:
         """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
         pysoem = self._pysoem
+        steps = self.startup_steps
         m = pysoem.Master()
         try:
-            m.open(self.ifname)
+            with steps.step(f"{self.ifname}: open the interface", OPEN_S):
+                m.open(self.ifname)
+        except StartupAbandoned:
+            raise
         except Exception as e:
             raise BusError(f"{self.ifname}: cannot open the interface: {e}") from None
         self._master = m
         deadline = time.monotonic() + self.config_init_deadline_s
         n = 0
-        while True:
-            try:
-                n = m.config_init(release_gil=True)
-            except Exception as e:
-                self._abort_open()
-                raise BusError(f"{self.ifname}: config_init failed: {e}") from None
-            if n > 0 or time.monotonic() >= deadline:
-                break
-            time.sleep(0.2)
+        try:
+            while True:
+                try:
+                    with steps.step(f"{self.ifname}: config_init (SOEM finds the slaves, reads their SII, "
+                                    "brings them to PRE-OP)", self.soem_call_s):
+                        n = m.config_init(release_gil=True)
+                except StartupAbandoned:
+                    raise
+                except Exception as e:
+                    raise BusError(f"{self.ifname}: config_init failed: {e}") from None
+                if n > 0 or time.monotonic() >= deadline:
+                    break
+                steps.sleep(0.2)
+        except BaseException:
+            self._abort_open()
+            raise
         if n <= 0:
             self._abort_open()
             raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
@@ -122,6 +140,7 @@ class PysoemStartup(PysoemDc):
             s.add_emergency_callback(functools.partial(self._on_emergency, pos))
         self._inputs = [DriveInputs() for _ in self._slaves]
         self._dc_capable = [self._read_dc_capable(s) for s in self._slaves]
+        self._mailboxes = [self._read_sii_mailbox(pos, s) for pos, s in enumerate(self._slaves)]
         self._opened = True
         infos = []
         for pos, s in enumerate(self._slaves):
@@ -129,6 +148,28 @@ class PysoemStartup(PysoemDc):
             log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.ifname, pos, s.name, s.man, s.id, s.rev)
         return infos
+
+    def _read_sii_mailbox(self, position: int, s: Any) -> SiiMailbox:
+        """The slave's mailbox sizes and protocols from its SII (EEPROM words 0x19, 0x1B, 0x1C)."""
+        try:
+            with self.startup_steps.step(f"slave {position}: reading its SII mailbox words", OPEN_S):
+                w18 = bytes(s.eeprom_read(SII_MAILBOX_WORD, 20000))
+                w1a = bytes(s.eeprom_read(SII_MAILBOX_WORD + 2, 20000))
+                w1c = bytes(s.eeprom_read(SII_PROTOCOLS_WORD, 20000))
+        except StartupAbandoned:
+            self._abort_open()
+            raise
+        except Exception as e:
+            self._abort_open()
+            raise BusError(f"slave {position} ({s.name!r}): its SII (mailbox words 0x18-0x1C) not readable: {e}") from None
+        return SiiMailbox(receive_size=struct.unpack_from("<H", w18, 2)[0], send_size=struct.unpack_from("<H", w1a, 2)[0],
+                          protocols=struct.unpack_from("<H", w1c, 0)[0])
+
+    def _coe_check(self, position: int, what: str) -> None:
+        """A transfer with a slave that has no mailbox or no CoE fails at once, saying so."""
+        problem = self._mailboxes[position].coe_problem() if position < len(self._mailboxes) else None
+        if problem:
+            raise BusError(f"{what}: slave {position} {problem}")
 
     def _abort_open(self) -> None:
         try:
@@ -138,8 +179,22 @@ class PysoemStartup(PysoemDc):
         self._master = None
 
     def _config_func(self, position: int) -> None:
-        """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs."""
+        """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs.
+        SOEM calls it for each slave, then reads that slave's PDO sizes itself: each is a step."""
+        name = f"slave {position} ({self._slaves[position].name!r})"
+        self._config_map_phase(f"config_map: {name}: reading (and per policy writing) its PDO mapping by SDO")
         self._configure_slave(position)
+        self._config_map_phase(f"config_map: SOEM reading the PDO sizes of {name} (CoE, else its SII) and the "
+                               "slaves after it")
+
+    def _config_map_phase(self, name: str | None) -> None:
+        """End config_map's current step and begin ``name`` (None: none), each with soem_call_s."""
+        if self._map_phase:
+            self._map_phase = False
+            self.startup_steps.end()
+        if name is not None:
+            self.startup_steps.begin(name, self.soem_call_s)
+            self._map_phase = True
 
     def _configure_slave(self, position: int) -> SlaveMapping:
         """In PRE-OP: read the drive's PDO mapping, write what its policy wants (only what
@@ -152,7 +207,7 @@ class PysoemStartup(PysoemDc):
         def read(index: int, sub: int, size: int) -> bytes:
             what = f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}"
             for _ in range(MAPPING_READ_ATTEMPTS):
-                data = bytes(self._sdo(lambda: s.sdo_read(index, sub, size, release_gil=True), what,
+                data = bytes(self._sdo(position, lambda: s.sdo_read(index, sub, size, release_gil=True), what,
                                        attempts=MAPPING_READ_ATTEMPTS))
                 if len(data) == size:
                     return data
@@ -167,7 +222,7 @@ class PysoemStartup(PysoemDc):
         policy = setup.policy
         steps = plan_writes(policy, current)
         for step in steps:
-            self._sdo(lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
+            self._sdo(position, lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
                       f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X}", hint=True)
         if steps:
             current = self._read_mapping_twice(read, who)
@@ -180,7 +235,8 @@ class PysoemStartup(PysoemDc):
             raise BusError(f"{who}: its PDO mapping cannot run the cycle: {'; '.join(problems)} "
                            f"(mapping policy {policy.policy!r}: {describe(current)}); {hint}")
         for sdo in setup.sdos:
-            self._sdo(lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True), f"{who}: start-up SDO {sdo}")
+            self._sdo(position, lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True),
+                      f"{who}: start-up SDO {sdo}")
         if setup.sdos:
             log.info("%s: %d start-up SDO(s) applied", who, len(setup.sdos))
         if position < len(self._codecs) and self._codecs[position].mapping != current:
@@ -189,7 +245,7 @@ class PysoemStartup(PysoemDc):
         self._mappings[position] = current
         try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
             self._preop_values[(position, 0x6502)] = bytes(self._sdo(
-                lambda: s.sdo_read(0x6502, 0, 4, release_gil=True), f"{who}: SDO upload 0x6502:00",
+                position, lambda: s.sdo_read(0x6502, 0, 4, release_gil=True), f"{who}: SDO upload 0x6502:00",
                 attempts=MAPPING_READ_ATTEMPTS))
         except BusError as e:
             self._preop_values[(position, 0x6502)] = e
@@ -215,26 +271,34 @@ class PysoemStartup(PysoemDc):
         raise BusError(f"{who}: its PDO mapping could not be read twice alike without lost answers "
                        f"({MAPPING_READ_ATTEMPTS + 1} reads; the last: {describe(current)}); check the link")
 
-    def _sdo(self, transfer: Callable[[], Any], what: str, hint: bool = False, attempts: int = 1) -> Any:
-        """One SDO transfer; its failure as a BusError naming ``what``, the abort code and its
-        meaning (with ``hint``: what to do instead). A transfer that got no answer (not an
-        abort, which is the slave's definite no) is made again up to ``attempts`` times in all:
-        only for transfers that may be repeated (uploads)."""
+    def _sdo(self, position: int, transfer: Callable[[], Any], what: str, hint: bool = False,
+             attempts: int = 1) -> Any:
+        """One SDO transfer with the slave at ``position``; its failure as a BusError naming
+        ``what`` and what the slave answered: an SDO abort code and its meaning (with ``hint``:
+        what to do instead), a mailbox error and its meaning, or no answer (:class:`NoAnswer`).
+        Only a transfer that got no answer, whose answer may have been lost, is made again, up to
+        ``attempts`` times in all (for transfers that may be repeated: uploads); a definite
+        answer is the same every time: reported at once. A slave without a mailbox or without
+        CoE is named as such, without a transfer."""
+        self._coe_check(position, what)
         for attempt in range(1, attempts + 1):
+            self.startup_steps.check()  # a transfer is up to 700 ms: a stop or deadline between them
             try:
                 with self._mailbox_lock:
                     return transfer()
             except self._pysoem.SdoError as e:
                 code = e.abort_code & 0xFFFFFFFF
-                raise SdoRefused(f"{what} aborted 0x{code:08X} ({e.desc})"
-                               + (f": {abort_hint(code)}" if hint else ""), code) from None
+                raise BusError(f"{what} aborted 0x{code:08X} ({e.desc})"
+                               + (f": {abort_hint(code)}" if hint else "")) from None
             except Exception as e:
-                why = transfer_failure_text(e)
+                why, lost = transfer_failure(e)
+                if not lost:
+                    raise BusError(f"{what} failed: {why}") from None
                 if attempt < attempts:
                     self._sdo_retries += 1
                     log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)
                     continue
-                raise BusError(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
+                raise NoAnswer(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
         raise AssertionError("unreachable")
 
     def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
@@ -321,16 +385,25 @@ class PysoemStartup(PysoemDc):
         if self._sync0:
             # PRE-OP: find the DC slaves, latch and set offsets and delays; from here on every
             # process-data frame carries the FRMW of the reference clock (master.dc_time)
-            found = m.config_dc()
+            with self.startup_steps.step(f"{self.ifname}: config_dc (SOEM measures the DC delays)", self.soem_call_s):
+                found = m.config_dc()
             if not found:
                 raise BusError(f"{self.ifname}: config_dc found no DC slave, although slave(s) "
                                f"{sorted(self._sync0)} report DC in 0x0008")
+        no_coe = [f"slave {pos} ({s.name!r}) {problem}" for pos, s in enumerate(self._slaves)
+                  if (problem := self._mailboxes[pos].coe_problem())]
+        if no_coe:  # its PDO mapping cannot be read: named now, before any transfer is tried
+            raise BusError(f"{self.ifname}: " + "; ".join(no_coe))
         m.manual_state_change = before_safeop  # config_map requests SAFE-OP by itself otherwise
         for pos, s in enumerate(self._slaves):
             s.config_func = self._config_func
         try:
-            m.config_map()
-        except BusError:
+            self._config_map_phase(f"{self.ifname}: config_map (SOEM maps the process data)")
+            try:
+                m.config_map()
+            finally:
+                self._config_map_phase(None)
+        except (BusError, StartupAbandoned):
             raise
         except pysoem.ConfigMapError as e:
             details = "; ".join(str(x) for x in e.error_list)
@@ -357,7 +430,8 @@ class PysoemStartup(PysoemDc):
             self._wait_sync0_start()
             m.state = pysoem.SAFEOP_STATE
             m.write_state()
-        self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
+        with self.startup_steps.step(f"{self.ifname}: to SAFE-OP", SAFEOP_DEADLINE_S + 1.0):
+            self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
         if self._sync0 and not before_safeop:
             self._start_sync0(sorted(self._sync0))
         self._expected_wkc = m.expected_wkc
@@ -368,9 +442,11 @@ class PysoemStartup(PysoemDc):
         self._wait_sync0_start(exchange=True)
         m.state = pysoem.OP_STATE
         m.write_state()
-        self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
-        self._read_esc_config()
-        self._read_dc_delays()
+        with self.startup_steps.step(f"{self.ifname}: to OP", OP_DEADLINE_S + 1.0):
+            self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
+        with self.startup_steps.step(f"{self.ifname}: reading back SM, FMMU and DC registers", OPEN_S):
+            self._read_esc_config()
+            self._read_dc_delays()
         log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
                  self._expected_wkc)
         return self._expected_wkc
@@ -398,7 +474,9 @@ class PysoemStartup(PysoemDc):
         deadline = start + deadline_s
         rewrite_at = start + STATE_REWRITE_S
         refused: tuple[int, ...] = ()
+        steps = self.startup_steps
         while True:
+            steps.check()  # the loop's own deadline is checked below; a stop signal here
             if exchange:
                 self.exchange()
             if m.state_check(int(state), STATE_POLL_US) == int(state):

@@ -18,11 +18,8 @@ from typing import Any, Callable, Sequence
 
 from bus_agent.bus.base import BusError
 from bus_agent.bus.mapping import SlaveMapping, read_mapping
-from bus_agent.bus.pysoem_startup import transfer_failure_text
+from bus_agent.bus.mailbox import mailbox_protocols, transfer_failure_text
 from bus_agent.cia402.states import Mode
-
-#: SII word 0x1C mailbox protocol bits (ETG.1000.6 Table 18).
-MAILBOX_PROTOCOLS = ((0x01, "AoE"), (0x02, "EoE"), (0x04, "CoE"), (0x08, "FoE"), (0x10, "SoE"), (0x20, "VoE"))
 
 
 @dataclass(frozen=True)
@@ -55,10 +52,6 @@ class SlaveScan:
             out.update(rx_pdos=list(m.rx_pdos), tx_pdos=list(m.tx_pdos), rx=entries(m.rx), tx=entries(m.tx),
                        sm2_bytes=m.out_bytes, sm3_bytes=m.in_bytes)
         return out
-
-
-def mailbox_protocols(word: int) -> tuple[str, ...]:
-    return tuple(name for bit, name in MAILBOX_PROTOCOLS if word & bit)
 
 
 def decode_modes(bits: int) -> tuple[int, ...]:

@@ -28,7 +28,7 @@ from typing import Callable, Mapping, Sequence
 from bus_agent.bus.base import (
     ALState,
     BusError,
-    SdoRefused,
+    NoAnswer,
     SlaveALStatus,
     SlaveIdentity,
     SlaveInfo,
@@ -60,15 +60,15 @@ _AL_ALLOWED = {
 }
 
 
-class SimSdoError(SdoRefused):
+class SimSdoError(BusError):
     """An SDO abort from a simulated slave; carries the CoE abort code."""
 
     def __init__(self, position: int, index: int, subindex: int, abort_code: int, detail: str) -> None:
         self.position = position
         self.index = index
         self.subindex = subindex
-        super().__init__(f"slave {position}: SDO 0x{index:04X}:{subindex} aborted with 0x{abort_code:08X} ({detail})",
-                         abort_code)
+        self.abort_code = abort_code
+        super().__init__(f"slave {position}: SDO 0x{index:04X}:{subindex} aborted with 0x{abort_code:08X} ({detail})")
 
 
 @dataclass
@@ -370,9 +370,9 @@ class SimBus:
     def _mailbox_slave(self, position: int, what: str, index: int, subindex: int) -> _Slave:
         sl = self._slave(position)
         if not sl.plugged:
-            raise BusError(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: no answer (unplugged)")
-        if sl.al_state in (ALState.INIT, ALState.NONE):
-            raise BusError(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: mailbox not available in INIT")
+            raise NoAnswer(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: no answer (unplugged)")
+        if sl.al_state in (ALState.INIT, ALState.NONE):  # as over EtherCAT: no mailbox, no answer
+            raise NoAnswer(f"slave {position}: SDO {what} 0x{index:04X}:{subindex}: mailbox not available in INIT")
         return sl
 
     def close(self) -> None:

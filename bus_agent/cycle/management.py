@@ -15,7 +15,7 @@ import threading
 from dataclasses import dataclass
 from typing import Callable
 
-from bus_agent.bus.base import ALState, Bus, SlaveALStatus, sdo_abort_code
+from bus_agent.bus.base import ALState, Bus, NoAnswer, SlaveALStatus
 from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 
 log = logging.getLogger(__name__)
@@ -45,10 +45,10 @@ class SdoJob:
     ``kind`` "mailbox": read the slave's mailbox once (its emergency); "mode": write 0x6060 = ``value`` (unless ``written``: it is in the PDOs), then read 0x6061 every :data:`MODE_POLL_NS` until
     it echoes or ``deadline_ns``; "error_code": read 0x603F once; "write": download ``writes``
     ((index, subindex, data), in order, stopping at the first refusal; homing parameters).
-    Reports ``("sdo", slave, what, value, error, abort_code)`` with what = "mode_write" (error
+    Reports ``("sdo", slave, what, value, error, definite)`` with what = "mode_write" (error
     only), "mode_display", "error_code" or "written" (error: '' or the refused object and abort;
-    abort_code: the slave's abort, 0 when the transfer got no answer). A refused transfer (an
-    abort: the slave's definite answer) is reported at once, never made again."""
+    definite: the error is the slave's own answer, an abort or a mailbox error, not a transfer
+    without answer). Only a transfer without answer (:class:`NoAnswer`) is made again."""
 
     slave: int
     kind: str
@@ -246,12 +246,12 @@ class Management:
                 except Exception as e:  # the abort code names why; later objects are not written
                     error = f"0x{index:04X}:{subindex}: {e}"
                     break
-            self.reports.append(("sdo", job.slave, "written", None, error, 0))
+            self.reports.append(("sdo", job.slave, "written", None, error, bool(error)))
             return False
         try:
             if job.kind == "error_code":
                 raw = bus.sdo_read(job.slave, 0x603F, 0, 2)
-                self.reports.append(("sdo", job.slave, "error_code", struct.unpack("<H", bytes(raw)[:2])[0], "", 0))
+                self.reports.append(("sdo", job.slave, "error_code", struct.unpack("<H", bytes(raw)[:2])[0], "", False))
                 return False
             if not job.written:
                 job.written = True
@@ -260,15 +260,16 @@ class Management:
         except Exception as e:  # BusError with the abort code: the cycle answers the command with it
             what = job.kind if job.kind == "error_code" else ("mode_write" if "0x6060" in str(e) else "mode_display")
             job.attempts += 1
-            abort = sdo_abort_code(e)
-            if what == "mode_write" and not abort:
-                job.written = False  # no answer (a mailbox timeout under load): write again; an abort is final
-            if not abort and job.attempts < SDO_ATTEMPTS and now_ns < job.deadline_ns:
-                # no answer in time (a mailbox timeout under load, or a backend that fails the
-                # upload on the fault's own EMCY): read again
+            # Only a transfer without an answer (a mailbox timeout under load) is made again; an
+            # abort or a mailbox error is the drive's definite answer: reported at once
+            lost = isinstance(e, NoAnswer)
+            if what == "mode_write" and lost:
+                job.written = False  # write again
+            if lost and (what != "mode_write" or not job.written) and job.attempts < SDO_ATTEMPTS \
+                    and now_ns < job.deadline_ns:
                 return True
-            self.reports.append(("sdo", job.slave, what, None, str(e), abort))
+            self.reports.append(("sdo", job.slave, what, None, str(e), not lost))
             return False
         value = struct.unpack("<b", bytes(raw)[:1])[0]
-        self.reports.append(("sdo", job.slave, "mode_display", value, "", 0))
+        self.reports.append(("sdo", job.slave, "mode_display", value, "", False))
         return value != job.value and now_ns < job.deadline_ns

@@ -41,12 +41,12 @@ class SlavesMixin(CycleBase):
             else:
                 self._apply_returned(r[1], r[2], now_ns)
 
-    def _apply_sdo(self, slave: int, what: str, value: int | None, error: str, abort: int, now_ns: int) -> None:
+    def _apply_sdo(self, slave: int, what: str, value: int | None, error: str, definite: bool, now_ns: int) -> None:
         """A result of an SDO job (objects the drive does not map)."""
         for d in self.drives:
             if d.slave != slave:
                 continue
-            if what == "error_code" and value is None and abort and d.error_code_readable:
+            if what == "error_code" and value is None and definite and d.error_code_readable:
                 # 0x603F refused (0x06020000: the drive has no such object): from now on the
                 # error code is the drive's last emergency's
                 d.error_code_readable = False

@@ -85,7 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
                                        "  dc           DC capable: ESC 0x0008 bit 2, system time 0x0910, SYNC0\n"
                                        "  dc-required  also refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030) and\n"
                                        "               raises a sync error (AL 0x001A) when process data stops\n"
-                                       "               arriving in step with SYNC0")
+                                       "               arriving in step with SYNC0\n"
+                                       "  no-mailbox   no mailbox (SII mailbox sizes 0): no CoE, no SDO\n"
+                                       "  no-coe       a mailbox without CoE: CoE requests get the mailbox error\n"
+                                       "               'unsupported protocol'")
     p.add_argument("--ifname", required=True, help="network interface to serve (one end of a veth pair)")
     p.add_argument("--drives", type=int, default=1, help="number of slaves on the segment (1..1000)")
     p.add_argument("--profile", default="generic",

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.unprivileged import unprivileged_argv
+
 pytestmark = [pytest.mark.timeout(180)]
 
 USER_TESTS = '''
@@ -108,7 +110,8 @@ def test_plugin_from_a_separate_directory(tmp_path):
 
 
 def test_ecat_without_root_fails_under_ci():
-    """The usual rule: a missing prerequisite fails under CI=true (run unprivileged via setpriv)."""
+    """The usual rule: a missing prerequisite fails under CI=true (run unprivileged via setpriv,
+    also from a checkout nobody may read: tests/unprivileged.py)."""
     tmp_path = Path(tempfile.mkdtemp(prefix="twin-plugin-"))  # not under root's private pytest dir
     tmp_path.chmod(0o777)
     (tmp_path / "test_user.py").write_text("def test_e(drives_twin):\n"
@@ -116,7 +119,7 @@ def test_ecat_without_root_fails_under_ci():
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH",)}
     argv = [sys.executable, "-m", "pytest", "-q", "-rfs", "-p", "no:cacheprovider", str(tmp_path)]
     if os.geteuid() == 0:
-        argv = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", *argv]
+        argv = unprivileged_argv(argv, readable=[tmp_path])
     for ci, expect in (("true", "1 failed"), ("", "1 skipped")):
         done = subprocess.run(argv, cwd=tmp_path, env={**env, "CI": ci, "HOME": str(tmp_path)},
                               capture_output=True, text=True, timeout=60)

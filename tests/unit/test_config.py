@@ -107,3 +107,14 @@ def test_with_overrides():
         base.with_overrides(speed=3)
     with pytest.raises(ConfigError, match="host"):
         AgentConfig(host="", sim_drives=1)
+
+
+def test_startup_soem_call_deadline():
+    base = {"host": "h1", "ifname": "eth1"}
+    assert config_from_dict(base).soem_call_s == 30.0
+    assert config_from_dict({**base, "startup": {"soem_call_s": 3}}).soem_call_s == 3.0
+    for bad in (0.5, 601):
+        with pytest.raises(ConfigError, match="startup.soem_call_s"):
+            config_from_dict({**base, "startup": {"soem_call_s": bad}})
+    with pytest.raises(ConfigError, match="startup"):
+        config_from_dict({**base, "startup": {"deadline": 3}})

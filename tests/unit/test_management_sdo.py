@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import struct
 
-from bus_agent.bus.base import BusError, SdoRefused
+from bus_agent.bus.base import BusError, NoAnswer
 from bus_agent.cycle.management import Management, SdoJob
 
 
@@ -18,11 +18,10 @@ class MailboxBus:
     def sdo_write(self, slave: int, index: int, subindex: int, data: bytes) -> None:
         self.writes += 1
         if self.refuse:
-            raise SdoRefused(f"slave {slave}: SDO download 0x{index:04X}:{subindex} aborted 0x06090030 (value range)",
-                           0x06090030)
+            raise BusError(f"slave {slave}: SDO download 0x{index:04X}:{subindex} aborted 0x06090030 (value range)")
         if self.timeouts:
             self.timeouts -= 1
-            raise BusError(f"slave {slave}: SDO download 0x{index:04X}:{subindex} failed: ")
+            raise NoAnswer(f"slave {slave}: SDO download 0x{index:04X}:{subindex} failed: no answer")
         self.mode = struct.unpack("<b", data)[0]
 
     def sdo_read(self, slave: int, index: int, subindex: int, size: int) -> bytes:
@@ -42,7 +41,7 @@ def test_a_mode_download_without_answer_is_written_again_until_echoed():
     bus = MailboxBus(timeouts=2)
     reports = _run(bus)
     assert bus.writes == 3 and bus.mode == 8
-    assert reports[-1] == ("sdo", 0, "mode_display", 8, "", 0)
+    assert reports[-1] == ("sdo", 0, "mode_display", 8, "", False)
     assert not any(r[2] == "mode_write" for r in reports)
 
 
@@ -51,46 +50,43 @@ def test_a_refused_mode_download_is_reported_once_and_not_retried():
     reports = _run(bus)
     assert bus.writes == 1
     assert [r[2] for r in reports] == ["mode_write"] and "aborted 0x06090030" in reports[0][4]
-    assert reports[0][5] == 0x06090030
+    assert reports[0][5] is True  # definite
 
 
-class ErrorCodeBus:
-    """0x603F by SDO: the first ``timeouts`` uploads get no answer, then 0x2310; or every one is
-    refused with 0x06020000 (the drive has no such object)."""
+class AbortingBus:
+    """0x603F and 0x6061 uploads: each is refused (abort 0x06020000), or gets no answer."""
 
-    def __init__(self, timeouts: int = 0, refuse: bool = False) -> None:
-        self.timeouts, self.refuse, self.reads = timeouts, refuse, 0
+    def __init__(self, lost: bool = False) -> None:
+        self.lost, self.reads = lost, 0
 
     def sdo_read(self, slave: int, index: int, subindex: int, size: int) -> bytes:
         self.reads += 1
-        if self.refuse:
-            raise SdoRefused(f"slave {slave}: SDO upload 0x{index:04X}:{subindex} aborted 0x06020000", 0x06020000)
-        if self.timeouts:
-            self.timeouts -= 1
-            raise BusError(f"slave {slave}: SDO upload 0x{index:04X}:{subindex} failed: no answer")
-        return struct.pack("<H", 0x2310)
+        if self.lost:
+            raise NoAnswer(f"slave {slave}: SDO upload 0x{index:04X}:{subindex} failed: no answer")
+        raise BusError(f"slave {slave}: SDO upload 0x{index:04X}:{subindex} aborted 0x06020000 (object does not exist)")
 
 
-def _run_error_code(bus: ErrorCodeBus) -> list:
+def _run_job(bus, job: SdoJob) -> list:
     m = Management(bus, lambda: 0, 1_000_000, "h1")  # type: ignore[arg-type]
-    job = SdoJob(0, "error_code", deadline_ns=10**9)
     steps = 0
     while m._sdo_step(job, 0) and steps < 20:
         steps += 1
     return list(m.reports)
 
 
-def test_an_error_code_upload_without_answer_is_made_again():
-    bus = ErrorCodeBus(timeouts=2)
-    assert _run_error_code(bus) == [("sdo", 0, "error_code", 0x2310, "", 0)]
-    assert bus.reads == 3
-
-
-def test_a_refused_error_code_upload_is_reported_once_with_its_abort():
-    bus = ErrorCodeBus(refuse=True)
-    reports = _run_error_code(bus)
-    assert bus.reads == 1, "a definite answer (abort) is not asked again"
-    assert [(r[2], r[3], r[5]) for r in reports] == [("error_code", None, 0x06020000)]
+def test_an_aborted_upload_is_reported_at_once_and_one_without_answer_is_read_again():
+    """A definite answer (an abort: the object does not exist) is the same when asked again."""
+    for kind in ("error_code", "mode_display"):
+        bus = AbortingBus()
+        job = SdoJob(0, kind, 8, deadline_ns=10**9)
+        job.written = True
+        reports = _run_job(bus, job)
+        assert bus.reads == 1, kind
+        assert len(reports) == 1 and "aborted 0x06020000" in reports[0][4]
+        assert reports[0][5] is True  # the drive's definite answer: the cycle turns to its EMCY
+    bus = AbortingBus(lost=True)
+    reports = _run_job(bus, SdoJob(0, "error_code", deadline_ns=10**9))
+    assert bus.reads > 1 and "no answer" in reports[-1][4] and reports[-1][5] is False
 
 
 class PolledBus:

@@ -38,6 +38,7 @@ from bus_agent.bus.codec import DriveCodec
 from bus_agent.bus.emergency import EmergencyLog
 from bus_agent.bus.mapping import MappingError, SlaveMapping, describe
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
+from bus_agent.startup_guard import StartupSteps
 from bus_agent.can_config import CanConfig
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,8 @@ HEARTBEAT_TIMEOUT_FACTOR = 3.0
 BOOT_TIMEOUT_S = 5.0
 START_TIMEOUT_S = 5.0
 SDO_TIMEOUT_S = 0.5
+#: Deadline of configuring one node in start (about 10 to 40 SDO transfers of up to SDO_TIMEOUT_S each).
+CONFIGURE_NODE_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,8 @@ class CanopenBus:
         self.heartbeats = HeartbeatConsumer(tuple(ids), heartbeat_ms / 1000.0 * HEARTBEAT_TIMEOUT_FACTOR)
         self.emergencies: collections.deque[emcy_mod.Emergency] = collections.deque(maxlen=256)
         self._emcy = EmergencyLog()
+        #: Deadlines only, until the agent sets its guarded steps (stop signal, guard process)
+        self.startup_steps = StartupSteps()
         #: position -> (error code, text) of its last EMCY (read by the cycle for error_text)
         self.error_texts = self._emcy.error_texts
         self.frames_sent = 0
@@ -193,7 +198,9 @@ class CanopenBus:
                 net.subscribe(HEARTBEAT_COB_BASE + nid, self._on_heartbeat)
                 net.subscribe(EMCY_COB_BASE + nid, self._on_emcy)
             for pos, node in enumerate(self._nodes):
-                infos.append(self._identify(pos, node))
+                with self.startup_steps.step(f"CAN {self.channel}: node {node.cfg.node_id}: identification "
+                                             "(0x1018, 0x1008)", self.boot_timeout_s + 2 * self.sdo_timeout_s + 1.0):
+                    infos.append(self._identify(pos, node))
                 self.send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, node.cfg.node_id)
         except BaseException:
             self._disconnect()
@@ -221,10 +228,16 @@ class CanopenBus:
         return SlaveInfo(pos, name, SlaveIdentity(*ident))
 
     def _reader(self, node: _Node) -> sdo_mod.SdoRead:
-        return lambda index, sub: sdo_mod.read(node.remote.sdo, node.cfg.node_id, index, sub)
+        def read(index: int, sub: int) -> bytes:
+            self.startup_steps.check()  # during start-up: a stop signal or a deadline between transfers
+            return sdo_mod.read(node.remote.sdo, node.cfg.node_id, index, sub)
+        return read
 
     def _writer(self, node: _Node) -> sdo_mod.SdoWrite:
-        return lambda index, sub, data: sdo_mod.write(node.remote.sdo, node.cfg.node_id, index, sub, data)
+        def write(index: int, sub: int, data: bytes) -> None:
+            self.startup_steps.check()
+            sdo_mod.write(node.remote.sdo, node.cfg.node_id, index, sub, data)
+        return write
 
     def _configure(self, node: _Node) -> None:
         """Heartbeat time, PDO policy, start-up SDOs; codec and TPDO subscriptions (pre-operational)."""
@@ -264,11 +277,20 @@ class CanopenBus:
             raise BusError(f"CAN {self.channel}: start() before open()")
         with self._lock:
             for node in self._nodes:
-                self._configure(node)
+                with self.startup_steps.step(f"CAN {self.channel}: node {node.cfg.node_id}: heartbeat, PDO "
+                                             "policy and start-up SDOs", CONFIGURE_NODE_S):
+                    self._configure(node)
             for node in self._nodes:
                 self.send_nmt(NmtCommand.START, node.cfg.node_id)
+        with self.startup_steps.step(f"CAN {self.channel}: nodes to operational", START_TIMEOUT_S + 1.0):
+            self._wait_operational()
+        log.info("CAN %s: %d node(s) operational", self.channel, len(self._nodes))
+        return self.expected_wkc
+
+    def _wait_operational(self) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
         while True:
+            self.startup_steps.check()
             now = time.monotonic()
             waiting = [n.cfg.node_id for n in self._nodes
                        if self.heartbeats.state(n.cfg.node_id, now) is not NmtState.OPERATIONAL]
@@ -278,8 +300,6 @@ class CanopenBus:
                 raise BusError(f"CAN {self.channel}: node(s) {waiting} not operational within {START_TIMEOUT_S:g} s "
                                "(no heartbeat saying so)")
             time.sleep(0.01)
-        log.info("CAN %s: %d node(s) operational", self.channel, len(self._nodes))
-        return self.expected_wkc
 
     @property
     def expected_wkc(self) -> int:

@@ -10,7 +10,7 @@ from typing import Callable
 
 from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
 
-from bus_agent.bus.base import BusError
+from bus_agent.bus.base import BusError, NoAnswer
 
 SdoRead = Callable[[int, int], bytes]          # (index, subindex) -> bytes
 SdoWrite = Callable[[int, int, bytes], None]   # (index, subindex, data)
@@ -28,6 +28,10 @@ class SdoError(BusError):
         super().__init__(f"node {node_id}: SDO {what} 0x{index:04X}:{subindex} {code}({detail})")
 
 
+class SdoNoAnswer(SdoError, NoAnswer):
+    """An SDO transfer without a valid answer in time (``abort_code`` 0): it may be made again."""
+
+
 def _abort_text(e: SdoAbortedError) -> str:
     return SdoAbortedError.CODES.get(e.code, "unknown abort code")
 
@@ -39,7 +43,7 @@ def read(client: SdoClient, node_id: int, index: int, subindex: int) -> bytes:
     except SdoAbortedError as e:
         raise SdoError(node_id, "read", index, subindex, e.code, _abort_text(e)) from None
     except SdoCommunicationError as e:
-        raise SdoError(node_id, "read", index, subindex, 0, f"no valid answer: {e}") from None
+        raise SdoNoAnswer(node_id, "read", index, subindex, 0, f"no valid answer: {e}") from None
 
 
 def write(client: SdoClient, node_id: int, index: int, subindex: int, data: bytes) -> None:
@@ -49,7 +53,7 @@ def write(client: SdoClient, node_id: int, index: int, subindex: int, data: byte
     except SdoAbortedError as e:
         raise SdoError(node_id, "write", index, subindex, e.code, _abort_text(e)) from None
     except SdoCommunicationError as e:
-        raise SdoError(node_id, "write", index, subindex, 0, f"no valid answer: {e}") from None
+        raise SdoNoAnswer(node_id, "write", index, subindex, 0, f"no valid answer: {e}") from None
 
 
 _FORMATS = {8: "<B", 16: "<H", 32: "<I"}

@@ -450,6 +450,9 @@ class Mailbox:
         #: Fault injection (control action ``refuse_sdo``): (index, subindex) -> abort code that
         #: answers every upload and download of that object, as from a drive without it (0x06020000).
         self.refuse: dict[tuple[int, int], int] = {}
+        #: False for a mailbox without CoE (profile modifier ``no-coe``): every request is
+        #: answered with the mailbox error "unsupported protocol".
+        self.coe = True
 
     def _muted(self, body: memoryview) -> bool:
         """True for an SDO upload request that the ``mute`` fault swallows (counts it down)."""
@@ -495,7 +498,7 @@ class Mailbox:
         if length < 2 or length > MBX_OUT_SIZE - MBX_HEADER.size:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.INVALID_SIZE)))
             return
-        if mtype != MbxType.COE:
+        if mtype != MbxType.COE or not self.coe:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.UNSUPPORTED_PROTOCOL)))
             return
         body = buf[MBX_HEADER.size: MBX_HEADER.size + length]

@@ -13,6 +13,10 @@ A request is a JSON object ``{"action": ..., ...}``; the reply ``{"ok": true, ..
   answer the next ``skip``, then give the ``count`` after them no answer (a lost mailbox answer)
 - ``refuse_sdo {slave, index, subindex, abort}``: every SDO transfer of that object is aborted
   with ``abort`` (e.g. 0x06020000, a drive without the object); ``abort`` 0 lifts it
+- ``bad_sii {slave, before}``: the slave's SII (its EEPROM) gets a category whose length sends
+  SOEM's category walk back to its own header for ever, before the ``general`` category
+  (config_init loops) or the ``pdo`` ones (config_map loops for a slave whose PDO sizes CoE did
+  not give); kept until the simulator ends
 
 Transports: a UNIX datagram socket (path) or a TCP loopback port (one JSON object per line).
 """
@@ -26,11 +30,12 @@ import socket
 from typing import BinaryIO, Callable
 
 from bus_agent.sim.ecat.frameloop import FrameLoop
+from bus_agent.sim.ecat.sii import LOOP_BEFORE, looping_sii
 
 log = logging.getLogger(__name__)
 
 ACTIONS = ("ping", "status", "fault", "unplug", "plug", "drop_frames", "delay_frames", "wkc_fault", "mute_sdo",
-           "refuse_sdo")
+           "refuse_sdo", "bad_sii")
 
 
 class ControlError(ValueError):
@@ -98,6 +103,13 @@ def apply_action(loop: FrameLoop, name: str, req: dict) -> dict:
                 refuse[key] = abort
             else:
                 refuse.pop(key, None)
+        elif action == "bad_sii":
+            slave = _int(req, "slave", 0, n - 1)
+            before = req.get("before")
+            if before not in LOOP_BEFORE:
+                raise ControlError(f"before must be one of {', '.join(LOOP_BEFORE)}, got {before!r}")
+            esc = seg.escs[slave]
+            esc.sii[:] = looping_sii(esc.sii, before)
         log.info("control: %s", req)
         return {"ok": True}
     except ControlError as exc:

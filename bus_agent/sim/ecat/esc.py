@@ -19,8 +19,9 @@ from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbo
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
 from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_MODE_SM, DcClock
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
-from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START,
-                                    PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii)
+from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START, MBX_PROTO_FOE,
+                                    PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii,
+                                    without_mailbox)
 
 log = logging.getLogger(__name__)
 
@@ -131,6 +132,12 @@ class Esc:
             vendor_id=profile.vendor_id, product_code=profile.product_code, revision=profile.revision,
             serial=position + 1, name=profile.device_name,
             rx_entries=self._sii_entries(catalog, 0x1C12), tx_entries=self._sii_entries(catalog, 0x1C13)))
+        self.has_mailbox = self.ecat_profile.mailbox != "none"
+        if not self.has_mailbox:
+            self.sii[:] = without_mailbox(self.sii)
+        elif self.ecat_profile.mailbox == "no-coe":
+            U16.pack_into(self.sii, 0x1C * 2, MBX_PROTO_FOE)
+            self.mailbox.coe = False
         self.power_on()
 
     def _sii_entries(self, catalog: PdoCatalog, assign: int) -> list[tuple[int, int, int, str]]:
@@ -505,6 +512,8 @@ class Esc:
         self._fail(ALState.SAFEOP, AlStatusCode.SM_WATCHDOG)
 
     def _mailbox_sms_valid(self) -> bool:
+        if not self.has_mailbox:
+            return True  # nothing to check: SM0/SM1 are unused
         for k in (0, 1):
             start, length, control, _st, act, _pdi = self.sm(k)
             d = SM_DEFAULTS[k]

@@ -15,7 +15,9 @@ power-on, and what the master may change (ETG.1000.6 §5.6.7.4). One segment can
 
 Modifiers: ``:dc`` makes a profile DC capable (0x0008 bit 2, system time, SYNC0); ``:dc-required``
 also refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030) and raises a sync error (0x001A) when
-process data stops arriving in step with SYNC0.
+process data stops arriving in step with SYNC0. ``:no-mailbox``: a slave without a mailbox (SII
+mailbox sizes 0, SM0/SM1 unused); ``:no-coe``: a mailbox without CoE (SII protocols: FoE only;
+a CoE request is answered with the mailbox error "unsupported protocol").
 """
 
 from __future__ import annotations
@@ -83,6 +85,7 @@ class EcatProfile:
     pdos: PdoCatalog = field(default=FLEXIBLE)
     dc: bool = False           # DC capable (0x0008 bit 2; the registers SOEM uses; SYNC0)
     dc_required: bool = False  # refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030); sync error 0x001A
+    mailbox: str = "coe"       # MAILBOX_KINDS: "coe", "no-coe" (a mailbox without CoE), "none" (no mailbox)
 
 
 _OMRON_DRIVE = DriveProfile(
@@ -105,8 +108,13 @@ PROFILES: dict[str, EcatProfile] = {
 }
 
 
-#: Profile modifiers: ``omron1s:dc``, ``generic:dc-required``.
-MODIFIERS: dict[str, dict[str, bool]] = {"dc": {"dc": True}, "dc-required": {"dc": True, "dc_required": True}}
+#: What a slave's mailbox offers: CoE (a CiA 402 drive), a mailbox without CoE (its SII word
+#: 0x1C names FoE only; a CoE request gets the mailbox error "unsupported protocol"), or none.
+MAILBOX_KINDS = ("coe", "no-coe", "none")
+
+#: Profile modifiers: ``omron1s:dc``, ``generic:dc-required``, ``generic:no-mailbox``.
+MODIFIERS: dict[str, dict[str, object]] = {"dc": {"dc": True}, "dc-required": {"dc": True, "dc_required": True},
+                                           "no-coe": {"mailbox": "no-coe"}, "no-mailbox": {"mailbox": "none"}}
 
 
 def as_ecat(profile: "EcatProfile | DriveProfile | str") -> EcatProfile:
@@ -117,14 +125,14 @@ def as_ecat(profile: "EcatProfile | DriveProfile | str") -> EcatProfile:
         return PROFILES.get(profile.name) or EcatProfile(profile.name, profile.device_name, profile)
     name, _, mods = profile.partition(":")
     if name not in PROFILES:
-        raise ValueError(f"unknown profile {name!r}; known: {', '.join(PROFILES)} (modifiers :dc, :dc-required)")
+        raise ValueError(f"unknown profile {name!r}; known: {', '.join(PROFILES)} "
+                         f"(modifiers {', '.join(':' + m for m in MODIFIERS)})")
     base = PROFILES[name]
     if not mods:
         return base
     if mods not in MODIFIERS:
         raise ValueError(f"profile {profile!r}: unknown modifier {mods!r}; known: {', '.join(MODIFIERS)}")
-    mod = MODIFIERS[mods]
-    return replace(base, name=profile, dc=mod.get("dc", False), dc_required=mod.get("dc_required", False))
+    return replace(base, name=profile, **MODIFIERS[mods])  # type: ignore[arg-type]
 
 
 def parse_profiles(spec: "str | EcatProfile | DriveProfile | Sequence[EcatProfile | DriveProfile | str]",

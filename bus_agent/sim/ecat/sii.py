@@ -28,6 +28,7 @@ SM_CTRL_PD_IN = 0x20  # buffered, ECAT reads, ECAT irq
 
 PDI_CONTROL = 0x0005  # word 0x00 (register 0x0140)
 MBX_PROTO_COE = 0x0004
+MBX_PROTO_FOE = 0x0008
 # GENERAL byte 5, CoE details: 0x01 SDO, 0x04 PDO assign, 0x08 PDO configuration (no SDO info,
 # no complete access: SOEM then reads the mapping one subindex at a time).
 COE_DETAILS = 0x0D
@@ -147,3 +148,50 @@ def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, 
     image += struct.pack("<H", SiiCategory.END)
     # pad to the declared size with 0xFF (erased EEPROM)
     return image + b"\xff" * (2048 - len(image))
+
+
+#: Where ``looping_sii`` puts its loop: before the category a master looks for in that step
+#: (config_init reads GENERAL, FMMU and SM; SOEM's config_map reads TXPDO/RXPDO only for a
+#: slave whose PDO sizes CoE did not give).
+LOOP_BEFORE = {"general": SiiCategory.GENERAL, "pdo": SiiCategory.TXPDO}
+
+
+def categories(image: bytes) -> list[tuple[int, int, int]]:
+    """(byte offset, type, length in words) of each category from word 0x40 up to END."""
+    out = []
+    a = 0x40 * 2
+    while a + 4 <= len(image):
+        cat, words = struct.unpack_from("<HH", image, a)
+        if cat == SiiCategory.END:
+            break
+        out.append((a, cat, words))
+        a += 4 + 2 * words
+    return out
+
+
+def looping_sii(image: bytes, before: str) -> bytes:
+    """A malformed SII image: a category whose length word (0xFFFE) sends a reader that walks
+    the categories with 16-bit byte addresses (SOEM's ``ecx_siifind``) back to that category's
+    own header, for ever, placed before the category ``before`` names (:data:`LOOP_BEFORE`).
+    A reader that looks for a category placed earlier is not affected."""
+    if before not in LOOP_BEFORE:
+        raise ValueError(f"before must be one of {', '.join(LOOP_BEFORE)}, got {before!r}")
+    want = LOOP_BEFORE[before]
+    at = next((a for a, cat, _ in categories(image) if cat == want), None)
+    if at is None:
+        raise ValueError(f"the SII has no {want.name} category")
+    # 0x0001 (NOP): a category type no master looks for; 4 + 2 * 0xFFFE = 0x20000 bytes = 0 mod 2^16
+    loop = struct.pack("<HH", 0x0001, 0xFFFE)
+    return (bytes(image[:at]) + loop + bytes(image[at:]))[:len(image)]
+
+
+def without_mailbox(image: bytes) -> bytes:
+    """The SII of a slave without a mailbox: no mailbox offsets and sizes (words 0x18-0x1B), no
+    mailbox protocol (0x1C), SM0/SM1 unused in the SM category (process data stays in SM2/SM3)."""
+    out = bytearray(image)
+    struct.pack_into("<5H", out, 0x18 * 2, 0, 0, 0, 0, 0)
+    for a, cat, words in categories(out):
+        if cat == SiiCategory.SM:
+            for k in range(min(2, words // 4)):
+                struct.pack_into("<HHBBBB", out, a + 4 + 8 * k, 0, 0, 0, 0, 0, SmType.UNUSED)
+    return bytes(out)
