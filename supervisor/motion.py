@@ -76,6 +76,8 @@ def sync_move(fleet: "Fleet", refs: Sequence[DriveRef], args: Mapping[str, Any],
     several hosts): one group move, or refused as a whole (see :func:`_one_group`). ``to``
     goes out as per-axis ``targets``, ``by`` with the host's ``axes``. ``Fleet.command`` sends
     every synchronized move here."""
+    if not refs:
+        raise ValueError("move: no drive selected")
     by_host: dict[str, list[str]] = {}
     for r in sorted(set(refs)):
         by_host.setdefault(r.host, []).append(r.axis)

@@ -88,10 +88,15 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
             self._claim = ClaimLink(self._claim_config, own_status, on_own_status)
             claim = self._claim.open()
         if self.s.check_host:
-            if claim is not None:
-                check_host_free(claim, self.host, has_connect=True)
-            else:  # a client open already waited for a router: check what the own session sees now
-                check_host_free(s, self.host, has_connect=self.s.has_connect and self._claim is None)
+            try:
+                if claim is not None:
+                    check_host_free(claim, self.host, has_connect=True)
+                else:  # a client open already waited for a router: check what the own session sees now
+                    check_host_free(s, self.host, has_connect=self.s.has_connect and self._claim is None)
+            except Exception:
+                if self._claim is not None:
+                    self._claim.close()
+                raise
         # A cycle already running (behind the process bridge) has a snapshot: drive status goes
         # out in the first publish pass, before the agent status that lists the axes.
         self._latest = self._latest or getattr(self.cycle, "latest", None)

@@ -72,6 +72,15 @@ def test_class_selector_on_part_of_a_host_arrives_together(bed: str) -> None:
     print(f"s1/axis[01] --sync: arrival cycles {arr}")
     # One plan sampled by one cycle: the same cycle, or the next (the drive settles on the last count).
     assert max(cycles) - min(cycles) <= 2, arr
+    # Relative (--by, the host's axes named in the query): one group too; axis2 stays out of it.
+    with Fleet(connect=[bed]) as f:
+        f.wait_for_agents(HOSTS, 10, drives=6)
+        before = next(iter(f.fetch_status(["s1/axis2"]).values())).position
+        res = f.move("s1/axis[01]", by=-10_000, sync=True, timeout_s=20)
+        assert res.ok and [r.axis for r in res.results] == ["axis0", "axis1"], res
+        st = f.fetch_status(["s1/axis0", "s1/axis1", "s1/axis2"])
+        assert {str(k): v.target_position for k, v in st.items()} == {
+            "s1/axis0": 50_000, "s1/axis1": 50_000, "s1/axis2": before}, st
 
 
 def test_class_selector_across_hosts_prepares_and_commits(bed: str) -> None:
