@@ -394,7 +394,12 @@ def _faulted_windows(trace: Trace, by_ref: dict[str, list[Status]]) -> list[tupl
     data. A fault lasts until a fault_reset done for the drive or a power cycle (unplugged and
     plugged back); an unplug until plugged again; a
     WKC fault until it is off and the drive was next seen healthy and down (or an enable sent).
-    With the drives simulated in the agent's process, any of them ends when that agent is killed."""
+    With the drives simulated in the agent's process, any of them ends when that agent is killed.
+    A fault is judged from its next cycle on (the statusword says it). An unplug or a WKC fault
+    is judged from the drive's first ``lost`` status after it: the working counter is one sum
+    for the segment, so until the agent finds the slave lost (its AL state, or its SM watchdog
+    tripping in 100 ms) its drives are what they last were; the promise judged is that a lost
+    drive is never found again on data that is not valid ("found means valid process data")."""
     resets: dict[str, list[int]] = defaultdict(list)
     enables: dict[str, list[int]] = defaultdict(list)
     for c in trace.commands:
@@ -424,6 +429,11 @@ def _faulted_windows(trace: Trace, by_ref: dict[str, list[Status]]) -> list[tupl
             if trace.sim_in_agent:
                 t1 = min([t1, *(k.start_ns for k in trace.injections
                                 if k.kind == "agent_restart" and k.host == inj.host and k.start_ns > inj.start_ns)])
+            if inj.kind != "fault":
+                lost = [s.time_ns for s in by_ref.get(ref, ()) if s.lost and s.time_ns >= inj.applied_ns]
+                if not lost:
+                    continue  # never lost in it: no "found" to judge
+                t0 = max(t0, lost[0])
             out.append((ref, t0, t1, inj))
     return out
 
