@@ -57,8 +57,11 @@ def recording_json(rec: Recording, axis: str | None = None) -> dict[str, Any]:
 
 
 def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
-              run_command: CommandRun | None = None) -> Starlette:
-    """The ASGI app. ``run_command`` None: read-only (commands answer 403)."""
+              run_command: CommandRun | None = None, stopping: Callable[[], bool] = lambda: False) -> Starlette:
+    """The ASGI app. ``run_command`` None: read-only (commands answer 403). ``stopping``: true
+    once the server is asked to stop; every open ``/api/stream`` then ends within
+    :data:`STREAM_PERIOD_S`, so an open page never holds a shutdown (the server waits for open
+    responses to complete)."""
     registry = registry_for(view)
 
     async def index(_: Request) -> Response:
@@ -103,7 +106,7 @@ def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
         async def events() -> AsyncIterator[str]:
             version = 0
             idle = 0.0
-            while not await request.is_disconnected():
+            while not stopping() and not await request.is_disconnected():
                 changes = view.changes_since(version)
                 if changes["version"] != version:
                     version = changes["version"]

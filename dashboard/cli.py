@@ -30,6 +30,9 @@ from .view import FleetView
 
 log = logging.getLogger(__name__)
 DEFAULT_HTTP = "127.0.0.1:8402"
+#: After a stop request, responses still open this long are cancelled (a backstop: live streams
+#: end on their own at the stop, see ``build_app(stopping=...)``).
+GRACEFUL_SHUTDOWN_S = 1  # whole seconds (uvicorn's type)
 
 
 def _http(text: str) -> tuple[str, int]:
@@ -100,11 +103,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     def run_command(op: str, selector: str, cmd_args: dict) -> dict:
         return fleet.command(op, fleet.select(selector), cmd_args or None).to_dict()
 
+    server: uvicorn.Server | None = None
     app = build_app(view, fetch_recording=lambda h, w, s: fetch_recording(fleet.session, h, w, s),
-                    run_command=run_command if args.commands else None)
+                    run_command=run_command if args.commands else None,
+                    stopping=lambda: server is not None and server.should_exit)
     host, port = args.http
     server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False,
-                                           lifespan="off"))
+                                           lifespan="off", timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S))
     started = threading.Event()
 
     def announce() -> None:
@@ -115,6 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                   flush=True)
 
     threading.Thread(target=announce, daemon=True).start()
+    # uvicorn captures SIGTERM/SIGINT while it runs (a plain flag, no lock) and raises them again
+    # after its shutdown: this handler takes a SIGTERM before (and that re-raise) as a stop.
     signal.signal(signal.SIGTERM, lambda *_: setattr(server, "should_exit", True))
     try:
         server.run()

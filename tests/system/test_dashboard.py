@@ -9,8 +9,11 @@ reach the open page without a reload; the per-drive page plots; the page logs no
 
 from __future__ import annotations
 
+import http.client
 import json
 import shutil
+import subprocess
+import time
 import urllib.error
 import urllib.request
 from typing import Any, Iterator
@@ -176,3 +179,28 @@ def test_metrics_parse_and_match_the_agent(bed: dict[str, Any]) -> None:
     with pytest.raises(urllib.error.HTTPError) as err:
         urllib.request.urlopen(req, timeout=10)
     assert err.value.code == 403  # read-only by default: nothing sent
+
+
+def test_sigterm_ends_the_dashboard_while_a_stream_is_open(bed: dict[str, Any]) -> None:
+    """Issue 23 item 8: a page holding /api/stream open does not keep a stopped dashboard alive."""
+    dash, url = start_dashboard(bed["ep"])
+    try:
+        host, port = url.removeprefix("http://").rsplit(":", 1)
+        conn = http.client.HTTPConnection(host, int(port), timeout=10)
+        conn.request("GET", "/api/stream")
+        resp = conn.getresponse()
+        assert resp.status == 200
+        assert resp.read1().startswith(b"data: ")  # the stream is live (its first change set)
+        t0 = time.monotonic()
+        dash.popen.terminate()
+        try:
+            code = dash.popen.wait(3)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"still running 3 s after SIGTERM with a stream open:\n{dash.output()}") from None
+        exit_s = time.monotonic() - t0
+        resp.read()  # the stream was ended (chunked: a complete body, no IncompleteRead)
+        conn.close()
+        assert exit_s < 2.0, (exit_s, dash.output())
+        assert code == 0, dash.output()
+    finally:
+        dash.stop()
