@@ -1,7 +1,7 @@
 """The dashboard's web side: a Starlette (ASGI) app over one :class:`~dashboard.view.FleetView`.
 
-Routes: ``/`` (the fleet table), ``/drive/<host>/<axis>`` (one drive: live plots, events, its
-flight recording), ``/api/fleet``, ``/api/drive/<host>/<axis>``, ``/api/recording/<host>``
+Routes: ``/`` (the fleet by host), ``/drive/<host>/<axis>`` (one drive: live plots, events),
+``/recording/<host>`` (the flight-recording viewer), ``/api/fleet``, ``/api/drive/<host>/<axis>``, ``/api/recording/<host>``
 (``?what=last&last_s=S``, JSON columns), ``/api/stream`` (server-sent events: what changed since
 the page's version, at most every :data:`STREAM_PERIOD_S`), ``/metrics`` (Prometheus), and
 ``POST /api/command/<op>`` only when commands are enabled (otherwise 403). Page scripts and
@@ -21,8 +21,9 @@ from starlette.responses import FileResponse, JSONResponse, Response, StreamingR
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
+from bus_agent.cia402.states import decode_statusword
 from schemas.keys import is_name
-from schemas.messages import DRIVE_OPS, RECORDING_MAX_S, Recording
+from schemas.messages import DRIVE_OPS, RECORDING_CHANNELS, RECORDING_MAX_S, RECORDING_WHAT, Recording
 
 from .metrics import CONTENT_TYPE, registry_for, render
 from .view import FleetView
@@ -39,26 +40,48 @@ RecordingFetch = Callable[[str, str, float], Recording]
 CommandRun = Callable[[str, str, dict], dict]
 
 
+def state_runs(statuswords: list[int]) -> list[list[Any]]:
+    """The CiA 402 states of a statusword column as runs ``[first index, state name]``. Pure."""
+    runs: list[list[Any]] = []
+    for i, sw in enumerate(statuswords):
+        name = decode_statusword(sw).value
+        if not runs or runs[-1][1] != name:
+            runs.append([i, name])
+    return runs
+
+
 def recording_json(rec: Recording, axis: str | None = None) -> dict[str, Any]:
-    """A recording as JSON columns for the page's plot; ``axis`` keeps one axis. Pure."""
+    """A recording as JSON columns for the page's plot; ``axis`` keeps one axis. Pure.
+
+    ``t``: seconds since the first cycle (the agent's monotonic cycle clock); ``t0_ms``: the
+    agent's wall clock at the first cycle (ms since the epoch), so ``t0_ms + 1000 t`` is the
+    agent's time of each cycle. Per drive, its channels and ``states`` (runs of CiA 402 states
+    decoded from the statusword); ``cycle_channels``: period and working counter per cycle."""
     n = len(rec.axes)
     t0 = rec.channels["time_ns"][0] if rec.channels.get("time_ns") else 0
     out: dict[str, Any] = {"host": rec.host, "reason": rec.reason, "axis": rec.axis, "detail": rec.detail,
                            "trigger_cycle": rec.trigger_cycle, "first_cycle": rec.first_cycle,
-                           "n_cycles": rec.n_cycles, "axes": rec.axes,
+                           "n_cycles": rec.n_cycles, "cycle_us": rec.cycle_us, "axes": rec.axes,
+                           "t0_ms": rec.time_origin_ns / 1e6,
                            "t": [(t - t0) / 1e9 for t in rec.channels.get("time_ns", [])]}
     cols = {}
     for j, a in enumerate(rec.axes):
         if axis is not None and a != axis:
             continue
         cols[a] = {k: v[j::n] for k, v in rec.channels.items() if len(v) == rec.n_cycles * n and n}
+        if "statusword" in cols[a]:
+            cols[a]["states"] = state_runs(cols[a]["statusword"])
     out["drives"] = cols
+    out["cycle_channels"] = {k: v for k, v in rec.channels.items()
+                             if RECORDING_CHANNELS.get(k, ("",))[0] == "cycle" and k != "time_ns"}
     return out
 
 
 def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
-              run_command: CommandRun | None = None, stopping: Callable[[], bool] = lambda: False) -> Starlette:
-    """The ASGI app. ``run_command`` None: read-only (commands answer 403). ``stopping``: true
+              run_command: CommandRun | None = None, identity: str = "",
+              stopping: Callable[[], bool] = lambda: False) -> Starlette:
+    """The ASGI app. ``run_command`` None: read-only (commands answer 403); ``identity``: the
+    principal commands go out under (shown on the page). ``stopping``: true
     once the server is asked to stop; every open ``/api/stream`` then ends within
     :data:`STREAM_PERIOD_S`, so an open page never holds a shutdown (the server waits for open
     responses to complete)."""
@@ -72,9 +95,15 @@ def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
             return JSONResponse({"error": "unknown drive"}, status_code=404)
         return FileResponse(STATIC / "drive.html")
 
+    async def recording_page(request: Request) -> Response:
+        if not is_name(request.path_params["host"]):
+            return JSONResponse({"error": "bad host name"}, status_code=400)
+        return FileResponse(STATIC / "recording.html")
+
     async def api_fleet(_: Request) -> Response:
         body = view.snapshot()
         body["commands_enabled"] = run_command is not None
+        body["identity"] = identity
         return JSONResponse(body)
 
     async def api_drive(request: Request) -> Response:
@@ -96,6 +125,8 @@ def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
             return JSONResponse({"error": "last_s: not a number"}, status_code=400)
         if not is_name(host) or not 0 < last_s <= RECORDING_MAX_S:
             return JSONResponse({"error": f"bad host or last_s (0 < last_s <= {RECORDING_MAX_S:g})"}, status_code=400)
+        if what not in RECORDING_WHAT:
+            return JSONResponse({"error": f"what {what!r} is not one of {', '.join(RECORDING_WHAT)}"}, status_code=400)
         try:
             rec = await asyncio.to_thread(fetch_recording, host, what, last_s)
         except Exception as exc:  # refused, unavailable, no answer: the page shows why
@@ -148,6 +179,7 @@ def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
     routes = [
         Route("/", index),
         Route("/drive/{host}/{axis}", drive_page),
+        Route("/recording/{host}", recording_page),
         Route("/api/fleet", api_fleet),
         Route("/api/drive/{host}/{axis}", api_drive),
         Route("/api/recording/{host}", api_recording),

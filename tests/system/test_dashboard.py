@@ -123,7 +123,7 @@ def test_live_table_state_change_fault_offline_host_and_plots(bed: dict[str, Any
     # enabled in CSP on a drive without 0x60F4: the agent's following error, a number
     assert int(browser.find_element("id", "ferr").get_attribute("data-value")) == \
         fleet_status_following_error(bed, "axis0")
-    browser.find_element("id", "rec-last").click()
+    browser.get(bed["url"] + f"/recording/{HOST}?what=last&axis=axis0")
     wait_for(lambda: int(browser.find_element("id", "recording").get_attribute("data-samples") or 0) >= 1000, 30,
              "the flight recording plot")
     errors = console_errors(browser)

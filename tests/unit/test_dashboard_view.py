@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from prometheus_client.parser import text_string_to_metric_families
 
-from dashboard.app import recording_json
+from dashboard.app import recording_json, state_runs
 from dashboard.metrics import registry_for, render
-from dashboard.view import FleetView
+from dashboard.view import DISPLAY_OF_STATE, DISPLAYS, FleetView, display_of
 from schemas import messages as m
 
 
@@ -86,7 +86,47 @@ def test_recording_json_splits_axes():
                       axes=["a", "b"], channels={"time_ns": [0, 1_000_000], "statusword": [1, 2, 3, 4]},
                       trigger_cycle=11)
     j = recording_json(rec, "b")
-    assert j["t"] == [0.0, 0.001] and j["drives"] == {"b": {"statusword": [2, 4]}}
+    assert j["t"] == [0.0, 0.001] and j["drives"]["b"]["statusword"] == [2, 4] and list(j["drives"]) == ["b"]
+    assert j["t0_ms"] == 0 and j["cycle_channels"] == {}
+
+
+def test_recording_states_come_in_runs():
+    # switch_on_disabled, operation_enabled twice, fault: three runs from their first cycles
+    assert state_runs([0x0250, 0x0237, 0x0237, 0x0218]) == [[0, "switch_on_disabled"], [1, "operation_enabled"],
+                                                            [3, "fault"]]
+    assert state_runs([]) == []
+
+
+def test_display_classes_cover_every_state_and_lost_drives():
+    assert set(DISPLAY_OF_STATE) == set(m.DRIVE_STATES)  # every contract state has a colour
+    assert set(DISPLAY_OF_STATE.values()) | {"offline"} == set(DISPLAYS)
+    assert display_of("operation_enabled", False, True) == "enabled"
+    assert display_of("quick_stop_active", False, True) == "quick_stop"
+    assert display_of("fault_reaction_active", False, True) == "fault"
+    assert display_of("operation_enabled", True, True) == "lost"   # the old contract: last state, lost
+    assert display_of("unknown", False, True) == "lost"            # the new: state unknown
+    assert display_of("fault", True, False) == "offline"           # no live agent: offline first
+
+
+def test_lost_drive_row_keeps_its_last_known_state_and_conflicts_reach_the_host_row():
+    v = FleetView()
+    v.on_alive("h1", True)
+    v.on_status(status("a", "operation_enabled"))
+    v.on_status(status("a", "unknown", lost=True, seq=2))
+    row = v.snapshot()["drives"][0]
+    assert (row["display"], row["lost"], row["last_state"], row["alarm"]) == ("lost", True, "operation_enabled", True)
+    v.on_status(status("a", "switch_on_disabled", seq=3))
+    row = v.snapshot()["drives"][0]
+    assert (row["display"], row["lost"], row["last_state"]) == ("disabled", False, "")
+    mark = v.version
+    v.on_conflicts({"h1": "host name h1 is used by 2 agents"})
+    hosts = v.changes_since(mark)["hosts"]
+    assert [(h["host"], h["conflict"]) for h in hosts] == [("h1", "host name h1 is used by 2 agents")]
+    mark = v.version
+    v.on_conflicts({"h1": "host name h1 is used by 2 agents"})
+    assert v.changes_since(mark)["hosts"] == []   # unchanged: nothing sent
+    v.on_conflicts({})
+    assert v.snapshot()["hosts"][0]["conflict"] == ""
 
 
 def test_grafana_dashboard_and_scrape_config_use_exposed_metrics():
