@@ -20,6 +20,7 @@ const DrivePage = (() => {
       stateEl.dataset.state = d.state;
       stateEl.dataset.display = d.display;
       stateEl.className = "state badge d-" + d.display;
+      document.getElementById("error").textContent = d.error_code ? Dashboard.hex(d.error_code) + " " + d.error_text : "";
       // following error: known only from 0x60F4 or, in CSP while enabled, from the agent
       const known = d.following_error !== null && d.following_error !== undefined;
       ferr.textContent = known ? "following error " + d.following_error : "";

@@ -88,7 +88,7 @@ const Plot = (() => {
         const [dx, dy] = decimate(xs, s.values.map(y), width);
         if (opts.hold && dx.length) { dx.push(LEFT + width); dy.push(dy[dy.length - 1]); }
         node("path", { d: pathOf(dx, dy, opts.hold), stroke: s.colour, class: "line", "data-name": s.name }, g);
-        if (p.series.length > 1) node("text", { x: LEFT + 6 + 110 * j, y: top + 12, fill: s.colour, class: "key" }, g, s.name);
+        if (p.series.length > 1) node("text", { x: LEFT + 6 + 110 * j, y: top + 12, style: "fill: " + s.colour, class: "key" }, g, s.name);
       });
     });
     // the time axis: the agents' clock, UTC
