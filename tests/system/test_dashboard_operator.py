@@ -11,7 +11,6 @@ shows the fault's window; a command button sends nothing until its confirmation 
 
 from __future__ import annotations
 
-import shutil
 import time
 from typing import Any, Iterator
 
@@ -21,10 +20,8 @@ from bus_agent.security import pki
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from supervisor.fleet import Fleet
-from supervisor.testbed import (CHROMEDRIVER, CHROMIUM, Proc, headless_chromium, start_agents, start_dashboard,
+from supervisor.testbed import (Proc, start_agents, start_dashboard,
                                start_router)
-
-from tests.conftest import require
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -59,14 +56,6 @@ def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             if p is not None:
                 p.stop()
 
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    require(shutil.which(CHROMIUM) is not None and shutil.which(CHROMEDRIVER) is not None,
-            "Debian chromium and chromium-driver", "apt-get install chromium chromium-driver (deploy/apt-packages.txt)")
-    with headless_chromium(console_log=True) as driver:
-        driver.set_window_size(1400, 1000)
-        yield driver
 
 
 def js(driver: Any, script: str, *args: Any) -> Any:
