@@ -13,7 +13,8 @@ from __future__ import annotations
 import asyncio
 import json
 from pathlib import Path
-from typing import Any, AsyncIterator, Callable
+from typing import Any, AsyncIterator, Callable, Mapping
+from urllib.parse import urlsplit
 
 from starlette.applications import Starlette
 from starlette.requests import Request
@@ -75,6 +76,21 @@ def recording_json(rec: Recording, axis: str | None = None) -> dict[str, Any]:
     out["cycle_channels"] = {k: v for k, v in rec.channels.items()
                              if RECORDING_CHANNELS.get(k, ("",))[0] == "cycle" and k != "time_ns"}
     return out
+
+
+def cross_site_refusal(headers: Mapping[str, str]) -> str:
+    """Why a command request may come from another site's page, '' when it cannot. Pure.
+
+    A browser sends another site's form or ``text/plain`` POST without asking (no CORS
+    preflight), and with the operator's reach to this port: a command must be JSON (which makes a
+    cross-site browser ask first, and this server never allows it) and, where the browser names
+    its origin, come from this page's own."""
+    if headers.get("content-type", "").split(";")[0].strip().lower() != "application/json":
+        return "a command must be sent as application/json"
+    origin = headers.get("origin")
+    if origin is not None and urlsplit(origin).netloc != headers.get("host", ""):
+        return f"origin {origin} is not this dashboard's: refused"
+    return ""
 
 
 def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
@@ -159,6 +175,9 @@ def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
         if run_command is None:
             return JSONResponse({"error": "read-only dashboard: start it with --commands to send commands"},
                                 status_code=403)
+        refusal = cross_site_refusal(request.headers)
+        if refusal:
+            return JSONResponse({"error": refusal}, status_code=403 if "origin" in refusal else 415)
         op = request.path_params["op"]
         if op not in PAGE_OPS:
             return JSONResponse({"error": f"op {op!r} is not one of {', '.join(PAGE_OPS)}"}, status_code=400)

@@ -12,6 +12,8 @@ shows the fault's window; a command button sends nothing until its confirmation 
 from __future__ import annotations
 
 import time
+import urllib.error
+import urllib.request
 from typing import Any, Iterator
 
 import pytest
@@ -128,6 +130,14 @@ def test_command_button_sends_only_after_confirmation(bed: dict[str, Any], brows
         sim_inject(fleet.session, "h1", 1, "fault", error_code=0x2310)
         wait_for(lambda: display(browser, "h1", "axis1") == "fault", 10, "the fault on the page")
     before = agent_count(fleet, "h1", "fault_reset.done")
+    # another site's page cannot send one through the operator's browser: not JSON, or not our origin
+    body = b'{"selector": "h1/axis1"}'
+    for headers, code in (({"Content-Type": "text/plain"}, 415),
+                          ({"Content-Type": "application/json", "Origin": "https://elsewhere.example"}, 403)):
+        req = urllib.request.Request(bed["url"] + "/api/command/fault_reset", data=body, method="POST", headers=headers)
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(req, timeout=10)
+        assert err.value.code == code
     button = browser.find_element("css selector", "#drive-h1-axis1 button[data-op='fault_reset']")
     button.click()
     assert js(browser, "return document.getElementById('confirm').open;")

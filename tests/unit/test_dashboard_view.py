@@ -3,9 +3,11 @@ offline expected drives, and the Prometheus exposition parsed back with the clie
 
 from __future__ import annotations
 
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from dashboard.app import recording_json, state_runs
+from dashboard.app import cross_site_refusal, recording_json, state_runs
+from dashboard.cli import main as cli_main
 from dashboard.metrics import registry_for, render
 from dashboard.view import DISPLAY_OF_STATE, DISPLAYS, FleetView, display_of
 from schemas import messages as m
@@ -170,3 +172,17 @@ def test_following_error_and_dc_offset_only_when_known():
     assert rows == {"a": -12, "b": 40, "c": None, "d": None, "e": None}
     hosts = {h["host"]: (h["dc_offset_p50_us"], h["dc_offset_p99_us"]) for h in v.snapshot()["hosts"]}
     assert hosts == {"h1": (480.5, 512.0), "h2": (None, None)}
+
+
+def test_commands_refused_from_other_sites_and_as_non_json():
+    ok = {"content-type": "application/json", "host": "127.0.0.1:8402", "origin": "http://127.0.0.1:8402"}
+    assert cross_site_refusal(ok) == ""
+    assert cross_site_refusal({"content-type": "application/json; charset=utf-8", "host": "h:1"}) == ""
+    assert "application/json" in cross_site_refusal({**ok, "content-type": "text/plain"})
+    assert "origin" in cross_site_refusal({**ok, "origin": "https://evil.example"})
+
+
+def test_commands_need_an_identity(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["--commands"])
+    assert exc.value.code == 2 and "--commands needs an identity" in capsys.readouterr().err
