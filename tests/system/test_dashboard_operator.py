@@ -46,7 +46,8 @@ def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     dash: Proc | None = None
     fleet: Fleet | None = None
     try:
-        agents = start_agents(["h1", "h2"], 2, ep, pki=str(d))
+        # a 2 s SM watchdog: a host stall on a shared machine does not fault or drop the drives under test
+        agents = start_agents(["h1", "h2"], 2, ep, pki=str(d), sm_watchdog_s=2.0)
         dash, url = start_dashboard(ep, "--fleet", str(fleet_file), "--pki", str(d), "--identity", "dash", "--commands")
         fleet = Fleet(connect=[ep], pki=d, identity="tester", connect_timeout_s=10.0).open()
         assert fleet.wait_for_agents(["h1", "h2"], 20)
@@ -80,6 +81,19 @@ def banner(driver: Any) -> list[tuple[str, str]]:
                       "return Array.from(b.querySelectorAll('li')).map((li) => [li.dataset.kind, li.dataset.ref]);")]
 
 
+def click(driver: Any, css: str) -> None:
+    """A real click on the element; found again if the page rebuilt its row in between."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    for _ in range(5):
+        try:
+            driver.find_element("css selector", css).click()
+            return
+        except StaleElementReferenceException:
+            continue
+    raise AssertionError(f"{css}: rebuilt under every click")
+
+
 def agent_count(fleet: Fleet, host: str, key: str) -> int:
     st = fleet.agents()[host].status
     return dict(st.commands).get(key, 0) if st is not None else 0
@@ -111,14 +125,15 @@ def test_colours_grouping_health_and_banner(bed: dict[str, Any], browser: Any) -
     assert len({enabled, fault, disabled}) == 3, (enabled, fault, disabled)
     assert fault == "rgb(198, 40, 40)", fault  # the fault red of style.css, computed by the browser
     wait_for(lambda: ("fault", "h1/axis1") in banner(browser), 5, "the fault in the banner")
-    assert "0x2310" in browser.find_element("css selector", "#attention li[data-ref='h1/axis1']").text
+    # read in one script: the page rebuilds rows and banner items on every change (no stale elements)
+    assert "0x2310" in js(browser, "return document.querySelector(\"#attention li[data-ref='h1/axis1']\").textContent;")
 
     sim_inject(fleet.session, "h2", 0, "unplug")
     wait_for(lambda: display(browser, "h2", "axis0") == "lost", 10, "the lost drive on the page")
     lost = state_colour(browser, "h2", "axis0")
     assert lost not in (enabled, fault, disabled), lost
     wait_for(lambda: ("lost", "h2/axis0") in banner(browser), 5, "the lost drive in the banner")
-    assert browser.find_element("id", "drive-h2-axis0").find_element("css selector", "td.state").text.startswith("lost")
+    assert js(browser, "return document.querySelector('#drive-h2-axis0 td.state').textContent;").startswith("lost")
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
     assert not errors, errors
 
@@ -138,8 +153,7 @@ def test_command_button_sends_only_after_confirmation(bed: dict[str, Any], brows
         with pytest.raises(urllib.error.HTTPError) as err:
             urllib.request.urlopen(req, timeout=10)
         assert err.value.code == code
-    button = browser.find_element("css selector", "#drive-h1-axis1 button[data-op='fault_reset']")
-    button.click()
+    click(browser, "#drive-h1-axis1 button[data-op='fault_reset']")
     assert js(browser, "return document.getElementById('confirm').open;")
     assert "h1/axis1" in browser.find_element("id", "confirm-text").text
     assert "0x2310" in browser.find_element("id", "confirm-text").text  # the fault it would reset is named
@@ -149,7 +163,7 @@ def test_command_button_sends_only_after_confirmation(bed: dict[str, Any], brows
     assert agent_count(fleet, "h1", "fault_reset.done") == before
     assert display(browser, "h1", "axis1") == "fault"
 
-    browser.find_element("css selector", "#drive-h1-axis1 button[data-op='fault_reset']").click()
+    click(browser, "#drive-h1-axis1 button[data-op='fault_reset']")
     browser.find_element("id", "confirm-yes").click()
     wait_for(lambda: browser.find_element("id", "cmd-result").get_attribute("data-outcome") in ("ok", "failed", "error"),
              15, "the command's answer on the page")
@@ -228,7 +242,7 @@ def test_banner_names_a_host_name_conflict(bed: dict[str, Any], browser: Any) ->
     browser.get(bed["url"] + "/")
     wait_for(lambda: display(browser, "h1", "axis0") is not None, 20, "the fleet page")
     assert not any(kind == "conflict" for kind, _ in banner(browser))
-    twin = start_agents(["h2"], 1, bed["ep"], pki=str(bed["pki"]))  # a second agent calling itself h2
+    twin = start_agents(["h2"], 1, bed["ep"], pki=str(bed["pki"]), sm_watchdog_s=2.0)  # a second agent calling itself h2
     try:
         wait_for(lambda: ("conflict", "h2") in banner(browser), 15, "the conflict in the banner")
         sec = browser.find_element("id", "host-h2")
