@@ -153,9 +153,11 @@ def build_app(view: FleetView, *, fetch_recording: RecordingFetch | None = None,
         async def events() -> AsyncIterator[str]:
             version = 0
             idle = 0.0
+            first = True  # the page's first message comes at once, also from an empty fleet
             while not stopping() and not await request.is_disconnected():
                 changes = view.changes_since(version)
-                if changes["version"] != version:
+                if first or changes["version"] != version:
+                    first = False
                     version = changes["version"]
                     idle = 0.0
                     yield f"data: {json.dumps(changes, separators=(',', ':'))}\n\n"

@@ -10,6 +10,8 @@ const Dashboard = (() => {
   const us = (v) => (v === undefined || v === null) ? "" : v.toFixed(0);
   // Buttons per drive when commands are on (the ops of POST /api/command/<op> that need no argument).
   const COMMANDS = [["enable", "Enable"], ["disable", "Disable"], ["quick_stop", "Quick stop"], ["fault_reset", "Fault reset"]];
+  // Buttons per host (its selector host/*), for stopping a whole machine.
+  const HOST_COMMANDS = [["quick_stop", "Quick stop"], ["disable", "Disable"]];
   // Arrival time of every drive row update, for the page-side latency measurement (bench).
   window.dashboardUpdates = {};
 
@@ -68,17 +70,22 @@ const Dashboard = (() => {
       .catch((err) => { out.textContent = op + " " + selector + ": " + err; out.dataset.outcome = "error"; });
   }
 
-  function commandButtons(td, d) {
+  function button(parent, op, label, question, selector) {
+    const b = document.createElement("button");
+    b.textContent = label;
+    b.className = "cmd";
+    b.dataset.op = op;
+    b.onclick = () => confirmThen(question(), () => sendCommand(op, selector));
+    parent.appendChild(b);
+    return b;
+  }
+
+  // One drive's buttons; the question names the drive, its state and error code as shown now.
+  function commandButtons(parent, d) {
     for (const [op, label] of COMMANDS) {
-      const b = document.createElement("button");
-      b.textContent = label;
-      b.className = "cmd";
-      b.dataset.op = op;
-      b.disabled = d.display === "offline";
-      b.onclick = () => confirmThen(label + " " + d.host + "/" + d.axis + "?\nNow: " + stateText(d) +
-        (d.error_code ? ", error " + hex(d.error_code) + " " + d.error_text : "") + ".",
-        () => sendCommand(op, d.host + "/" + d.axis));
-      td.appendChild(b);
+      button(parent, op, label, () => label + " " + d.host + "/" + d.axis + "?\nNow: " + stateText(d) +
+        (d.error_code ? ", error " + hex(d.error_code) + " " + d.error_text : "") + ".", d.host + "/" + d.axis)
+        .disabled = d.display === "offline";
     }
   }
 
@@ -109,6 +116,14 @@ const Dashboard = (() => {
         '<th>following error</th><th>error</th><th>AL</th><th>lease</th>' + (commands ? '<th>commands</th>' : '') +
         '</tr></thead><tbody></tbody></table>';
       sec.querySelector(".hostname").textContent = host;
+      if (commands) {
+        const span = document.createElement("span");
+        span.className = "host-commands";
+        for (const [op, label] of HOST_COMMANDS) {
+          button(span, op, label + " all", () => label + " every drive of " + host + " (" + host + "/*)?", host + "/*");
+        }
+        sec.querySelector("h2").appendChild(span);
+      }
       sec.querySelector(".rec-link").href = "/recording/" + encodeURIComponent(host);
       const before = Array.from(container.children).find((s) => s.dataset.host > host) || null;
       container.insertBefore(sec, before);
@@ -215,5 +230,5 @@ const Dashboard = (() => {
     });
   }
 
-  return { fleetPage, live, eventItem, hex, driveUrl, stateText };
+  return { fleetPage, live, eventItem, hex, driveUrl, stateText, commandButtons };
 })();

@@ -48,9 +48,13 @@ const DrivePage = (() => {
     const refresh = () => fetch(url).then((r) => r.json()).then((d) => { last = d; draw(); });
     refresh();
     setInterval(refresh, 500);
-    fetch(url).then((r) => r.json()).then((d) => { showDrive(d.drive); d.events.forEach((e) => Dashboard.eventItem(events, e)); });
+    let commands = false;
+    const buttons = document.getElementById("commands");
+    const showButtons = (d) => { if (commands) { buttons.replaceChildren(); Dashboard.commandButtons(buttons, d); } };
+    fetch("/api/fleet").then((r) => r.json()).then((f) => { commands = !!f.commands_enabled; return fetch(url); })
+      .then((r) => r.json()).then((d) => { showDrive(d.drive); showButtons(d.drive); d.events.forEach((e) => Dashboard.eventItem(events, e)); });
     Dashboard.live((ch) => {
-      ch.drives.filter((d) => d.host === host && d.axis === axis).forEach(showDrive);
+      ch.drives.filter((d) => d.host === host && d.axis === axis).forEach((d) => { showDrive(d); showButtons(d); });
       if (!ch.full) ch.events.filter((e) => e.host === host && e.axis === axis).forEach((e) => Dashboard.eventItem(events, e));
     });
   }

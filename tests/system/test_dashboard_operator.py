@@ -170,6 +170,10 @@ def test_command_button_sends_only_after_confirmation(bed: dict[str, Any], brows
     assert browser.find_element("id", "cmd-result").get_attribute("data-outcome") == "ok", \
         browser.find_element("id", "cmd-result").text
     wait_for(lambda: display(browser, "h1", "axis1") == "disabled", 10, "the reset drive on the page")
+    # a host's buttons address all its drives, asked about the same way
+    click(browser, "#host-h2 .host-commands button[data-op='quick_stop']")
+    assert "h2/*" in browser.find_element("id", "confirm-text").text
+    browser.find_element("id", "confirm-no").click()
     wait_for(lambda: agent_count(fleet, "h1", "fault_reset.done") == before + 1, 5, "the agent's count of resets")
 
 
@@ -184,6 +188,8 @@ def test_drive_plot_places_statuses_at_the_agents_time_stamps(bed: dict[str, Any
         res = fleet.command("enable", fleet.select("h1/axis0"))
         assert res.ok, res.to_dict()
     browser.get(bed["url"] + "/drive/h1/axis0")
+    wait_for(lambda: js(browser, "return document.querySelectorAll('#commands button.cmd').length;") == 4, 10,
+             "the drive's command buttons")
     time.sleep(1.2)  # a heartbeat at rest, then a move: publications close together, then far apart
     res = fleet.command("move", fleet.select("h1/axis0"), {"by": 20000.0, "velocity": 40000.0})
     assert res.ok, res.to_dict()
