@@ -27,7 +27,7 @@ from schemas.keys import is_name
 from schemas.messages import DRIVE_OPS, RECORDING_CHANNELS, RECORDING_MAX_S, RECORDING_WHAT, Recording
 
 from .metrics import CONTENT_TYPE, registry_for, render
-from .view import FleetView
+from .view import FleetView, display_of
 
 STATIC = Path(__file__).with_name("static")
 #: How often a live page is sent what changed (a change reaches the browser within this plus transit).
@@ -42,12 +42,13 @@ CommandRun = Callable[[str, str, dict], dict]
 
 
 def state_runs(statuswords: list[int]) -> list[list[Any]]:
-    """The CiA 402 states of a statusword column as runs ``[first index, state name]``. Pure."""
+    """The CiA 402 states of a statusword column as runs ``[first index, state name, colour
+    class]`` (the class as on the fleet page, :data:`~dashboard.view.DISPLAY_OF_STATE`). Pure."""
     runs: list[list[Any]] = []
     for i, sw in enumerate(statuswords):
         name = decode_statusword(sw).value
         if not runs or runs[-1][1] != name:
-            runs.append([i, name])
+            runs.append([i, name, display_of(name, False, True)])
     return runs
 
 

@@ -47,7 +47,7 @@ const Plot = (() => {
   }
 
   // draw(svg, t, panels, opts): t are agent times (ms since the epoch), one per sample; a panel is
-  // {name, series: [{name, values, colour}]} or {name, runs: [[first index, label]], classOf}.
+  // {name, series: [{name, values, colour}]} or {name, runs: [[first index, label, colour class]]}.
   // opts: {hold: bool (status samples: step lines), marker: ms (a red line), t1: ms (right end)}.
   // The element gets .plotted = {t0, t1, left, width, ts, xs} (the first series' samples) for tests.
   function draw(svg, t, panels, opts = {}) {
@@ -68,10 +68,10 @@ const Plot = (() => {
       node("rect", { x: LEFT, y: top, width: width, height: band, class: "frame" }, g);
       node("text", { x: 4, y: top + 12, class: "name" }, g, p.name);
       if (p.runs) {
-        p.runs.forEach(([i, label], r) => {
+        p.runs.forEach(([i, label, cls], r) => {
           const end = r + 1 < p.runs.length ? xs[p.runs[r + 1][0]] : LEFT + width;
           node("rect", { x: xs[i], y: top, width: Math.max(end - xs[i], 0.5), height: band,
-                         class: "run " + (p.classOf ? p.classOf(label) : ""), "data-label": label }, g)
+                         class: "run" + (cls ? " d-" + cls : ""), "data-label": label }, g)
             .appendChild(node("title", {}, null, label));
           if (end - xs[i] > 60) node("text", { x: xs[i] + 3, y: top + band / 2 + 4, class: "run-label" }, g, label);
         });

@@ -7,8 +7,6 @@ const RecordingPage = (() => {
   // recording_request.what, as offered to the operator
   const WHATS = [["last", "last seconds"], ["fault", "last fault"], ["reflex", "last reflex"], ["lost", "last lost"],
                  ["request", "last request"], ["any", "latest trigger of any kind"], ["now", "freeze now"]];
-  const DISPLAY = { operation_enabled: "enabled", quick_stop_active: "quick_stop", fault_reaction_active: "fault",
-                    fault: "fault", unknown: "lost" };
 
   function start() {
     const host = decodeURIComponent(location.pathname.split("/")[2]);
@@ -28,7 +26,7 @@ const RecordingPage = (() => {
       const col = (k) => c[k] || [];
       const mark = rec.trigger_cycle ? t[rec.trigger_cycle - rec.first_cycle] : undefined;
       Plot.draw(svg, t, [
-        { name: "state", runs: c.states || [], classOf: (s) => "d-" + (DISPLAY[s] || "disabled") },
+        { name: "state", runs: c.states || [] },
         { name: "position", series: [{ name: "actual", values: col("position"), colour: "#1f4e9a" },
                                      { name: "target", values: col("target_position"), colour: "#8fb0e8" }] },
         { name: "velocity", series: [{ name: "actual", values: col("velocity"), colour: "#c05000" },

@@ -238,6 +238,8 @@ def test_recording_viewer_shows_the_fault_window(bed: dict[str, Any], browser: A
     assert int(svg.get_attribute("data-samples")) >= 1000  # cycles, not status publications
     labels = js(browser, "return Array.from(document.querySelectorAll('#recording rect.run')).map((r) => r.dataset.label);")
     assert "fault" in labels, labels
+    assert js(browser, "return getComputedStyle(document.querySelector(\"#recording rect.run[data-label='fault']\"))"
+                       ".fill;") == "rgb(198, 40, 40)"  # the fault colour of the fleet page
     assert js(browser, "return document.querySelectorAll('#recording line.marker').length;") == 1
     assert js(browser, "return Array.from(document.getElementById('axis').options).map((o) => o.value);") == \
         ["axis0", "axis1"]

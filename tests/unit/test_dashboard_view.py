@@ -94,8 +94,8 @@ def test_recording_json_splits_axes():
 
 def test_recording_states_come_in_runs():
     # switch_on_disabled, operation_enabled twice, fault: three runs from their first cycles
-    assert state_runs([0x0250, 0x0237, 0x0237, 0x0218]) == [[0, "switch_on_disabled"], [1, "operation_enabled"],
-                                                            [3, "fault"]]
+    assert state_runs([0x0250, 0x0237, 0x0237, 0x0218]) == [[0, "switch_on_disabled", "disabled"],
+                                                            [1, "operation_enabled", "enabled"], [3, "fault", "fault"]]
     assert state_runs([]) == []
 
 
