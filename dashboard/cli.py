@@ -3,8 +3,9 @@
     drives-dashboard [--connect EP]... [--fleet FILE] [--http HOST:PORT] [--commands]
                      [--pki DIR --identity NAME]
 
-Read-only unless ``--commands``; then commands go out under the dashboard's own session (its
-identity and ACL). ``--http`` defaults to loopback. Prints ``drives-dashboard ready http://...``.
+Read-only unless ``--commands``, which needs an identity (``--pki DIR --identity NAME``): commands
+then go out under that principal (mutual TLS; the router's ACL and the agents' audit name it),
+and the page offers command buttons, each confirmed before it is sent. ``--http`` defaults to loopback. Prints ``drives-dashboard ready http://...``.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ DEFAULT_HTTP = "127.0.0.1:8402"
 #: After a stop request, responses still open this long are cancelled (a backstop: live streams
 #: end on their own at the stop, see ``build_app(stopping=...)``).
 GRACEFUL_SHUTDOWN_S = 1  # whole seconds (uvicorn's type)
+#: How often host-name conflicts are looked up (``Fleet.conflicts()``).
+CONFLICT_POLL_S = 0.5
 
 
 def _http(text: str) -> tuple[str, int]:
@@ -51,8 +54,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fleet", metavar="FILE", help="expected fleet (TOML): absent hosts are shown offline")
     p.add_argument("--http", type=_http, default=_http(DEFAULT_HTTP), metavar="HOST:PORT",
                    help=f"where to serve (default {DEFAULT_HTTP}, loopback)")
-    p.add_argument("--commands", action="store_true", help="allow commands from the page (under this session)")
-    p.add_argument("--pki", metavar="DIR", help="drives-pki directory (with --identity: a viewer principal)")
+    p.add_argument("--commands", action="store_true", help="allow commands from the page, under the dashboard's "
+                   "identity (needs --pki and --identity)")
+    p.add_argument("--pki", metavar="DIR", help="drives-pki directory (with --identity: a viewer principal, an "
+                   "operator's for --commands)")
     p.add_argument("--identity", metavar="NAME")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
@@ -81,8 +86,18 @@ def attach(fleet: Fleet, view: FleetView) -> Any:
     return fleet.session.declare_subscriber(keys.ALL_DRIVE_EVENTS, on_event)
 
 
+def poll_conflicts(fleet: Fleet, view: FleetView, done: threading.Event) -> None:
+    """Feed ``view`` the fleet's host-name conflicts until ``done`` (they age out with time, so
+    they are polled, not pushed)."""
+    while not done.wait(CONFLICT_POLL_S):
+        view.on_conflicts(fleet.conflicts())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.commands and not args.identity:
+        parser.error("--commands needs an identity (--pki DIR --identity NAME): a command names who sent it")
     logging.basicConfig(level=args.log_level, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         expected = load_fleet(args.fleet) if args.fleet else None
@@ -99,13 +114,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"drives-dashboard: {exc}", file=sys.stderr)
         return 3
     sub = attach(fleet, view)
+    done = threading.Event()
+    threading.Thread(target=poll_conflicts, args=(fleet, view, done), name="dashboard-conflicts", daemon=True).start()
 
     def run_command(op: str, selector: str, cmd_args: dict) -> dict:
         return fleet.command(op, fleet.select(selector), cmd_args or None).to_dict()
 
     server: uvicorn.Server | None = None
     app = build_app(view, fetch_recording=lambda h, w, s: fetch_recording(fleet.session, h, w, s),
-                    run_command=run_command if args.commands else None,
+                    run_command=run_command if args.commands else None, identity=args.identity or "",
                     stopping=lambda: server is not None and server.should_exit)
     host, port = args.http
     server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False,
@@ -126,6 +143,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         server.run()
     finally:
+        done.set()
         sub.undeclare()
         fleet.close()
     return 0

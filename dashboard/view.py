@@ -21,8 +21,24 @@ from schemas.messages import DRIVE_STATES, AgentStatus, DriveStatus, Event
 MOTION_SAMPLES = 600
 #: Recent events kept for the page.
 EVENTS_KEPT = 200
-#: States that make a row stand out.
-BAD_STATES = ("fault", "fault_reaction_active")
+#: How the page colours a drive, by CiA 402 state (the contract's names). ``unknown`` is what a
+#: lost drive reports (its last known state, where published, goes in another field): lost.
+DISPLAY_OF_STATE = {
+    "not_ready_to_switch_on": "disabled",
+    "switch_on_disabled": "disabled",
+    "ready_to_switch_on": "disabled",
+    "switched_on": "disabled",
+    "operation_enabled": "enabled",
+    "quick_stop_active": "quick_stop",
+    "fault_reaction_active": "fault",
+    "fault": "fault",
+    "unknown": "lost",
+}
+#: Every colour class of a drive row: the above, ``lost`` (not answering) and ``offline`` (no live
+#: agent reports it).
+DISPLAYS = ("enabled", "disabled", "quick_stop", "fault", "lost", "offline")
+#: Displays that need an operator's attention (the page's banner).
+ATTENTION_DISPLAYS = ("fault", "lost", "offline")
 #: 0x60F4 following error actual value, by its CiA 402 name in ``DriveStatus.objects`` (present
 #: when the drive maps it).
 FOLLOWING_ERROR_OBJECT = "following_error_actual_value"
@@ -53,29 +69,47 @@ def dc_offset_us(st: AgentStatus) -> tuple[float, float] | None:
     return st.dc_offset_p50_us, st.dc_offset_p99_us
 
 
-def drive_row(st: DriveStatus, agent_alive: bool) -> dict[str, Any]:
-    """One table row (JSON-ready). Pure."""
+def is_lost(st: DriveStatus) -> bool:
+    """Not answering: flagged lost, or its state unknown (what a lost drive reports). Pure."""
+    return st.lost or st.state == "unknown"
+
+
+def display_of(state: str, lost: bool, online: bool) -> str:
+    """The colour class of a drive (:data:`DISPLAYS`): offline before lost before its state. Pure."""
+    if not online:
+        return "offline"
+    return "lost" if lost else DISPLAY_OF_STATE.get(state, "disabled")
+
+
+def drive_row(st: DriveStatus, agent_alive: bool, last_state: str = "") -> dict[str, Any]:
+    """One table row (JSON-ready); ``last_state``: the last state seen before it was lost, used
+    when the status does not carry ``last_known_state`` (an older agent). Pure."""
     fe = following_error(st)
-    return {"host": st.host, "axis": st.axis, "state": st.state, "mode": st.mode_display,
+    lost = is_lost(st)
+    display = display_of(st.state, lost, agent_alive)
+    return {"host": st.host, "axis": st.axis, "state": st.state, "display": display,
+            "last_state": (st.last_known_state or last_state) if lost else "", "mode": st.mode_display,
             "position": st.position, "velocity": st.velocity, "torque": st.torque,
             "following_error": None if fe is None else fe[0],
             "error_code": st.error_code, "error_text": st.error_text, "al_state": st.al_state,
-            "lost": st.lost, "lease_holder": st.lease_holder, "statusword": st.statusword,
+            "lost": lost, "lease_holder": st.lease_holder, "statusword": st.statusword,
             "goal": st.goal, "online": agent_alive, "time_ns": st.time_ns,
-            "alarm": st.state in BAD_STATES or st.lost or not agent_alive}
+            "alarm": display in ATTENTION_DISPLAYS}
 
 
 def offline_row(host: str, axis: str) -> dict[str, Any]:
     """Row of an expected drive that no live agent reports. Pure."""
-    return {"host": host, "axis": axis, "state": "offline", "mode": None, "position": None, "velocity": None,
+    return {"host": host, "axis": axis, "state": "offline", "display": "offline", "last_state": "", "mode": None, "position": None, "velocity": None,
             "torque": None, "error_code": 0, "error_text": "", "al_state": "none", "lost": False,
             "lease_holder": "", "statusword": None, "goal": None, "online": False, "alarm": True, "time_ns": 0,
             "following_error": None}
 
 
-def agent_row(host: str, alive: bool, st: AgentStatus | None, expected: bool) -> dict[str, Any]:
-    """One agent health row (JSON-ready). Pure."""
-    row: dict[str, Any] = {"host": host, "alive": alive, "expected": expected, "state": "offline"}
+def agent_row(host: str, alive: bool, st: AgentStatus | None, expected: bool, conflict: str = "") -> dict[str, Any]:
+    """One agent health row (JSON-ready); ``conflict``: why its host name is in conflict ('' if
+    not). Pure."""
+    row: dict[str, Any] = {"host": host, "alive": alive, "expected": expected, "state": "offline",
+                           "conflict": conflict}
     if st is not None:
         row.update(state=st.state if alive else "offline", backend=st.backend, cycle_us=st.cycle_us,
                    cycles=st.cycles, period_p50_us=st.period_p50_us, period_p99_us=st.period_p99_us,
@@ -104,6 +138,8 @@ class FleetView:
         self._rows: dict[tuple[str, str], tuple[int, dict[str, Any]]] = {}
         self._agents: dict[str, tuple[bool, AgentStatus | None]] = {}
         self._hosts: dict[str, tuple[int, dict[str, Any]]] = {}
+        self._conflicts: dict[str, str] = {}
+        self._last_state: dict[tuple[str, str], str] = {}
         self._events: collections.deque[tuple[int, dict[str, Any]]] = collections.deque(maxlen=EVENTS_KEPT)
         self._motion: dict[tuple[str, str], collections.deque[tuple[float, int, int, int]]] = {}
         self.started_s = time.time()
@@ -119,6 +155,8 @@ class FleetView:
         ref = (st.host, st.axis)
         with self._lock:
             self._status[ref] = st
+            if not is_lost(st):
+                self._last_state[ref] = st.state
             m = self._motion.get(ref)
             if m is None:
                 m = self._motion[ref] = collections.deque(maxlen=MOTION_SAMPLES)
@@ -139,6 +177,14 @@ class FleetView:
             for ref in [r for r in set(self._status) | set(self._rows) if r[0] == host]:
                 self._set_row(ref)
 
+    def on_conflicts(self, conflicts: dict[str, str]) -> None:
+        """Hosts whose name two agents use now, with why (``Fleet.conflicts()``, polled)."""
+        with self._lock:
+            changed = set(conflicts.items()) ^ set(self._conflicts.items())
+            self._conflicts = dict(conflicts)
+            for host in {h for h, _ in changed}:
+                self._touch_host(host)
+
     def on_event(self, ev: Event) -> None:
         with self._lock:
             self.version += 1
@@ -147,12 +193,13 @@ class FleetView:
     def _touch_host(self, host: str) -> None:
         self.version += 1
         alive, st = self._agents.get(host, (False, None))
-        self._hosts[host] = (self.version, agent_row(host, alive, st, host in self.expected))
+        self._hosts[host] = (self.version, agent_row(host, alive, st, host in self.expected,
+                                                     self._conflicts.get(host, "")))
 
     def _set_row(self, ref: tuple[str, str]) -> None:
         st = self._status.get(ref)
         alive = self._agents.get(ref[0], (False, None))[0]
-        row = drive_row(st, alive) if st is not None else offline_row(*ref)
+        row = drive_row(st, alive, self._last_state.get(ref, "")) if st is not None else offline_row(*ref)
         old = self._rows.get(ref)
         if old is not None and _same_row(old[1], row):
             return  # a heartbeat: nothing the page shows changed, nothing to send

@@ -1,10 +1,17 @@
-// The dashboard's own page code: a live table fed by server-sent events (/api/stream) and
-// small canvas plots. No third-party code; works offline.
+// The dashboard's own page code: the fleet grouped by host, fed by server-sent events
+// (/api/stream); an attention banner; command buttons with a confirmation when the dashboard
+// sends commands. No third-party code; works offline.
 "use strict";
 const Dashboard = (() => {
   const hex = (v) => (v === null || v === undefined) ? "" : "0x" + v.toString(16).toUpperCase().padStart(4, "0");
   const cell = (text, cls) => { const td = document.createElement("td"); td.textContent = text ?? ""; if (cls) td.className = cls; return td; };
   const rowId = (p, h, a) => p + "-" + h + (a === undefined ? "" : "-" + a);
+  const driveUrl = (h, a) => "/drive/" + encodeURIComponent(h) + "/" + encodeURIComponent(a);
+  const us = (v) => (v === undefined || v === null) ? "" : v.toFixed(0);
+  // Buttons per drive when commands are on (the ops of POST /api/command/<op> that need no argument).
+  const COMMANDS = [["enable", "Enable"], ["disable", "Disable"], ["quick_stop", "Quick stop"], ["fault_reset", "Fault reset"]];
+  // Buttons per host (its selector host/*), for stopping a whole machine.
+  const HOST_COMMANDS = [["quick_stop", "Quick stop"], ["disable", "Disable"]];
   // Arrival time of every drive row update, for the page-side latency measurement (bench).
   window.dashboardUpdates = {};
 
@@ -22,45 +29,8 @@ const Dashboard = (() => {
     return () => version;
   }
 
-  function driveRow(tbody, d, rows) {
-    const id = rowId("drive", d.host, d.axis);
-    let tr = rows.get(id);
-    if (!tr) {
-      tr = document.createElement("tr");
-      tr.id = id;
-      rows.set(id, tr);
-      if (!tbody.lastElementChild || tbody.lastElementChild.id < id) tbody.appendChild(tr);
-      else tbody.insertBefore(tr, Array.from(tbody.children).find((r) => r.id > id) || null);
-    }
-    tr.replaceChildren(
-      (() => { const td = cell(d.host); return td; })(),
-      (() => { const td = document.createElement("td"); const a = document.createElement("a");
-               a.href = "/drive/" + encodeURIComponent(d.host) + "/" + encodeURIComponent(d.axis);
-               a.textContent = d.axis; td.appendChild(a); return td; })(),
-      cell(d.state, "state"), cell(d.mode, "num"), cell(d.position, "num"), cell(d.following_error, "num"),
-      cell(d.error_code ? hex(d.error_code) + " " + d.error_text : ""), cell(d.al_state),
-      cell(d.lost ? "LOST" : ""), cell(d.lease_holder));
-    tr.dataset.state = d.state;
-    tr.dataset.lost = d.lost ? "1" : "0";
-    tr.className = d.state === "offline" ? "offline alarm" : (d.alarm ? "alarm" : "");
-    // Page clock at arrival minus the agent's clock at the status (one machine, or NTP): the lag.
-    const at = performance.timeOrigin + performance.now();
-    window.dashboardUpdates[d.host + "/" + d.axis] = { state: d.state, at: at, lag_ms: d.time_ns ? at - d.time_ns / 1e6 : null };
-  }
-
-  function agentRow(tbody, h) {
-    const id = rowId("agent", h.host);
-    let tr = document.getElementById(id);
-    if (!tr) { tr = document.createElement("tr"); tr.id = id; tbody.appendChild(tr); }
-    const us = (v) => v === undefined ? "" : v.toFixed(0);
-    tr.replaceChildren(cell(h.host), cell(h.alive ? h.state : "offline", "state"), cell(h.backend),
-      cell(h.period_p50_us === undefined ? "" : us(h.period_p50_us) + " / " + us(h.period_p99_us) + " / " + us(h.period_max_us), "num"),
-      cell(h.overruns, "num"), cell(h.wkc_errors, "num"),
-      cell(h.dc_offset_p50_us === undefined || h.dc_offset_p50_us === null ? "" :
-           us(h.dc_offset_p50_us) + " / " + us(h.dc_offset_p99_us), "num dc"));
-    tr.dataset.state = h.alive ? h.state : "offline";
-    tr.className = h.alive ? (h.state === "running" ? "" : "alarm") : "offline alarm";
-  }
+  // The state as the page shows it: a lost drive says lost, with its last known state.
+  const stateText = (d) => d.display === "lost" ? "lost" + (d.last_state ? " (was " + d.last_state + ")" : "") : d.state;
 
   function eventItem(list, e) {
     const li = document.createElement("li");
@@ -72,103 +42,193 @@ const Dashboard = (() => {
     while (list.children.length > 200) list.removeChild(list.lastChild);
   }
 
-  function summaryText(drives) {
-    const rows = Array.from(drives.children);
-    const alarms = rows.filter((r) => r.classList.contains("alarm")).length;
-    return rows.length + " drive(s), " + alarms + " need attention";
+  // ---- commands: a confirmation dialog, then one POST ------------------------------------------
+
+  function confirmThen(text, send) {
+    const dlg = document.getElementById("confirm");
+    document.getElementById("confirm-text").textContent = text;
+    const yes = document.getElementById("confirm-yes"), no = document.getElementById("confirm-no");
+    const close = () => { yes.onclick = null; no.onclick = null; dlg.close(); };
+    yes.onclick = () => { close(); send(); };
+    no.onclick = close;
+    dlg.showModal();
   }
+
+  function sendCommand(op, selector) {
+    const out = document.getElementById("cmd-result");
+    out.textContent = op + " " + selector + ": sending...";
+    out.dataset.outcome = "pending";
+    return fetch("/api/command/" + op, { method: "POST", headers: { "Content-Type": "application/json" },
+                                          body: JSON.stringify({ selector: selector }) })
+      .then((r) => r.json()).then((res) => {
+        if (res.error) { out.textContent = op + " " + selector + ": " + res.error; out.dataset.outcome = "error"; return; }
+        const parts = (res.results || []).map((r) => r.host + "/" + r.axis + " " + r.outcome + (r.error ? " (" + r.error + ")" : ""));
+        out.textContent = op + " " + selector + ": " + (res.ok ? "ok" : "not ok") + " - " + parts.join(", ") +
+          ((res.errors || []).length ? " - " + res.errors.join("; ") : "");
+        out.dataset.outcome = res.ok ? "ok" : "failed";
+      })
+      .catch((err) => { out.textContent = op + " " + selector + ": " + err; out.dataset.outcome = "error"; });
+  }
+
+  function button(parent, op, label, question, selector) {
+    const b = document.createElement("button");
+    b.textContent = label;
+    b.className = "cmd";
+    b.dataset.op = op;
+    b.onclick = () => confirmThen(question(), () => sendCommand(op, selector));
+    parent.appendChild(b);
+    return b;
+  }
+
+  // One drive's buttons; the question names the drive, its state and error code as shown now.
+  function commandButtons(parent, d) {
+    for (const [op, label] of COMMANDS) {
+      button(parent, op, label, () => label + " " + d.host + "/" + d.axis + "?\nNow: " + stateText(d) +
+        (d.error_code ? ", error " + hex(d.error_code) + " " + d.error_text : "") + ".", d.host + "/" + d.axis)
+        .disabled = d.display === "offline";
+    }
+  }
+
+  // ---- the fleet page ---------------------------------------------------------------------
 
   function fleetPage() {
-    const drives = document.querySelector("#drives tbody");
-    const agents = document.querySelector("#agents tbody");
+    const container = document.getElementById("drives");
     const events = document.getElementById("events");
-    const rows = new Map();
-    live((ch) => {
-      ch.hosts.forEach((h) => agentRow(agents, h));
-      // Rows arrive sorted on the first message: appending keeps the table sorted cheaply.
-      ch.drives.sort((a, b) => (a.host + "/" + a.axis < b.host + "/" + b.axis ? -1 : 1));
-      ch.drives.forEach((d) => driveRow(drives, d, rows));
-      ch.events.forEach((e) => eventItem(events, e));
-      document.getElementById("summary").textContent = summaryText(drives);
-    });
-  }
+    const drives = new Map();   // "host/axis" -> row data
+    const hosts = new Map();    // host -> agent row data
+    const rows = new Map();     // element id -> tr
+    let commands = false;
 
-  // ---- plots ------------------------------------------------------------------------------
+    function hostSection(host) {
+      const id = rowId("host", host);
+      let sec = document.getElementById(id);
+      if (sec) return sec;
+      sec = document.createElement("section");
+      sec.id = id;
+      sec.className = "host";
+      sec.dataset.host = host;
+      sec.innerHTML = '<h2><span class="hostname"></span> <span class="agent-state"></span> ' +
+        '<a class="rec-link">flight recording</a></h2><div class="conflict"></div>' +
+        '<table class="health"><thead><tr><th>agent</th><th>backend</th><th>cycles</th><th>cycle (us)</th>' +
+        '<th>period p50 / p99 / max (us)</th><th>overruns</th><th>WKC errors</th><th>DC offset p50 / p99 (us)</th>' +
+        '</tr></thead><tbody></tbody></table>' +
+        '<table class="drives"><thead><tr><th>axis</th><th>state</th><th>mode</th><th>position</th><th>velocity</th>' +
+        '<th>following error</th><th>error</th><th>AL</th><th>lease</th>' + (commands ? '<th>commands</th>' : '') +
+        '</tr></thead><tbody></tbody></table>';
+      sec.querySelector(".hostname").textContent = host;
+      if (commands) {
+        const span = document.createElement("span");
+        span.className = "host-commands";
+        for (const [op, label] of HOST_COMMANDS) {
+          button(span, op, label + " all", () => label + " every drive of " + host + " (" + host + "/*)?", host + "/*");
+        }
+        sec.querySelector("h2").appendChild(span);
+      }
+      sec.querySelector(".rec-link").href = "/recording/" + encodeURIComponent(host);
+      const before = Array.from(container.children).find((s) => s.dataset.host > host) || null;
+      container.insertBefore(sec, before);
+      return sec;
+    }
 
-  function plot(canvas, t, series, marker) {
-    const ctx = canvas.getContext("2d");
-    const W = canvas.width, H = canvas.height, left = 70, gap = 8;
-    ctx.clearRect(0, 0, W, H);
-    ctx.font = "11px sans-serif";
-    if (!t.length) { ctx.fillText("no samples yet", left, 20); return; }
-    const t0 = t[0], t1 = Math.max(t[t.length - 1], t0 + 1e-3);
-    const x = (v) => left + (v - t0) / (t1 - t0) * (W - left - 10);
-    const band = (H - gap * (series.length + 1)) / series.length;
-    series.forEach((s, k) => {
-      const top = gap + k * (band + gap);
-      let lo = Math.min(...s.values), hi = Math.max(...s.values);
-      if (hi === lo) { hi += 1; lo -= 1; }
-      const y = (v) => top + band - (v - lo) / (hi - lo) * band;
-      ctx.strokeStyle = "#ccc"; ctx.strokeRect(left, top, W - left - 10, band);
-      ctx.fillStyle = "#333"; ctx.fillText(s.name, 4, top + 12);
-      ctx.fillText(String(hi), 4, top + 26); ctx.fillText(String(lo), 4, top + band);
-      ctx.strokeStyle = s.colour; ctx.beginPath();
-      s.values.forEach((v, i) => { if (i) ctx.lineTo(x(t[i]), y(v)); else ctx.moveTo(x(t[i]), y(v)); });
-      ctx.stroke();
-    });
-    if (marker !== undefined) { ctx.strokeStyle = "red"; ctx.beginPath(); ctx.moveTo(x(marker), 0); ctx.lineTo(x(marker), H); ctx.stroke(); }
-    canvas.dataset.samples = String(t.length);
-  }
+    function agentRow(h) {
+      hosts.set(h.host, h);
+      const sec = hostSection(h.host);
+      const id = rowId("agent", h.host);
+      let tr = document.getElementById(id);
+      if (!tr) { tr = document.createElement("tr"); tr.id = id; sec.querySelector(".health tbody").appendChild(tr); }
+      const state = h.alive ? h.state : "offline";
+      tr.replaceChildren(cell(state, "state"), cell(h.backend), cell(h.cycles, "num"), cell(h.cycle_us, "num"),
+        cell(h.period_p50_us === undefined ? "" : us(h.period_p50_us) + " / " + us(h.period_p99_us) + " / " + us(h.period_max_us), "num"),
+        cell(h.overruns, "num"), cell(h.wkc_errors, "num"),
+        cell(h.dc_offset_p50_us === undefined || h.dc_offset_p50_us === null ? "" :
+             us(h.dc_offset_p50_us) + " / " + us(h.dc_offset_p99_us), "num dc"));
+      tr.dataset.state = state;
+      const bad = !h.alive || state !== "running" || !!h.conflict;
+      tr.className = h.alive ? (bad ? "alarm" : "") : "offline alarm";
+      sec.dataset.state = state;
+      sec.classList.toggle("offline", !h.alive);
+      sec.classList.toggle("conflict", !!h.conflict);
+      const badge = sec.querySelector(".agent-state");
+      badge.textContent = state + (h.alive ? "" : (h.expected ? " (expected)" : ""));
+      badge.dataset.state = state;
+      sec.querySelector(".conflict").textContent = h.conflict ? "host-name conflict: " + h.conflict : "";
+    }
 
-  function drivePage() {
-    const parts = location.pathname.split("/").map(decodeURIComponent);
-    const host = parts[2], axis = parts[3];
-    document.getElementById("title").textContent = host + "/" + axis;
-    document.title = host + "/" + axis;
-    const events = document.getElementById("events");
-    const stateEl = document.getElementById("state");
-    const ferr = document.getElementById("ferr");
-    const showDrive = (d) => {
-      stateEl.textContent = d.state; stateEl.dataset.state = d.state;
-      // following error: known only from 0x60F4 or, in CSP while enabled, from the agent
-      const known = d.following_error !== null && d.following_error !== undefined;
-      ferr.textContent = known ? "following error " + d.following_error : "";
-      ferr.dataset.value = known ? String(d.following_error) : "";
-    };
-    const canvas = document.getElementById("live");
-    const refresh = () => fetch("/api/drive/" + encodeURIComponent(host) + "/" + encodeURIComponent(axis))
-      .then((r) => r.json()).then((d) => {
-        const m = d.motion;
-        plot(canvas, m.t, [{ name: "position", values: m.position, colour: "#1f4e9a" },
-                           { name: "velocity", values: m.velocity, colour: "#c05000" },
-                           { name: "torque", values: m.torque, colour: "#2a8a2a" }]);
+    function driveRow(d) {
+      drives.set(d.host + "/" + d.axis, d);
+      const tbody = hostSection(d.host).querySelector(".drives tbody");
+      const id = rowId("drive", d.host, d.axis);
+      let tr = rows.get(id);
+      if (!tr) {
+        tr = document.createElement("tr");
+        tr.id = id;
+        rows.set(id, tr);
+        tbody.insertBefore(tr, Array.from(tbody.children).find((r) => r.dataset.axis > d.axis) || null);
+      }
+      const axis = document.createElement("td");
+      const a = document.createElement("a");
+      a.href = driveUrl(d.host, d.axis);
+      a.textContent = d.axis;
+      axis.appendChild(a);
+      const state = cell(stateText(d), "state");
+      state.dataset.display = d.display;
+      tr.replaceChildren(axis, state, cell(d.mode, "num"), cell(d.position, "num"), cell(d.velocity, "num"),
+        cell(d.following_error, "num"), cell(d.error_code ? hex(d.error_code) + " " + d.error_text : "", "error"),
+        cell(d.al_state), cell(d.lease_holder));
+      if (commands) { const td = cell("", "commands"); commandButtons(td, d); tr.appendChild(td); }
+      tr.dataset.host = d.host;
+      tr.dataset.axis = d.axis;
+      tr.dataset.state = d.state;
+      tr.dataset.display = d.display;
+      tr.dataset.lost = d.lost ? "1" : "0";
+      tr.className = "d-" + d.display + (d.display === "offline" ? " offline" : "") + (d.alarm ? " alarm" : "");
+      // Page clock at arrival minus the agent's clock at the status (one machine, or NTP): the lag.
+      const at = performance.timeOrigin + performance.now();
+      window.dashboardUpdates[d.host + "/" + d.axis] = { state: d.state, at: at, lag_ms: d.time_ns ? at - d.time_ns / 1e6 : null };
+    }
+
+    // What needs an operator: faults, lost drives, offline hosts (and drives), host-name conflicts.
+    function attention() {
+      const items = [];
+      for (const h of hosts.values()) {
+        if (h.conflict) items.push(["conflict", h.host, "host-name conflict on " + h.host + ": " + h.conflict]);
+        if (!h.alive) items.push(["offline", h.host, "host " + h.host + " offline" + (h.expected ? " (expected in the fleet)" : "")]);
+      }
+      for (const d of drives.values()) {
+        const ref = d.host + "/" + d.axis;
+        if (d.display === "fault") items.push(["fault", ref, ref + " " + d.state + (d.error_code ? " " + hex(d.error_code) + " " + d.error_text : "")]);
+        else if (d.display === "lost") items.push(["lost", ref, ref + " " + stateText(d)]);
+        else if (d.display === "offline" && (hosts.get(d.host) || {}).alive) items.push(["offline", ref, ref + " not reported by its agent"]);
+      }
+      const banner = document.getElementById("attention");
+      const list = banner.querySelector("ul");
+      list.replaceChildren(...items.map(([kind, ref, text]) => {
+        const li = document.createElement("li");
+        li.dataset.kind = kind;
+        li.dataset.ref = ref;
+        li.className = kind;
+        li.textContent = text;
+        return li;
+      }));
+      banner.hidden = items.length === 0;
+      banner.dataset.count = String(items.length);
+      const n = drives.size, bad = Array.from(drives.values()).filter((d) => d.alarm).length;
+      document.getElementById("summary").textContent = hosts.size + " host(s), " + n + " drive(s), " + bad + " need attention";
+    }
+
+    fetch("/api/fleet").then((r) => r.json()).then((f) => {
+      commands = !!f.commands_enabled;
+      const mode = document.getElementById("mode");
+      mode.textContent = commands ? "commands as " + f.identity : "read-only";
+      mode.dataset.commands = commands ? "1" : "0";
+      live((ch) => {
+        ch.hosts.forEach(agentRow);
+        ch.drives.forEach(driveRow);
+        ch.events.forEach((e) => eventItem(events, e));
+        attention();
       });
-    refresh();
-    setInterval(refresh, 500);
-    fetch("/api/drive/" + encodeURIComponent(host) + "/" + encodeURIComponent(axis)).then((r) => r.json())
-      .then((d) => { showDrive(d.drive); d.events.forEach((e) => eventItem(events, e)); });
-    live((ch) => {
-      ch.drives.filter((d) => d.host === host && d.axis === axis).forEach(showDrive);
-      if (!ch.full) ch.events.filter((e) => e.host === host && e.axis === axis).forEach((e) => eventItem(events, e));
     });
-    const info = document.getElementById("rec-info");
-    const rec = (what) => {
-      info.textContent = "fetching...";
-      fetch("/api/recording/" + encodeURIComponent(host) + "?what=" + what + "&last_s=10&axis=" + encodeURIComponent(axis))
-        .then((r) => r.json()).then((d) => {
-          if (d.error) { info.textContent = d.error; return; }
-          const c = d.drives[axis];
-          info.textContent = d.reason + (d.detail ? ": " + d.detail : "") + " (" + d.n_cycles + " cycles)";
-          const mark = d.trigger_cycle ? d.t[d.trigger_cycle - d.first_cycle] : undefined;
-          plot(document.getElementById("recording"), d.t,
-               [{ name: "statusword", values: c.statusword, colour: "#555" },
-                { name: "position", values: c.position, colour: "#1f4e9a" },
-                { name: "velocity", values: c.velocity, colour: "#c05000" }], mark);
-        });
-    };
-    document.getElementById("rec-last").onclick = () => rec("last");
-    document.getElementById("rec-fault").onclick = () => rec("fault");
   }
 
-  return { fleetPage, drivePage, plot };
+  return { fleetPage, live, eventItem, hex, driveUrl, stateText, commandButtons };
 })();

@@ -14,14 +14,18 @@ Fixtures (function scope; ``module_*`` twins live for a whole test module):
 
 from __future__ import annotations
 
+import shutil
 import sys
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 import pytest
 import zenoh
 
 from bus_agent.sim.child import ChildProcess, free_port
 from bus_agent.gateway.zenoh_config import make_zenoh_config
+from supervisor.testbed import CHROMEDRIVER, CHROMIUM, headless_chromium
+
+from tests.conftest import require
 
 READY = "bus-agent ready"
 
@@ -133,3 +137,13 @@ def module_zenoh_session() -> Iterator[SessionFactory]:
         yield factory
     finally:
         factory.close()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """Debian's headless chromium (selenium) with its console log readable, one per module."""
+    require(shutil.which(CHROMIUM) is not None and shutil.which(CHROMEDRIVER) is not None,
+            "Debian chromium and chromium-driver", "apt-get install chromium chromium-driver (deploy/apt-packages.txt)")
+    with headless_chromium(console_log=True) as driver:
+        driver.set_window_size(1400, 1000)
+        yield driver

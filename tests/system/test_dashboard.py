@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import http.client
 import json
-import shutil
 import subprocess
 import time
 import urllib.error
@@ -26,10 +25,8 @@ from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from supervisor.fleet import Fleet
 from supervisor.session import zenoh_config
-from supervisor.testbed import (CHROMEDRIVER, CHROMIUM, Proc, headless_chromium, start_cli_agent, start_dashboard,
+from supervisor.testbed import (Proc, start_cli_agent, start_dashboard,
                                start_router)
-
-from tests.conftest import require
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -60,13 +57,6 @@ def bed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             agent.stop()
         router.stop()
 
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    require(shutil.which(CHROMIUM) is not None and shutil.which(CHROMEDRIVER) is not None,
-            "Debian chromium and chromium-driver", "apt-get install chromium chromium-driver (deploy/apt-packages.txt)")
-    with headless_chromium(console_log=True) as driver:
-        yield driver
 
 
 def row_state(driver: Any, host: str, axis: str) -> str | None:
@@ -123,7 +113,7 @@ def test_live_table_state_change_fault_offline_host_and_plots(bed: dict[str, Any
     # enabled in CSP on a drive without 0x60F4: the agent's following error, a number
     assert int(browser.find_element("id", "ferr").get_attribute("data-value")) == \
         fleet_status_following_error(bed, "axis0")
-    browser.find_element("id", "rec-last").click()
+    browser.get(bed["url"] + f"/recording/{HOST}?what=last&axis=axis0")
     wait_for(lambda: int(browser.find_element("id", "recording").get_attribute("data-samples") or 0) >= 1000, 30,
              "the flight recording plot")
     errors = console_errors(browser)

@@ -3,11 +3,13 @@ offline expected drives, and the Prometheus exposition parsed back with the clie
 
 from __future__ import annotations
 
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from dashboard.app import recording_json
+from dashboard.app import cross_site_refusal, recording_json, state_runs
+from dashboard.cli import main as cli_main
 from dashboard.metrics import registry_for, render
-from dashboard.view import FleetView
+from dashboard.view import DISPLAY_OF_STATE, DISPLAYS, FleetView, display_of
 from schemas import messages as m
 
 
@@ -86,7 +88,47 @@ def test_recording_json_splits_axes():
                       axes=["a", "b"], channels={"time_ns": [0, 1_000_000], "statusword": [1, 2, 3, 4]},
                       trigger_cycle=11)
     j = recording_json(rec, "b")
-    assert j["t"] == [0.0, 0.001] and j["drives"] == {"b": {"statusword": [2, 4]}}
+    assert j["t"] == [0.0, 0.001] and j["drives"]["b"]["statusword"] == [2, 4] and list(j["drives"]) == ["b"]
+    assert j["t0_ms"] == 0 and j["cycle_channels"] == {}
+
+
+def test_recording_states_come_in_runs():
+    # switch_on_disabled, operation_enabled twice, fault: three runs from their first cycles
+    assert state_runs([0x0250, 0x0237, 0x0237, 0x0218]) == [[0, "switch_on_disabled", "disabled"],
+                                                            [1, "operation_enabled", "enabled"], [3, "fault", "fault"]]
+    assert state_runs([]) == []
+
+
+def test_display_classes_cover_every_state_and_lost_drives():
+    assert set(DISPLAY_OF_STATE) == set(m.DRIVE_STATES)  # every contract state has a colour
+    assert set(DISPLAY_OF_STATE.values()) | {"offline"} == set(DISPLAYS)
+    assert display_of("operation_enabled", False, True) == "enabled"
+    assert display_of("quick_stop_active", False, True) == "quick_stop"
+    assert display_of("fault_reaction_active", False, True) == "fault"
+    assert display_of("operation_enabled", True, True) == "lost"   # the old contract: last state, lost
+    assert display_of("unknown", False, True) == "lost"            # the new: state unknown
+    assert display_of("fault", True, False) == "offline"           # no live agent: offline first
+
+
+def test_lost_drive_row_keeps_its_last_known_state_and_conflicts_reach_the_host_row():
+    v = FleetView()
+    v.on_alive("h1", True)
+    v.on_status(status("a", "operation_enabled"))
+    v.on_status(status("a", "unknown", lost=True, seq=2))
+    row = v.snapshot()["drives"][0]
+    assert (row["display"], row["lost"], row["last_state"], row["alarm"]) == ("lost", True, "operation_enabled", True)
+    v.on_status(status("a", "switch_on_disabled", seq=3))
+    row = v.snapshot()["drives"][0]
+    assert (row["display"], row["lost"], row["last_state"]) == ("disabled", False, "")
+    mark = v.version
+    v.on_conflicts({"h1": "host name h1 is used by 2 agents"})
+    hosts = v.changes_since(mark)["hosts"]
+    assert [(h["host"], h["conflict"]) for h in hosts] == [("h1", "host name h1 is used by 2 agents")]
+    mark = v.version
+    v.on_conflicts({"h1": "host name h1 is used by 2 agents"})
+    assert v.changes_since(mark)["hosts"] == []   # unchanged: nothing sent
+    v.on_conflicts({})
+    assert v.snapshot()["hosts"][0]["conflict"] == ""
 
 
 def test_grafana_dashboard_and_scrape_config_use_exposed_metrics():
@@ -144,3 +186,28 @@ def test_target_clamps_counter_per_drive():
     got = {s.labels["axis"]: s.value for s in fams["drives_drive_target_clamps"].samples
            if s.name == "drives_drive_target_clamps_total"}
     assert got == {"a": 365.0, "b": 0.0}
+
+
+def test_commands_refused_from_other_sites_and_as_non_json():
+    ok = {"content-type": "application/json", "host": "127.0.0.1:8402", "origin": "http://127.0.0.1:8402"}
+    assert cross_site_refusal(ok) == ""
+    assert cross_site_refusal({"content-type": "application/json; charset=utf-8", "host": "h:1"}) == ""
+    assert "application/json" in cross_site_refusal({**ok, "content-type": "text/plain"})
+    assert "origin" in cross_site_refusal({**ok, "origin": "https://evil.example"})
+
+
+def test_commands_need_an_identity(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["--commands"])
+    assert exc.value.code == 2 and "--commands needs an identity" in capsys.readouterr().err
+
+
+def test_a_lost_drive_shows_the_last_known_state_of_its_status():
+    """The agent's ``last_known_state`` (issue 23: a lost drive's state is unknown) wins over the
+    state the view saw last; an older agent's status without it falls back to the view's own."""
+    from dashboard.view import drive_row
+    lost = status("a", "unknown", lost=True, last_known_state="operation_enabled")
+    row = drive_row(lost, True, last_state="switch_on_disabled")
+    assert row["display"] == "lost" and row["last_state"] == "operation_enabled"
+    assert drive_row(status("a", "unknown", lost=True), True, "fault")["last_state"] == "fault"
+    assert drive_row(status("a", "operation_enabled"), True, "fault")["last_state"] == ""
