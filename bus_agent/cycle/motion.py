@@ -15,7 +15,7 @@ from bus_agent.cia402.states import State
 from bus_agent.cycle.base import CycleBase
 from bus_agent.cycle.drive import Drive
 from bus_agent.cycle.management import SdoJob
-from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected, retime_group
+from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected, retime_group, sync_limits
 from bus_agent.motion.homing import MODE_HOMING
 from bus_agent.motion.profile import MODE_PP, MODE_PV
 from bus_agent.motion.planner import PlanError, plan_group
@@ -92,7 +92,8 @@ class MotionMixin(CycleBase):
         plans = []
         if not refused:
             try:
-                plans = plan_group([p[0] for p in prepared], [p[1] for p in prepared], [p[2] for p in prepared],
+                plans = plan_group([p[0] for p in prepared], [p[1] for p in prepared],
+                                   [sync_limits(p[2]) for p in prepared],
                                    float(args.get("duration_s") or 0.0))
             except PlanError as e:
                 refused = {d.axis: str(e) for d in drives}

@@ -46,8 +46,9 @@ class OutputMixin(CycleBase):
         before it) would repeat itself exactly while its inputs do not change and no command,
         reflex or report reaches it: the cycle may then skip it. The controller settled (its
         output depends on the two inputs only), the motion is idle (:attr:`AxisMotion.idle`), the
-        targets did not move (the motion observes them), no command pending, no automatic fault
-        reset running (its backoff reads the clock), no emergency text that may change. Cycle thread only."""
+        targets did not move (the motion observes them), the output stage wrote them as given (a
+        limited target still catches up), no command pending, no automatic fault reset running
+        (its backoff reads the clock), no emergency text that may change. Cycle thread only."""
         if d.pending is not None or not d.ctrl.settled or not d.motion.idle or not d.stage.settled:
             return False
         if (d.target_position, d.target_velocity, d.target_torque) != targets_before:

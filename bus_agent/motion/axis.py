@@ -34,12 +34,17 @@ from bus_agent.motion.records import (ACCEPTS, MODE_CSP, MODE_CSV, MOTION_OPS, R
 from bus_agent.motion.records import num as _num
 
 __all__ = ["AxisState", "ACCEPTS", "REFUSAL", "MOTION_OPS", "Finished", "AxisMotion", "Rejected", "MODE_CSP",
-           "MODE_CSV", "retime_group"]
+           "MODE_CSV", "retime_group", "sync_limits", "SYNC_SHARE"]
 
 _Active = Active
 #: A gap between two steps longer than this many periods lost at least one frame slot: a stall
 #: (counted in ``AxisMotion.stalls``; a synchronized move is re-timed after it, see step()).
 STALL_GAP_PERIODS = 1.5
+#: A synchronized move is planned within this share of its velocity and acceleration limits; the
+#: rest lets a host that lost frame slots (a stall) re-time it to the common arrival within the
+#: limits (:func:`retime_group`): it makes up lost time of about a tenth of the time in motion
+#: (not in the final deceleration, whose jerk-limited ramp cannot be shortened much).
+SYNC_SHARE = 0.9
 
 
 
@@ -538,3 +543,9 @@ def retime_group(members: list[AxisMotion], now_s: float) -> None:
         return  # keep the paused profiles: they arrive later, together and within the limits
     for m, p in zip(runs, plans):
         m.plan, m.plan_t0 = p, now_s
+
+
+def sync_limits(limits: Limits) -> Limits:
+    """The limits a synchronized move is planned with (:data:`SYNC_SHARE` of velocity and
+    acceleration; jerk as given)."""
+    return Limits(limits.velocity * SYNC_SHARE, limits.acceleration * SYNC_SHARE, limits.jerk)

@@ -310,11 +310,12 @@ def test_a_stalled_cycle_continues_within_the_limits_and_the_move_ends_at_its_ta
     assert r.status().position == 300_000
 
 
-@pytest.mark.parametrize("velocity, late_ms", [(50_000, 1), (100_000, 30)])
+@pytest.mark.parametrize("velocity, late_ms", [(50_000, 1), (100_000, 1)])
 def test_a_stalled_synchronized_move_is_retimed_to_its_common_arrival_within_the_limits(velocity, late_ms):
     """A synchronized move keeps its common arrival after a stall by re-timing within the axis
-    limits (here up to 100000 counts/s where the group asked 50000), not by jumping; with no room
-    (already at the limit) it arrives later by about the stall, still within the limits."""
+    limits, not by jumping: up to 100000 counts/s where the group asked 50000, and where it asked
+    the limit itself, within the share of the limits a synchronized move keeps for this
+    (SYNC_SHARE)."""
     targets = {"axis0": 200_000.0, "axis1": -50_000.0}
 
     def run(stall_ms: int) -> tuple[Rig, list[float]]:
