@@ -40,6 +40,8 @@ from bus_agent.startup_guard import StartupAbandoned, StartupSteps
 
 log = logging.getLogger(__name__)
 
+#: After an abandoned start-up: how long the gateway process gets to exit before it is killed.
+ABANDON_BRIDGE_TIMEOUT_S = 0.2
 #: Deadline of the gateway's start-up step (the bridge's own ready timeout, and a margin).
 GATEWAY_START_S = READY_TIMEOUT_S + 2.0
 
@@ -128,7 +130,8 @@ class Agent:
         try:
             self._start(steps)
         except StartupAbandoned:
-            self._abort()
+            # a gateway process not ready yet has nothing to publish: not waited for
+            self._abort(bridge_timeout_s=ABANDON_BRIDGE_TIMEOUT_S)
             raise
         finally:
             steps.finish()
@@ -268,9 +271,9 @@ class Agent:
             self.state = AgentState.STOPPED
             log.info("agent %s stopped", self.config.host)
 
-    def _close_zenoh(self) -> None:
+    def _close_zenoh(self, bridge_timeout_s: float = 10.0) -> None:
         if self.bridge is not None:
-            self.bridge.close()
+            self.bridge.close(bridge_timeout_s)
             self.bridge = None
         if self.sim_control is not None:
             self.sim_control.close()
@@ -285,7 +288,7 @@ class Agent:
                 log.warning("zenoh session close: %s", exc)
             self.session = None
 
-    def _abort(self) -> None:
+    def _abort(self, bridge_timeout_s: float = 10.0) -> None:
         """Close what a failed start opened: drives were never enabled, so no ordered sequence."""
         try:
             if self.cycle is not None:
@@ -294,5 +297,5 @@ class Agent:
                 self.bus.close()
         except Exception as exc:
             log.warning("agent %s: closing after a failed start: %s", self.config.host, exc)
-        self._close_zenoh()
+        self._close_zenoh(bridge_timeout_s)
         self.state = AgentState.STOPPED

@@ -230,7 +230,7 @@ def _guard_main(pid: int, what: str, signal_fd: int) -> int:
                     deadline = float(at)
         now = time.monotonic()
         if stop_at is not None and now >= stop_at:
-            why = (f"start-up step {step or 'start-up'!r} still running {STOP_GRACE_S:g} s after a stop signal "
+            why = (f"start-up step {step or 'start-up (between steps)'!r} still running {STOP_GRACE_S:g} s after a stop signal "
                    "(a call that cannot be interrupted)")
         elif deadline is not None and now >= deadline + GUARD_MARGIN_S:
             why = f"start-up step {step!r} did not return within its deadline ({limit} s)"

@@ -35,8 +35,8 @@ from bus_agent.bus.mailbox import SiiMailbox
 from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
-from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_FMMU0, REG_SM0, SOEM_CALL_S, STATE_ACK,
-                                          PysoemStartup, al_state)
+from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_EEP_CONFIG, REG_FMMU0, REG_SM0, SOEM_CALL_S,
+                                          STATE_ACK, PysoemStartup, al_state)
 from bus_agent.startup_guard import StartupSteps
 
 log = logging.getLogger(__name__)
@@ -48,7 +48,6 @@ RECOVER_TIMEOUT_US = MGMT_TIMEOUT_US
 #: without the slave's working counter (the slave is silent) reads NONE at once.
 NO_FRAME_GRACE_S = 0.05
 # ESC registers (ETG.1000.4 Table 31 ff.)
-_REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
 _AL_CONTROL_REG = 0x0120
 _AL_STATUS_REG = 0x0130      # 0x0130 AL status, 0x0134 AL status code
 
@@ -276,7 +275,7 @@ class PysoemBus(PysoemStartup):
             try:
                 if sm:
                     s._fpwr(REG_SM0, sm, MGMT_TIMEOUT_US)
-                s._fpwr(_REG_EEP_CONFIG, b"\x01\x00", MGMT_TIMEOUT_US)
+                s._fpwr(REG_EEP_CONFIG, b"\x01\x00", MGMT_TIMEOUT_US)
             except Exception as e:
                 log.debug("slave %d: SM configuration not taken: %s", position, e)
                 return False

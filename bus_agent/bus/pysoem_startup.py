@@ -54,6 +54,7 @@ START_ATTEMPTS = 3
 MAPPING_READ_ATTEMPTS = 3
 # ESC registers (ETG.1000.4 Table 31 ff.)
 REG_FMMU_COUNT = 0x0004     # 0x0004 FMMUs supported, 0x0005 SMs supported
+REG_EEP_CONFIG = 0x0500     # EEPROM access: bit 0 = PDI
 REG_FMMU0 = 0x0600          # 16 bytes per FMMU
 REG_SM0 = 0x0800            # 8 bytes per SyncManager
 
@@ -156,6 +157,7 @@ class PysoemStartup(PysoemDc):
                 w18 = bytes(s.eeprom_read(SII_MAILBOX_WORD, 20000))
                 w1a = bytes(s.eeprom_read(SII_MAILBOX_WORD + 2, 20000))
                 w1c = bytes(s.eeprom_read(SII_PROTOCOLS_WORD, 20000))
+                s._fpwr(REG_EEP_CONFIG, b"\x01\x00", 2000)  # the EEPROM back to the PDI, as config_init left it
         except StartupAbandoned:
             self._abort_open()
             raise
