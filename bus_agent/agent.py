@@ -136,6 +136,7 @@ class Agent:
         finally:
             steps.finish()
         self.state = AgentState.RUNNING
+        assert self.bus is not None
         log.info("agent %s running: %d drive(s) on %s, gateway in %s", cfg.host, len(self.axes), self.bus.backend,
                  f"process {self.bridge.pid}" if self.bridge else "this process")
 
