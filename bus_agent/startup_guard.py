@@ -198,14 +198,14 @@ def _guard_main(pid: int, what: str, signal_fd: int) -> int:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(GUARD_RT_PRIORITY))
     except OSError:
         pass  # not allowed: ordinary scheduling
-    steps = sys.stdin.buffer.raw  # type: ignore[union-attr]
+    steps_fd = sys.stdin.fileno()
     buf = b""
-    step, limit = "", ""  # the step under way, its deadline (s) as told
-    deadline: float | None = None  # and when it ends
+    step, limit = "", ""  # the step under way and its deadline (s) as told
+    deadline: float | None = None  # ... and when, on the monotonic clock
     stop_at: float | None = None
-    fds = [steps.fileno(), signal_fd]
+    fds = [steps_fd, signal_fd]
     while True:
-        ends = [t for t in (deadline + GUARD_MARGIN_S if deadline is not None else None, stop_at) if t is not None]
+        ends = [t for t in (None if deadline is None else deadline + GUARD_MARGIN_S, stop_at) if t is not None]
         timeout = max(0.0, min(ends) - time.monotonic()) if ends else None
         ready, _, _ = select.select(fds, [], [], timeout)
         if signal_fd in ready:
@@ -213,8 +213,8 @@ def _guard_main(pid: int, what: str, signal_fd: int) -> int:
                 fds.remove(signal_fd)
             elif stop_at is None:
                 stop_at = time.monotonic() + STOP_GRACE_S
-        if steps.fileno() in ready:
-            data = os.read(steps.fileno(), 4096)
+        if steps_fd in ready:
+            data = os.read(steps_fd, 4096)
             if not data:
                 return 0  # the agent is gone (or closed the pipe): nothing to guard
             buf += data
