@@ -11,6 +11,7 @@ import os
 import re
 import signal
 import threading
+import time
 import uuid
 
 import pytest
@@ -41,9 +42,15 @@ def statuses(session, host):
 
 
 def gateway_child(pid: int) -> int:
-    """The agent's one child: ``python -m bus_agent.gateway.bridge``."""
-    with open(f"/proc/{pid}/task/{pid}/children") as f:
-        children = [int(c) for c in f.read().split()]
+    """The agent's one child once it runs: ``python -m bus_agent.gateway.bridge`` (the start-up
+    guard, a second child during start-up, leaves when start-up is over: waited for, 5 s)."""
+    deadline = time.monotonic() + 5.0
+    while True:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            children = [int(c) for c in f.read().split()]
+        if len(children) == 1 or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
     assert len(children) == 1, children
     with open(f"/proc/{children[0]}/cmdline", "rb") as f:
         assert b"bus_agent.gateway.bridge" in f.read()

@@ -11,17 +11,22 @@ shows the fault's window; a command button sends nothing until its confirmation 
 
 from __future__ import annotations
 
+import threading
 import time
 import urllib.error
 import urllib.request
 from typing import Any, Iterator
 
 import pytest
+import zenoh
 
 from bus_agent.security import pki
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
+from schemas import keys
+from schemas import messages as m
 from supervisor.fleet import Fleet
+from supervisor.session import zenoh_config
 from supervisor.testbed import (Proc, start_agents, start_dashboard,
                                start_router)
 
@@ -250,12 +255,30 @@ def test_banner_names_a_host_name_conflict(bed: dict[str, Any], browser: Any) ->
     browser.get(bed["url"] + "/")
     wait_for(lambda: display(browser, "h1", "axis0") is not None, 20, "the fleet page")
     assert not any(kind == "conflict" for kind, _ in banner(browser))
-    twin = start_agents(["h2"], 1, bed["ep"], pki=str(bed["pki"]), sm_watchdog_s=2.0)  # a second agent calling itself h2
+    # A second agent instance calling itself h2, as the wire shows one: its agent status under
+    # h2's own certificate with another instance id (a real second agent is refused at start-up
+    # since the host-name check works in every session mode: tests/system/test_host_claim.py).
+    stop = threading.Event()
+
+    def second_instance() -> None:
+        conf = zenoh_config("client", [bed["ep"]], pki=str(bed["pki"]), identity="h2")
+        with zenoh.open(conf) as s:
+            seq = 0
+            while not stop.is_set():
+                seq += 1
+                s.put(keys.agent_status("h2"), m.encode(m.AgentStatus(
+                    host="h2", seq=seq, time_ns=time.time_ns(), state="running", backend="sim", cycle_us=1000,
+                    cycles=seq, period_p50_us=1000.0, period_p99_us=1000.0, period_max_us=1000.0, overruns=0,
+                    wkc_errors=0, expected_wkc=3, instance="second-h2")))
+                stop.wait(0.3)
+    t = threading.Thread(target=second_instance, daemon=True)
+    t.start()
     try:
         wait_for(lambda: ("conflict", "h2") in banner(browser), 15, "the conflict in the banner")
         sec = browser.find_element("id", "host-h2")
         assert "conflict" in sec.get_attribute("class")
         assert "host-name conflict" in sec.find_element("css selector", ".conflict").text
     finally:
-        twin.stop()
+        stop.set()
+        t.join(10)
     wait_for(lambda: ("conflict", "h2") not in banner(browser), 15, "the conflict gone from the banner")
