@@ -9,6 +9,7 @@ time :data:`START_MARGIN_S` ahead, sent concurrently).
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -74,7 +75,9 @@ def group_move(fleet: "Fleet", targets: Mapping[DriveRef | str, float], *, veloc
     if len(by_host) == 1:
         return send(next(iter(by_host)), {})
     with ThreadPoolExecutor(max_workers=len(by_host)) as pool:
-        prepared = list(pool.map(lambda h: send(h, {"prepare": True}), by_host))
+        # Each host's query in the caller's context (the user it acts for, supervisor.commands.ACTING_FOR).
+        ctx = contextvars.copy_context()
+        prepared = list(pool.map(lambda h: ctx.copy().run(send, h, {"prepare": True}), by_host))
         merged = _merge("move", prepared)
         if not merged.ok:
             # Nothing moved: the drives whose host prepared fine are refused with the others' reasons.
@@ -84,7 +87,8 @@ def group_move(fleet: "Fleet", targets: Mapping[DriveRef | str, float], *, veloc
                 r if not r.ok else dataclasses.replace(r, outcome="rejected", error=why[:400]) for r in merged.results))
         duration = max(r.duration_s for r in merged.results)
         start_at_ns = time.time_ns() + int(margin_s * 1e9)
-        committed = list(pool.map(lambda h: send(h, {"duration_s": duration, "start_at_ns": start_at_ns}), by_host))
+        committed = list(pool.map(lambda h: ctx.copy().run(send, h, {"duration_s": duration, "start_at_ns": start_at_ns}),
+                                  by_host))
     return _merge("move", committed)
 
 
