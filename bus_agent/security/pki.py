@@ -11,6 +11,13 @@ peer's leaf certificate), key usage digitalSignature, extended key usage serverA
 clientAuth (routers and agents both listen and connect). subjectAltName holds the names and
 addresses clients dial (``verify_name_on_connect``): ``localhost`` and ``127.0.0.1`` by default,
 plus ``--san``. A node needs ca.pem, its own pem/key and principals.toml, never ca.key.
+
+OPC UA (``issue(..., opcua=True)``, ``drives-pki issue --opcua``): the application and user
+certificates of drives-opcua and its clients. OPC UA's Basic256Sha256 needs RSA, so these hold
+an RSA 2048 key, the key usages OPC UA asks for (digitalSignature, nonRepudiation,
+keyEncipherment, dataEncipherment) and the application URI ``urn:zenoh-drives:<name>``
+(:func:`opcua_uri`) as a subjectAltName URI. They serve for Zenoh's TLS as well (the drives-opcua
+server's principal uses one certificate for both).
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from typing import Iterable, Sequence
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric import ec, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from bus_agent.security import principals as pfile
@@ -57,7 +64,12 @@ def paths(pki_dir: str | Path, name: str) -> Paths:
     return Paths(d / f"{name}.pem", d / f"{name}.key", d / CA_CERT)
 
 
-def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+def opcua_uri(name: str) -> str:
+    """The OPC UA application URI of an ``--opcua`` certificate of ``name`` (its SAN URI)."""
+    return f"urn:zenoh-drives:{name}"
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey) -> None:
     data = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                              serialization.NoEncryption())
     # Created 0600 from the start: never readable by others, not even for an instant.
@@ -126,12 +138,13 @@ def _load_ca(d: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
 
 def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = DEFAULT_DAYS,
           sans: Iterable[str] = (), hosts: Sequence[str] = (), valid_from: dt.datetime | None = None,
-          replace: bool = False) -> pfile.Principal:
+          replace: bool = False, opcua: bool = False) -> pfile.Principal:
     """Issue ``name``'s certificate and key, signed by the CA of ``pki_dir``, and record it in
     principals.toml. ``sans`` are added to :data:`DEFAULT_SANS`. ``hosts`` limits its commands
     to those hosts (the ACL's rules name them; empty: every host). ``valid_from`` (tests: an
     expired certificate) defaults to now. ``replace`` re-issues an existing name (new key; the
     old certificate stays valid until it expires: to shut a key out, :func:`revoke` it).
+    ``opcua``: an RSA certificate fit for OPC UA (see the module docstring).
     Raises :class:`PkiError` (nothing is written then), also for a revoked name."""
     d = Path(pki_dir)
     try:
@@ -156,15 +169,18 @@ def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = D
     san_list = list(dict.fromkeys([*DEFAULT_SANS, *sans]))
     general = [_san(s) for s in san_list]
     start = valid_from or _now()
-    key = ec.generate_private_key(ec.SECP256R1())
+    if opcua:
+        general.append(x509.UniformResourceIdentifier(opcua_uri(name)))
+    key: ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey = (
+        rsa.generate_private_key(public_exponent=65537, key_size=2048) if opcua else ec.generate_private_key(ec.SECP256R1()))
     cert = (x509.CertificateBuilder()
             .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
             .issuer_name(ca_cert.subject).public_key(key.public_key())
             .serial_number(x509.random_serial_number())
             .not_valid_before(start - CLOCK_SKEW).not_valid_after(start + dt.timedelta(days=days))
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
-                                         data_encipherment=False, key_agreement=False, key_cert_sign=False,
+            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=opcua, key_encipherment=opcua,
+                                         data_encipherment=opcua, key_agreement=False, key_cert_sign=False,
                                          crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
             .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
                            critical=False)
