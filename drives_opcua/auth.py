@@ -8,7 +8,7 @@
   subscribe; only a logged-in user reaches Call (anonymous never does); nobody writes or changes
   the address space. It also makes the session's user known to the method being called
   (:data:`CURRENT_USER`): asyncua hands a method nothing but its arguments.
-- :func:`ca_client_validator`: client application certificates must be issued by the CA.
+- :func:`guard_channels`: client application certificates must be issued by the CA.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from asyncua import ua
 from asyncua.crypto.permission_rules import PermissionRuleset, User, UserRole
 from asyncua.server.user_managers import UserManager
 from asyncua.common.utils import ServiceError
+from asyncua.crypto.security_policies import SecurityPolicyNone
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
@@ -158,23 +159,29 @@ class ServiceRules(PermissionRuleset):
         return is_user and action_type_id in CALL_SERVICES
 
 
-def ca_client_validator(ca: x509.Certificate):
-    """asyncua's certificate validator for client application certificates (checked when a
-    session is created): issued by ``ca``, within its dates, and naming the client's
-    application URI."""
+def guard_channels(policies: Any, ca: x509.Certificate) -> int:
+    """Make every secure policy factory of a started asyncua server refuse, at OpenSecureChannel,
+    a client application certificate not issued by ``ca`` (BadCertificateUntrusted). Channels
+    without security carry no certificate that is used, so they stay open to anonymous readers.
+    Returns how many factories were guarded."""
+    guarded = 0
+    for factory in policies:
+        if factory.cls is SecurityPolicyNone:
+            continue
+        create = factory.create
 
-    async def validate(cert: x509.Certificate, app: ua.ApplicationDescription) -> None:
-        problem = issued_by_ca(cert, ca)
-        if problem:
-            log.warning("opcua: client %s refused: %s", app.ApplicationUri, problem)
-            raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
-        try:
-            uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(
-                x509.UniformResourceIdentifier)
-        except x509.ExtensionNotFound:
-            uris = []
-        if app.ApplicationUri not in uris:
-            log.warning("opcua: client certificate names %s, not the client's URI %s", uris, app.ApplicationUri)
-            raise ServiceError(ua.StatusCodes.BadCertificateUriInvalid)
+        def checked(peer_certificate: bytes | None, create: Any = create) -> Any:
+            problem = "no client certificate" if not peer_certificate else ""
+            if not problem:
+                try:
+                    problem = issued_by_ca(x509.load_der_x509_certificate(peer_certificate), ca)
+                except ValueError as exc:
+                    problem = f"not a certificate: {exc}"
+            if problem:
+                log.warning("opcua: secure channel refused: client certificate %s", problem)
+                raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
+            return create(peer_certificate)
 
-    return validate
+        factory.create = checked
+        guarded += 1
+    return guarded

@@ -33,7 +33,7 @@ from supervisor.fleet import Fleet
 from supervisor.selectors import DriveRef
 
 from . import model
-from .auth import CURRENT_USER, DrivesUser, DrivesUserManager, ServiceRules, ca_client_validator
+from .auth import CURRENT_USER, DrivesUser, DrivesUserManager, ServiceRules, guard_channels
 
 log = logging.getLogger("drives_opcua")
 
@@ -121,16 +121,17 @@ class DrivesServer:
         policies = [ua.SecurityPolicyType.NoSecurity]
         tokens: list[type] = [ua.AnonymousIdentityToken]
         if self.pki is not None and self.identity is not None:
-            from bus_agent.security.pki import check_identity, opcua_uri
+            from bus_agent.security.pki import PkiError, check_identity, opcua_uri
             files = check_identity(self.pki, self.identity)
-            await s.load_certificate(str(files.cert))
-            await s.load_private_key(str(files.key))
+            if not _rsa(files.cert):
+                raise PkiError(f"{files.cert}: OPC UA (Basic256Sha256) needs an RSA certificate: issue it with "
+                               f"`drives-pki issue {self.pki} {self.identity} --role operator --role maintenance "
+                               "--opcua` (add --replace to renew an existing one)")
+            await s.load_certificate(str(files.cert), format="pem")
+            await s.load_private_key(str(files.key), format="pem")
             await s.set_application_uri(opcua_uri(self.identity))
             policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
             tokens += [ua.UserNameIdentityToken, ua.X509IdentityToken]
-            if not self.accept_unknown_clients:
-                from cryptography import x509
-                s.set_certificate_validator(ca_client_validator(x509.load_pem_x509_certificate(files.ca.read_bytes())))
         s.set_security_policy(policies, permission_ruleset=ServiceRules())
         s.set_identity_tokens(tokens)
         self.idx = await s.register_namespace(model.NAMESPACE_URI)
@@ -326,6 +327,12 @@ class DrivesServer:
         await self.init()
         await self.populate()
         async with self.server:
+            if self.pki is not None and not self.accept_unknown_clients:
+                from cryptography import x509
+
+                # The policy factories exist once the server started (asyncua builds them then).
+                ca = x509.load_pem_x509_certificate((self.pki / "ca.pem").read_bytes())
+                assert guard_channels(self.server._policies, ca) >= 1
             updates = asyncio.create_task(self.run_updates())
             if ready is not None:
                 ready()
@@ -334,6 +341,13 @@ class DrivesServer:
             finally:
                 updates.cancel()
                 self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _rsa(cert_file: Path) -> bool:
+    from cryptography import x509
+    from cryptography.hazmat.primitives.asymmetric import rsa
+
+    return isinstance(x509.load_pem_x509_certificate(cert_file.read_bytes()).public_key(), rsa.RSAPublicKey)
 
 
 def _answer(status: int, outcome: str, error: str) -> ua.CallMethodResult:
