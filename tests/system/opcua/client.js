@@ -123,6 +123,10 @@ async function events() {
     const item = ClientMonitoredItem.create(sub, { nodeId: coerceNodeId("i=2253"), attributeId: AttributeIds.EventNotifier },
         { samplingInterval: 0, discardOldest: true, queueSize: 1000, filter: constructEventFilter(fields) },
         TimestampsToReturn.Both);
+    await new Promise((resolve, reject) => {
+        item.on("initialized", resolve);
+        item.on("err", msg => reject(new Error(`event monitored item refused: ${msg}`)));
+    });
     item.on("changed", values => {
         const ev = { kind: "event", t: Date.now() };
         fields.forEach((f, i) => { ev[f] = plain(values[i].value); });
