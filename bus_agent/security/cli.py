@@ -5,6 +5,7 @@
     drives-pki list DIR [--json]
     drives-pki revoke DIR NAME                           # (or remove): denied by every router after its restart
     drives-pki user DIR NAME --role ROLE [--password-stdin]   # an OPC UA user (drives-opcua), password hashed
+    drives-pki crl DIR                                   # rewrite DIR/ca.crl (also done by init and revoke)
 
 Roles: router, agent (NAME = its host name), operator, maintenance, viewer, testbed (see
 ``bus_agent.security.roles.ROLES``). Certificates hold ``localhost`` and ``127.0.0.1`` as
@@ -57,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="re-issue an existing principal (new key; the old certificate stays valid: revoke a leaked one)")
     s.add_argument("--opcua", action="store_true",
                    help="an RSA certificate with OPC UA's key usages and URI urn:zenoh-drives:NAME (drives-opcua)")
+    c = sub.add_parser("crl", help="rewrite DIR/ca.crl (revoked serials, signed by the CA; valid a year)")
+    c.add_argument("dir", metavar="DIR")
     u = sub.add_parser("user", help="add or change an OPC UA user (drives-opcua): roles and a hashed password")
     u.add_argument("dir", metavar="DIR")
     u.add_argument("name", metavar="NAME")
@@ -136,6 +139,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             user = users.set_user(args.dir, args.name, args.role, _password(args.password_stdin))
             print(f"drives-pki: user {user.name} ({', '.join(user.roles)}) written to {args.dir}/{users.FILE_NAME}; "
                   "drives-opcua reads it at start")
+        elif args.cmd == "crl":
+            print(f"drives-pki: wrote {pki.write_crl(args.dir)}")
         elif args.cmd == "list":
             return _list(args.dir, args.json)
         elif args.cmd in ("revoke", "remove"):

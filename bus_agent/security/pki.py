@@ -5,6 +5,7 @@ Layout of a PKI directory (``drives-pki init DIR``)::
     DIR/ca.pem  DIR/ca.key                 the CA (key 0600; keep it off the plant network)
     DIR/<name>.pem  DIR/<name>.key         one certificate and key (0600) per principal
     DIR/principals.toml                    names and roles (bus_agent.security.principals)
+    DIR/ca.crl                             revoked serials, signed by the CA (for OPC UA peers)
 
 Certificates: ECDSA P-256, CN = the principal's name (zenoh's ACL matches the first CN of the
 peer's leaf certificate), key usage digitalSignature, extended key usage serverAuth and
@@ -109,7 +110,31 @@ def init(pki_dir: str | Path, name: str = "zenoh-drives CA", days: int = DEFAULT
     _write_cert(d / CA_CERT, cert)
     if not (d / pfile.FILE_NAME).exists():
         pfile.save(d, [])
+    write_crl(d)
     return d / CA_CERT
+
+
+#: The CA's certificate revocation list (PEM), rewritten by init and revoke: OPC UA clients and
+#: servers (node-opcua, UaExpert) want one for every issuer they trust.
+CA_CRL = "ca.crl"
+CRL_DAYS = 365
+
+
+def write_crl(pki_dir: str | Path) -> Path:
+    """Write ``DIR/ca.crl``: the serials of every revoked principal, signed by the CA, valid
+    :data:`CRL_DAYS` (``drives-pki crl DIR`` renews it)."""
+    d = Path(pki_dir)
+    ca_cert, ca_key = _load_ca(d)
+    now = _now()
+    builder = (x509.CertificateRevocationListBuilder().issuer_name(ca_cert.subject)
+               .last_update(now - CLOCK_SKEW).next_update(now + dt.timedelta(days=CRL_DAYS)))
+    for r in pfile.load_all(d)[1].values() if (d / pfile.FILE_NAME).exists() else ():
+        if r.serial:
+            builder = builder.add_revoked_certificate(
+                x509.RevokedCertificateBuilder().serial_number(int(r.serial, 16)).revocation_date(now).build())
+    crl = builder.sign(ca_key, hashes.SHA256())
+    (d / CA_CRL).write_bytes(crl.public_bytes(serialization.Encoding.PEM))
+    return d / CA_CRL
 
 
 def _san(text: str) -> x509.GeneralName:
@@ -218,6 +243,7 @@ def revoke(pki_dir: str | Path, name: str) -> pfile.Revoked:
     entry = pfile.Revoked(name, known.pop(name).serial, _stamp(_now()))
     revoked[name] = entry
     pfile.save(d, known.values(), revoked.values())
+    write_crl(d)
     files = paths(d, name)
     for f in (files.key, files.cert):
         if f.exists():

@@ -158,7 +158,7 @@ class OpcuaBed:
                                   "securityMode": "SignAndEncrypt" if secure else "None", "user": user}
         if secure:
             d = ca or self.pki
-            fields.update(clientCert=str(d / f"{app}.pem"), clientKey=str(d / f"{app}.key"),
+            fields.update(clientCert=str(d / f"{app}.pem"), clientKey=str(d / f"{app}.key"), caCert=str(self.pki / "ca.pem"),
                           applicationUri=f"urn:zenoh-drives:{app}")
         return c, c.request("connect", **fields)
 

@@ -39,6 +39,14 @@ function plain(v) {
 async function connect(c) {
     const mode = MessageSecurityMode[c.securityMode || "None"];
     const policy = c.securityMode && c.securityMode !== "None" ? SecurityPolicy.Basic256Sha256 : SecurityPolicy.None;
+    // Trust the deployment's CA (the server's certificate is issued by it); without one, any server.
+    const manager = new OPCUACertificateManager({ rootFolder: c.pkiFolder,
+                                                  automaticallyAcceptUnknownCertificate: !c.caCert });
+    await manager.initialize();
+    if (c.caCert) {
+        await manager.addIssuer(der(c.caCert), false, true);
+        await manager.addRevocationList(der(c.caCert.replace(/\.pem$/, ".crl")));
+    }
     const options = {
         applicationName: "drives-opcua test client",
         applicationUri: c.applicationUri || "urn:zenoh-drives:test-client",
@@ -46,9 +54,7 @@ async function connect(c) {
         securityMode: mode,
         securityPolicy: policy,
         connectionStrategy: { maxRetry: 0, initialDelay: 100, maxDelay: 200 },
-        clientCertificateManager: new OPCUACertificateManager({
-            rootFolder: c.pkiFolder, automaticallyAcceptUnknownCertificate: true,
-        }),
+        clientCertificateManager: manager,
         requestedSessionTimeout: 60000,
     };
     if (c.clientCert) {
