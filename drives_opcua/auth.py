@@ -172,7 +172,7 @@ def guard_channels(policies: Any, ca: x509.Certificate) -> int:
 
         def checked(peer_certificate: bytes | None, create: Any = create) -> Any:
             problem = "no client certificate" if not peer_certificate else ""
-            if not problem:
+            if peer_certificate:
                 try:
                     problem = issued_by_ca(x509.load_der_x509_certificate(peer_certificate), ca)
                 except ValueError as exc:
