@@ -182,3 +182,10 @@ def wait(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
             return True
         time.sleep(0.05)
     return pred()
+
+
+if __name__ == "__main__":  # `make opcua-client`
+    found = client_modules()
+    if found is None:
+        sys.exit("node and npm are needed for the OPC UA tests (deploy/apt-packages.txt: nodejs)")
+    print(f"node-opcua-client ready in {found}")
