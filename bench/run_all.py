@@ -129,6 +129,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "the bare router and agents", "bench.bench_twin", ("--hosts", "3,10,32", "--rest-s", "10"),
               ("--hosts", "3,10", "--rest-s", "3", "--settle-s", "2"), False,
               sf.twin_figures, sf.twin_headline, sf.twin_targets),
+    Benchmark("opcua", "drives-opcua with 1024 drives (real sim agents): CPU at rest, fault to an OPC UA client's data "
+              "change next to a plain Fleet subscriber", "bench.bench_opcua", ("--rounds", "20", "--idle-s", "10"),
+              ("--rounds", "4", "--idle-s", "3"), False, sf.opcua_figures, sf.opcua_headline, sf.opcua_targets),
 )
 
 
