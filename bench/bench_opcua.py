@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any
 
-from bench.common import bench_parser, free_port, loadavg, percentile, proc_cpu_s, quantiles, run_stamp, write_result
+from bench.common import fleet_bench_main, free_port, loadavg, percentile, proc_cpu_s, run_stamp, stats_ms
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas.messages import DriveStatus
@@ -29,10 +29,6 @@ from supervisor.testbed import _spawn_ready, start_agents, start_router
 
 #: The client's requested publishing interval (what a SCADA typically asks: 50-1000 ms; fast here).
 PUBLISH_MS = 20
-
-
-def _stats(values_ms: list[float]) -> dict[str, Any]:
-    return {"n": len(values_ms), **quantiles(sorted(values_ms))} if values_ms else {"n": 0}
 
 
 class _Changes:
@@ -115,7 +111,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                 "server_cpu_idle_pct": round(100 * idle_cpu / idle_wall, 1),
                 "server_cpu_us_per_status": round(idle_cpu * 1e6 / idle_n, 1) if idle_n else None,
                 "server_cpu_changes_pct": round(busy_cpu, 1),
-                "fault_to_client_ms": _stats(client_lag), "fault_to_subscriber_ms": _stats(zenoh_lag),
+                "fault_to_client_ms": stats_ms(client_lag), "fault_to_subscriber_ms": stats_ms(zenoh_lag),
                 "missed": missed,
                 "client_over_subscriber_p50": (round(percentile(sorted(client_lag), 0.5) /
                                                      max(percentile(sorted(zenoh_lag), 0.5), 1e-3), 1)
@@ -127,14 +123,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = bench_parser("bench_opcua", __doc__)
-    p.add_argument("--hosts", type=int, default=8)
-    p.add_argument("--drives", type=int, default=128)
-    p.add_argument("--rounds", type=int, default=20)
-    p.add_argument("--idle-s", type=float, default=10.0)
-    a = p.parse_args(argv)
-    write_result(run(a.hosts, a.drives, a.rounds, a.idle_s), a.out)
-    return 0
+    return fleet_bench_main("bench_opcua", __doc__, run, argv)
 
 
 if __name__ == "__main__":
