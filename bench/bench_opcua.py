@@ -63,7 +63,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
         seen: dict[tuple[str, str], DriveStatus] = {}
         arrived: dict[tuple[str, str], float] = {}
         changes = _Changes()
-        with Fleet(connect=[ep]) as fleet, Client(endpoint) as client:
+        with Fleet(connect=[ep]) as fleet, Client(endpoint, timeout=30) as client:
             def on_status(st: DriveStatus) -> None:
                 statuses[0] += 1
                 if st.state == "fault" and (st.host, st.axis) not in seen:

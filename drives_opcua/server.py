@@ -222,7 +222,9 @@ class DrivesServer:
 
     async def _apply(self, drives: dict[DriveRef, DriveStatus], agents: dict[str, AgentStatus],
                      hosts: dict[str, bool]) -> None:
-        for ref, st in drives.items():
+        for n, (ref, st) in enumerate(drives.items()):
+            if n % 64 == 63:
+                await asyncio.sleep(0)  # a large batch (a fleet arriving) leaves room for the clients
             await self._drive_node(ref)
             values = model.drive_values(st)
             old_values = self.drive_shown.get(ref)
@@ -326,6 +328,7 @@ class DrivesServer:
         """Serve until cancelled; ``ready()`` is called once the endpoint listens."""
         await self.init()
         await self.populate()
+        await self._apply(*self.bridge.take())  # what the Fleet knows now, before clients come
         async with self.server:
             if self.pki is not None and not self.accept_unknown_clients:
                 from cryptography import x509
