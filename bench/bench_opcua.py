@@ -23,6 +23,7 @@ from typing import Any
 from bench.common import fleet_bench_main, free_port, loadavg, percentile, proc_cpu_s, run_stamp, stats_ms
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
+from drives_opcua.model import HOST_VARIABLES
 from schemas.messages import DriveStatus
 from supervisor.fleet import Fleet
 from supervisor.testbed import _spawn_ready, start_agents, start_router
@@ -71,15 +72,18 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                     arrived[(st.host, st.axis)] = time.time()
             fleet.on("status", on_status)
             idx = client.get_namespace_index("urn:zenoh-drives")
-            last = client.get_node(ua.NodeId(f"Drives/{names[-1]}/axis{drives - 1}/State", idx))
+            host_nodes = [client.get_node(ua.NodeId(f"Drives/{h}", idx)) for h in names]
 
             def shown() -> bool:
+                # Every drive object of every host (its agent variables besides): the address space
+                # is complete, so the idle window below measures rest, not the fleet being added.
                 try:
-                    return last.read_data_value().StatusCode.is_good()
+                    return all(len(n.get_children()) >= drives + len(HOST_VARIABLES) for n in host_nodes)
                 except Exception:
                     return False
             wait_for(shown, 240, f"{total} drives in the address space", poll_s=0.5)
             ready_s = time.monotonic() - t_start
+            time.sleep(2.0)
             targets = [(names[r % hosts], f"axis{(r // hosts) % drives}") for r in range(rounds)]
             sub = client.create_subscription(PUBLISH_MS, changes)
             sub.subscribe_data_change([client.get_node(ua.NodeId(f"Drives/{h}/{a}/State", idx)) for h, a in targets])

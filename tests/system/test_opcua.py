@@ -135,6 +135,27 @@ def test_fault_raises_an_event_and_maintenance_resets_it(bed: OpcuaBed) -> None:
         x.request("close")
 
 
+def test_lost_drive_raises_an_event_and_its_return_another(bed: OpcuaBed) -> None:
+    c, a = bed.client()
+    idx = ns(a)
+    c.request("events")
+    import zenoh
+
+    with zenoh.open(make_zenoh_config("client", [], [bed.zenoh_ep], pki=bed.pki, identity="tb")) as s:
+        sim_inject(s, "h1", 0, "unplug")
+        try:
+            ev = c.wait_note(lambda n: n.get("kind") == "event" and n.get("SourceName") == "h1/axis0"
+                             and " lost" in (n.get("Message") or ""), 15)
+            assert ev["Severity"] == 900, ev
+            assert c.request("read", nodeId=nid(idx, "Drives/h1/axis0/Lost"))["value"] is True
+        finally:
+            sim_inject(s, "h1", 0, "plug")
+    back = c.wait_note(lambda n: n.get("kind") == "event" and n.get("SourceName") == "h1/axis0"
+                       and "answers again" in (n.get("Message") or ""), 30)
+    assert back["Severity"] == 400
+    c.request("close")
+
+
 def test_bad_arguments_get_a_bad_status_and_nothing_is_sent(bed: OpcuaBed) -> None:
     c, a = bed.client(user=bed.password("olga"))
     idx = ns(a)
