@@ -141,6 +141,7 @@ class OpcuaBed:
                                                    "--pki", str(self.pki), "--identity", "opcua",
                                                    "--log-level", "INFO"], "drives-opcua ready", 60)
         self.clients: list[UaClient] = []
+        self._maintenance: tuple[UaClient, int] | None = None
 
     def _start(self, name: str, argv: list[str], marker: str, timeout_s: float = 30.0) -> ChildProcess:
         p = ChildProcess(name, argv, ready_marker=marker)
@@ -154,13 +155,22 @@ class OpcuaBed:
         Basic256Sha256 SignAndEncrypt with application certificate ``app`` of ``ca``."""
         c = UaClient()
         self.clients.append(c)
-        fields: dict[str, Any] = {"endpoint": self.endpoint, "pkiFolder": str(self.tmp / f"client-pki-{len(self.clients)}"),
-                                  "securityMode": "SignAndEncrypt" if secure else "None", "user": user}
-        if secure:
-            d = ca or self.pki
-            fields.update(clientCert=str(d / f"{app}.pem"), clientKey=str(d / f"{app}.key"), caCert=str(self.pki / "ca.pem"),
-                          applicationUri=f"urn:zenoh-drives:{app}")
+        # Every client has an application certificate (of the CA, or of ``ca``): node-opcua would
+        # otherwise make a self-signed one, seconds of RSA work per client.
+        d = ca or self.pki
+        fields: dict[str, Any] = {"endpoint": self.endpoint, "pkiFolder": str(self.tmp / f"client-pki-{d.name}"),
+                                  "securityMode": "SignAndEncrypt" if secure else "None", "user": user,
+                                  "clientCert": str(d / f"{app}.pem"), "clientKey": str(d / f"{app}.key"),
+                                  "caCert": str(self.pki / "ca.pem"), "applicationUri": f"urn:zenoh-drives:{app}"}
         return c, c.request("connect", **fields)
+
+    def maintenance(self) -> tuple[UaClient, int]:
+        """One logged-in maintenance client (mia) kept for the module, and the namespace index."""
+        if self._maintenance is None:
+            c, a = self.client(user=self.password("mia"))
+            assert a["ok"], a
+            self._maintenance = (c, a["namespaces"].index("urn:zenoh-drives"))
+        return self._maintenance
 
     def password(self, name: str) -> dict[str, Any]:
         return {"type": "password", "name": name, "password": self.USERS[name][1]}

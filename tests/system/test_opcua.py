@@ -48,13 +48,11 @@ def call(c, idx: int, drive: str, method: str, args: list[dict[str, Any]] | None
 
 def _fault_free_disabled(bed: OpcuaBed) -> None:
     """h1's drives out of fault and disabled, by maintenance (mia) over OPC UA."""
-    c, a = bed.client(user=bed.password("mia"))
-    idx = ns(a)
+    c, idx = bed.maintenance()
     for axis in ("axis0", "axis1"):
         if c.request("read", nodeId=nid(idx, f"Drives/h1/{axis}/State"))["value"] in ("fault", "fault_reaction_active"):
             assert call(c, idx, f"h1/{axis}", "FaultReset")["outputs"][0] == "done"
         assert call(c, idx, f"h1/{axis}", "Disable")["outputs"][0] == "done"
-    c.request("close")
 
 
 def test_anonymous_browses_reads_and_cannot_call(bed: OpcuaBed) -> None:
@@ -127,12 +125,11 @@ def test_fault_raises_an_event_and_maintenance_resets_it(bed: OpcuaBed) -> None:
     # An operator may not reset faults; maintenance may.
     refused = call(c, idx, "h1/axis1", "FaultReset")
     assert refused["status"] == "BadUserAccessDenied", refused
-    m, _ = bed.client(user=bed.password("mia"))
+    m, _ = bed.maintenance()
     assert call(m, idx, "h1/axis1", "FaultReset")["outputs"][0] == "done"
     c.wait_note(lambda n: n.get("kind") == "event" and n.get("SourceName") == "h1/axis1"
                 and "left fault" in (n.get("Message") or ""))
-    for x in (c, m):
-        x.request("close")
+    c.request("close")
 
 
 def test_lost_drive_raises_an_event_and_its_return_another(bed: OpcuaBed) -> None:
