@@ -150,7 +150,7 @@ class OpcuaBed:
         return p
 
     def client(self, *, user: dict[str, Any] | None = None, secure: bool = False, ca: Path | None = None,
-               app: str = "scada") -> tuple[UaClient, dict[str, Any]]:
+               app: str = "scada", **extra: Any) -> tuple[UaClient, dict[str, Any]]:
         """A connected client and the connect answer (``ok`` false when refused). ``secure``:
         Basic256Sha256 SignAndEncrypt with application certificate ``app`` of ``ca``."""
         c = UaClient()
@@ -162,7 +162,7 @@ class OpcuaBed:
                                   "securityMode": "SignAndEncrypt" if secure else "None", "user": user,
                                   "clientCert": str(d / f"{app}.pem"), "clientKey": str(d / f"{app}.key"),
                                   "caCert": str(self.pki / "ca.pem"), "applicationUri": f"urn:zenoh-drives:{app}"}
-        return c, c.request("connect", **fields)
+        return c, c.request("connect", **fields, **extra)
 
     def maintenance(self) -> tuple[UaClient, int]:
         """One logged-in maintenance client (mia) kept for the module, and the namespace index."""

@@ -57,6 +57,9 @@ async function connect(c) {
         clientCertificateManager: manager,
         requestedSessionTimeout: 60000,
     };
+    if (c.transactionTimeout) {
+        options.defaultTransactionTimeout = c.transactionTimeout;  // a refusal ends in a timeout (docs/opcua.md)
+    }
     if (c.clientCert) {
         options.certificateFile = c.clientCert;
         options.privateKeyFile = c.clientKey;
