@@ -28,12 +28,12 @@ from typing import Sequence
 from urllib.parse import urlparse
 
 from bus_agent.security.pki import PkiError
-from bus_agent.security.users import UsersError
+from bus_agent.security.users import UsersError, load as load_users
 from supervisor.fleet import Fleet, FleetError
 from supervisor.fleetfile import FleetFileError, load as load_fleet
 from supervisor.session import DEFAULT_CONNECT
 
-from .server import DrivesServer
+from .server import DrivesServer, server_files
 
 log = logging.getLogger("drives_opcua")
 DEFAULT_IDENTITY = "opcua"
@@ -78,6 +78,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         expected = load_fleet(args.fleet) if args.fleet else None
     except (FleetFileError, OSError) as exc:
         print(f"drives-opcua: --fleet {args.fleet}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.pki and identity:
+            server_files(args.pki, identity)  # before the fleet: a bad file is exit 2, not a late failure
+            load_users(args.pki)
+    except (PkiError, UsersError, OSError) as exc:
+        print(f"drives-opcua: {exc}", file=sys.stderr)
         return 2
     try:
         fleet = Fleet(connect=args.connect or DEFAULT_CONNECT, expected=expected, pki=args.pki,

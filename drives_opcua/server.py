@@ -121,12 +121,8 @@ class DrivesServer:
         policies = [ua.SecurityPolicyType.NoSecurity]
         tokens: list[type] = [ua.AnonymousIdentityToken]
         if self.pki is not None and self.identity is not None:
-            from bus_agent.security.pki import PkiError, check_identity, opcua_uri
-            files = check_identity(self.pki, self.identity)
-            if not _rsa(files.cert):
-                raise PkiError(f"{files.cert}: OPC UA (Basic256Sha256) needs an RSA certificate: issue it with "
-                               f"`drives-pki issue {self.pki} {self.identity} --role operator --role maintenance "
-                               "--opcua` (add --replace to renew an existing one)")
+            from bus_agent.security.pki import opcua_uri
+            files = server_files(self.pki, self.identity)
             await s.load_certificate(str(files.cert), format="pem")
             await s.load_private_key(str(files.key), format="pem")
             await s.set_application_uri(opcua_uri(self.identity))
@@ -328,6 +324,7 @@ class DrivesServer:
         """Serve until cancelled; ``ready()`` is called once the endpoint listens."""
         await self.init()
         await self.populate()
+        assert self.bridge is not None
         await self._apply(*self.bridge.take())  # what the Fleet knows now, before clients come
         async with self.server:
             if self.pki is not None and not self.accept_unknown_clients:
@@ -346,11 +343,20 @@ class DrivesServer:
                 self.pool.shutdown(wait=False, cancel_futures=True)
 
 
-def _rsa(cert_file: Path) -> bool:
+def server_files(pki: str | Path, identity: str) -> Any:
+    """The server's certificate files (``bus_agent.security.pki.Paths``), checked: present, in
+    date, its own, and RSA (Basic256Sha256 has no ECDSA). Raises ``PkiError`` saying how to fix it."""
     from cryptography import x509
     from cryptography.hazmat.primitives.asymmetric import rsa
 
-    return isinstance(x509.load_pem_x509_certificate(cert_file.read_bytes()).public_key(), rsa.RSAPublicKey)
+    from bus_agent.security.pki import PkiError, check_identity
+
+    files = check_identity(pki, identity)
+    if not isinstance(x509.load_pem_x509_certificate(files.cert.read_bytes()).public_key(), rsa.RSAPublicKey):
+        raise PkiError(f"{files.cert}: OPC UA (Basic256Sha256) needs an RSA certificate: issue it with "
+                       f"`drives-pki issue {pki} {identity} --role operator --role maintenance --opcua` "
+                       "(add --replace to renew an existing one)")
+    return files
 
 
 def _answer(status: int, outcome: str, error: str) -> ua.CallMethodResult:

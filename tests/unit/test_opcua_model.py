@@ -144,3 +144,35 @@ def test_service_rules() -> None:
     assert not rules.check_validity(auth.ANONYMOUS, call, None)
     assert rules.check_validity(olga, call, None) and auth.CURRENT_USER.get() is olga
     assert not rules.check_validity(olga, write, None)
+
+
+def test_drives_pki_user_and_crl_commands(tmp_path, monkeypatch, capsys) -> None:
+    import io
+
+    from bus_agent.security import cli
+
+    pki.init(tmp_path)
+    monkeypatch.setattr("sys.stdin", io.StringIO("a long password\n"))
+    assert cli.main(["user", str(tmp_path), "olga", "--role", "operator", "--password-stdin"]) == 0
+    assert users.load(tmp_path)["olga"].verify("a long password")
+    monkeypatch.setattr("sys.stdin", io.StringIO("short\n"))
+    assert cli.main(["user", str(tmp_path), "bob", "--role", "viewer", "--password-stdin"]) == 2
+    assert "at least 8" in capsys.readouterr().err and "bob" not in users.load(tmp_path)
+    pki.issue(tmp_path, "gone", ["viewer"])
+    serial = int(pki.pfile.load(tmp_path)["gone"].serial, 16)
+    pki.revoke(tmp_path, "gone")
+    from cryptography import x509
+
+    crl = x509.load_pem_x509_crl((tmp_path / pki.CA_CRL).read_bytes())
+    assert crl.get_revoked_certificate_by_serial_number(serial) is not None
+    assert cli.main(["crl", str(tmp_path)]) == 0
+
+
+def test_drives_opcua_refuses_an_ec_server_certificate_before_the_fleet(tmp_path, capsys) -> None:
+    from drives_opcua import cli
+
+    pki.init(tmp_path)
+    pki.issue(tmp_path, "opcua", ["operator", "maintenance"])  # EC: no --opcua
+    # Exit 2 saying how to fix it, before any Zenoh session (nothing listens on this port).
+    assert cli.main(["--connect", "tcp/127.0.0.1:9", "--pki", str(tmp_path)]) == 2
+    assert "--opcua" in capsys.readouterr().err
