@@ -119,6 +119,7 @@ class OpcuaBed:
                                    ("tb", ["testbed"], False), ("opcua", ["operator", "maintenance"], True),
                                    ("scada", ["viewer"], True), ("carl", ["operator"], True)):
             pki.issue(self.pki, name, roles, opcua=opcua)
+        pki.issue(self.pki, "dora", ["operator"], hosts=["h9"], opcua=True)  # commands to h9 only
         for name, (role, password) in self.USERS.items():
             users.set_user(self.pki, name, [role], password)
         # A client certificate of another CA (an unknown client).

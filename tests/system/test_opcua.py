@@ -181,6 +181,13 @@ def test_certificate_user_on_the_secure_endpoint_and_unknown_clients_refused(bed
     assert wait(lambda: "opcua for carl" in bed.agent.output(400))
     assert call(c, idx, "h1/axis1", "Disable")["outputs"][0] == "done"
     c.request("close")
+    # A user certificate over SecurityPolicy None (the token signed for Basic256Sha256), of an
+    # operator whose principal is scoped to h9: h1's drives are not hers.
+    dora, a = bed.client(user=bed.certificate("dora"))
+    assert a["ok"], a
+    scoped = call(dora, idx, "h1/axis1", "Enable")
+    assert scoped["status"] == "BadUserAccessDenied" and "commands only h9" in scoped["outputs"][1], scoped
+    dora.request("close")
     # The same application name, but a certificate of another CA: refused at session creation.
     # asyncua drops the refused channel's request unanswered: the client ends at its own timeout.
     stranger, refused = bed.client(secure=True, ca=bed.other, transactionTimeout=4000)
