@@ -19,7 +19,7 @@ from typing import Any, Callable, Iterable, Sequence
 from asyncua import ua
 
 from bus_agent.security.roles import ROLE_DRIVE_OPS
-from schemas.messages import AgentStatus, DriveStatus
+from schemas.messages import OP_ARGS, AgentStatus, DriveStatus
 from supervisor.results import CommandResult, Report
 
 #: The namespace of every node drives-opcua adds.
@@ -95,6 +95,7 @@ class Argument:
     low: float
     high: float
     description: str
+    key: str  # the command argument it becomes (schemas.messages.OP_ARGS)
 
 
 @dataclass(frozen=True)
@@ -104,23 +105,34 @@ class Method:
     op: str
     description: str
     arguments: tuple[Argument, ...] = ()
+    fixed: tuple[tuple[str, Any], ...] = ()  # command arguments always sent
+    two_phase: bool = False  # sent as Fleet.enable (two-phase orchestration), not one command
+    timeout_s: float = 5.0
 
+    def command_args(self, values: Sequence[float]) -> dict[str, Any]:
+        """The command's arguments from the checked argument values."""
+        return {**dict(self.fixed), **{a.key: v for a, v in zip(self.arguments, values)}}
+
+
+#: The contract's ``move`` arguments: the ranges a method argument is checked against.
+_MOVE = OP_ARGS["move"]
 
 #: Drive methods (browse name -> op). Each returns ``Outcome`` (a contract outcome, ``missing``,
 #: ``denied``, or ``rejected`` for what was never sent) and ``ErrorText``.
 METHODS: dict[str, Method] = {
-    "Enable": Method("enable", "two-phase enable to Operation enabled (as drivectl enable)"),
+    "Enable": Method("enable", "two-phase enable to Operation enabled (as drivectl enable)", two_phase=True),
     "Disable": Method("disable", "to Switch on disabled"),
     "Shutdown": Method("shutdown", "CiA 402 Shutdown: to Ready to switch on"),
     "QuickStop": Method("quick_stop", "quick stop (transition 11)"),
-    "Halt": Method("halt", "halt on (controlword bit 8)"),
+    "Halt": Method("halt", "halt on (controlword bit 8)", fixed=(("on", True),)),
     "FaultReset": Method("fault_reset", "fault reset (transition 15)"),
     "Stop": Method("stop", "PLCopen MC_Stop: decelerate and refuse motion until released"),
     "MoveAbsolute": Method("move", "move to Position at Velocity (the axis's units), done in the window at rest", (
-        Argument("Position", V.Double, -1e15, 1e15, "target position, in the axis's unit"),
-        Argument("Velocity", V.Double, 1e-9, 1e15, "velocity, in the axis's unit per second (> 0; above the "
-                 "axis limit: clamped or rejected by the axis)"),
-    )),
+        Argument("Position", V.Double, _MOVE["to"].meta["range"][0], _MOVE["to"].meta["range"][1],
+                 "target position, in the axis's unit", "to"),
+        Argument("Velocity", V.Double, 1e-9, _MOVE["velocity"].meta["range"][1], "velocity, in the axis's unit per "
+                 "second (> 0; above the axis limit: clamped or rejected by the axis)", "velocity"),
+    ), timeout_s=60.0),
 }
 #: The two outputs of every method.
 OUTPUTS = (("Outcome", "terminal outcome for this drive"), ("ErrorText", "why, when not done"))

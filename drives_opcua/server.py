@@ -297,26 +297,24 @@ class DrivesServer:
             return res
         log.info("opcua: %s by %s (%s)", where, user.name, user.via)
         ctx = contextvars.copy_context()
-        result = await asyncio.get_running_loop().run_in_executor(
-            self.pool, ctx.run, self._send, user.name, spec.op, str(ref), values)
+        try:
+            result = await asyncio.get_running_loop().run_in_executor(
+                self.pool, ctx.run, self._send, user.name, spec, str(ref), values)
+        except Exception as exc:  # the Fleet refused to send (a selector, a payload): say why
+            log.exception("opcua: %s by %s failed", where, user.name)
+            return _answer(ua.StatusCodes.BadInternalError, "rejected", f"{where}: not sent: {exc}")
         out, error = model.outcome(result, ref.host, ref.axis)
         log.info("opcua: %s by %s: %s %s", where, user.name, out, error)
         return _answer(ua.StatusCodes.Good, out, error)
 
-    def _send(self, user: str, op: str, target: str, values: list[float]) -> Any:
-        """One Fleet command for one drive, as ``user`` (blocking: on the command pool)."""
+    def _send(self, user: str, spec: model.Method, target: str, values: list[float]) -> Any:
+        """One Fleet command (or the two-phase enable) for one drive, as ``user`` (blocking: on
+        the command pool)."""
         f = self.fleet
         with f.acting_for(user):
-            if op == "enable":
-                return f.enable(target)
-            if op == "shutdown":
-                return f.shutdown(target)
-            if op == "halt":
-                return f.halt(target, on=True)
-            if op == "move":
-                position, velocity = values
-                return f.move(target, to=position, velocity=velocity, timeout_s=60.0)
-            return f.command(op, target)
+            if spec.two_phase:
+                return f.enable(target, timeout_s=spec.timeout_s)
+            return f.command(spec.op, target, spec.command_args(values), timeout_s=spec.timeout_s)
 
     # ---- run ------------------------------------------------------------------------------
 

@@ -176,3 +176,16 @@ def test_drives_opcua_refuses_an_ec_server_certificate_before_the_fleet(tmp_path
     # Exit 2 saying how to fix it, before any Zenoh session (nothing listens on this port).
     assert cli.main(["--connect", "tcp/127.0.0.1:9", "--pki", str(tmp_path)]) == 2
     assert "--opcua" in capsys.readouterr().err
+
+
+def test_method_arguments_become_the_contracts_command_args() -> None:
+    from schemas.messages import validate_args
+
+    args = MOVE.command_args([12.5, 3.0])
+    assert args == {"to": 12.5, "velocity": 3.0} and validate_args("move", args)
+    assert model.METHODS["Halt"].command_args([]) == {"on": True}
+    # The accepted range is the contract's: an accepted value always encodes.
+    high = MOVE.arguments[0].high
+    validate_args("move", MOVE.command_args(model.check_arguments(MOVE, [high, 1.0])))
+    with pytest.raises(model.ArgumentProblem):
+        model.check_arguments(MOVE, [high * 10, 1.0])
