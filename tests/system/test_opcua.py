@@ -168,6 +168,16 @@ def test_bad_arguments_get_a_bad_status_and_nothing_is_sent(bed: OpcuaBed) -> No
     missing = call(c, idx, "h1/axis0", "MoveAbsolute", [{"dataType": "Double", "value": 1.0}])
     assert missing["status"] == "BadArgumentsMissing", missing
     assert bed.agent.output(1000).count("move") == sent  # nothing reached the agent
+    # The same method with good arguments moves the drive (the positive control).
+    _fault_free_disabled(bed)
+    assert call(c, idx, "h1/axis0", "Enable")["outputs"][0] == "done"
+    start = c.request("read", nodeId=nid(idx, "Drives/h1/axis0/Position"))["value"]
+    moved = call(c, idx, "h1/axis0", "MoveAbsolute", [{"dataType": "Double", "value": 2.0},
+                                                      {"dataType": "Double", "value": 5.0}])
+    assert moved["status"] == "Good" and moved["outputs"] == ["done", ""], moved
+    assert wait(lambda: c.request("read", nodeId=nid(idx, "Drives/h1/axis0/Position"))["value"] != start)
+    assert "op move from opcua for olga" in bed.agent.output(1000)
+    assert call(c, idx, "h1/axis0", "Disable")["outputs"][0] == "done"
     c.request("close")
 
 
