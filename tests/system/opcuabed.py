@@ -198,5 +198,8 @@ def wait(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
 if __name__ == "__main__":  # `make opcua-client`
     found = client_modules()
     if found is None:
-        sys.exit("node and npm are needed for the OPC UA tests (deploy/apt-packages.txt: nodejs)")
+        # Outside CI the OPC UA tests then skip saying so (tests/conftest.py require); in CI they fail.
+        print("opcua-client: node and npm are needed for tests/system/test_opcua.py (deploy/apt-packages.txt: "
+              "nodejs)", file=sys.stderr)
+        sys.exit(1 if os.environ.get("CI") == "true" else 0)
     print(f"node-opcua-client ready in {found}")
