@@ -201,5 +201,5 @@ if __name__ == "__main__":  # `make opcua-client`
         # Outside CI the OPC UA tests then skip saying so (tests/conftest.py require); in CI they fail.
         print("opcua-client: node and npm are needed for tests/system/test_opcua.py (deploy/apt-packages.txt: "
               "nodejs)", file=sys.stderr)
-        sys.exit(1 if os.environ.get("CI") == "true" else 0)
+        sys.exit(1 if os.environ.get("CI", "").lower() in ("1", "true", "yes") else 0)
     print(f"node-opcua-client ready in {found}")
