@@ -189,3 +189,25 @@ def test_method_arguments_become_the_contracts_command_args() -> None:
     validate_args("move", MOVE.command_args(model.check_arguments(MOVE, [high, 1.0])))
     with pytest.raises(model.ArgumentProblem):
         model.check_arguments(MOVE, [high * 10, 1.0])
+
+
+def test_fleet_acting_for_names_the_user_in_every_request_of_the_block() -> None:
+    import threading
+
+    from schemas import keys
+    from supervisor.fleet import Fleet
+
+    f = Fleet(connect=["tcp/127.0.0.1:9"], name="gw")  # never opened: requests are only built
+    assert f._request("enable", None, 5.0).on_behalf_of == ""
+    with f.acting_for("olga"):
+        req = f._request("move", {"to": 1.0}, 5.0)
+        assert (req.on_behalf_of, req.supervisor) == ("olga", "gw")
+        other: list[str] = []
+        t = threading.Thread(target=lambda: other.append(f._request("halt", {"on": True}, 5.0).on_behalf_of))
+        t.start()
+        t.join()
+        assert other == [""]  # another thread's commands are not olga's
+    assert f._request("enable", None, 5.0).on_behalf_of == ""
+    with pytest.raises(keys.InvalidKey):
+        with f.acting_for("not a name"):
+            pass
