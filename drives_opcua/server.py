@@ -277,14 +277,12 @@ class DrivesServer:
             return _answer(ua.StatusCodes.BadMethodInvalid, "rejected", f"{name}: call it on a drive object")
         where = f"{name} on {ref.host}/{ref.axis}"
         if not isinstance(user, DrivesUser) or not user.name:
-            return _answer(ua.StatusCodes.BadUserAccessDenied, "denied", f"{where}: log in to call methods")
+            return _denied(f"{where}: log in to call methods")
         if not model.may_call(user.roles, spec.op):
-            return _answer(ua.StatusCodes.BadUserAccessDenied, "denied",
-                           f"{where}: {user.name} ({', '.join(user.roles)}) may not {spec.op}; "
+            return _denied(f"{where}: {user.name} ({', '.join(user.roles)}) may not {spec.op}; "
                            f"roles that may: {', '.join(model.roles_for(spec.op))}")
         if user.hosts and ref.host not in user.hosts:
-            return _answer(ua.StatusCodes.BadUserAccessDenied, "denied",
-                           f"{where}: {user.name} commands only {', '.join(user.hosts)}")
+            return _denied(f"{where}: {user.name} commands only {', '.join(user.hosts)}")
         try:
             values = model.check_arguments(spec, args)
         except model.ArgumentProblem as exc:
@@ -355,6 +353,12 @@ def server_files(pki: str | Path, identity: str) -> Any:
                        f"`drives-pki issue {pki} {identity} --role operator --role maintenance --opcua` "
                        "(add --replace to renew an existing one)")
     return files
+
+
+def _denied(text: str) -> ua.CallMethodResult:
+    """A call refused for its user (logged: the server's side of the audit)."""
+    log.warning("opcua: denied: %s", text)
+    return _answer(ua.StatusCodes.BadUserAccessDenied, "denied", text)
 
 
 def _answer(status: int, outcome: str, error: str) -> ua.CallMethodResult:
