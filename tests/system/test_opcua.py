@@ -191,6 +191,12 @@ def test_certificate_user_on_the_secure_endpoint_and_unknown_clients_refused(bed
     assert wait(lambda: "opcua for carl" in bed.agent.output(400))
     assert call(c, idx, "h1/axis1", "Disable")["outputs"][0] == "done"
     c.request("close")
+    # A password user on the secure endpoint too.
+    olga, a = bed.client(user=bed.password("olga"), secure=True)
+    assert a["ok"], a
+    assert call(olga, idx, "h1/axis1", "QuickStop")["status"] == "Good"
+    assert call(olga, idx, "h1/axis1", "Disable")["outputs"][0] == "done"
+    olga.request("close")
     # A user certificate over SecurityPolicy None (the token signed for Basic256Sha256), of an
     # operator whose principal is scoped to h9: h1's drives are not hers.
     dora, a = bed.client(user=bed.certificate("dora"))
