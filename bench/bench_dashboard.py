@@ -20,17 +20,13 @@ from typing import Any
 
 import zenoh
 
-from bench.common import bench_parser, loadavg, percentile, proc_cpu_s, quantiles, run_stamp, write_result
+from bench.common import fleet_bench_main, loadavg, percentile, proc_cpu_s, run_stamp, stats_ms
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas.messages import DriveStatus
 from supervisor.fleet import Fleet
 from supervisor.session import zenoh_config
 from supervisor.testbed import headless_chromium, start_agents, start_dashboard, start_router
-
-
-def _stats(values_ms: list[float]) -> dict[str, Any]:
-    return {"n": len(values_ms), **quantiles(sorted(values_ms))} if values_ms else {"n": 0}
 
 
 def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
@@ -84,7 +80,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                 "dashboard_cpu_idle_pct": round(100 * idle_cpu / idle_wall, 1),
                 "dashboard_cpu_us_per_status": round(idle_cpu * 1e6 / idle_n, 1) if idle_n else None,
                 "dashboard_cpu_changes_pct": round(busy_cpu, 1),
-                "change_to_page_ms": _stats(page_lag), "change_to_subscriber_ms": _stats(zenoh_lag),
+                "change_to_page_ms": stats_ms(page_lag), "change_to_subscriber_ms": stats_ms(zenoh_lag),
                 "subscriber_missed": missed,
                 "page_over_subscriber_p50": (round(percentile(sorted(page_lag), 0.5) /
                                                    max(percentile(sorted(zenoh_lag), 0.5), 1e-3), 1)
@@ -96,14 +92,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = bench_parser("bench_dashboard", __doc__)
-    p.add_argument("--hosts", type=int, default=8)
-    p.add_argument("--drives", type=int, default=128)
-    p.add_argument("--rounds", type=int, default=20)
-    p.add_argument("--idle-s", type=float, default=10.0)
-    a = p.parse_args(argv)
-    write_result(run(a.hosts, a.drives, a.rounds, a.idle_s), a.out)
-    return 0
+    return fleet_bench_main("bench_dashboard", __doc__, run, argv)
 
 
 if __name__ == "__main__":

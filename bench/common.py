@@ -360,3 +360,22 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def stats_ms(values_ms: Sequence[float]) -> dict:
+    """``n`` and p50/p99/max of latencies in ms (``{"n": 0}`` when none)."""
+    return {"n": len(values_ms), **quantiles(sorted(values_ms))} if values_ms else {"n": 0}
+
+
+def fleet_bench_main(name: str, doc: str | None, run: Callable[[int, int, int, float], dict],
+                     argv: list[str] | None) -> int:
+    """``main`` of a benchmark over a fleet of simulated agents that idles, then faults a drive
+    per round (bench_dashboard, bench_opcua): ``--hosts``, ``--drives``, ``--rounds``, ``--idle-s``."""
+    p = bench_parser(name, doc)
+    p.add_argument("--hosts", type=int, default=8)
+    p.add_argument("--drives", type=int, default=128)
+    p.add_argument("--rounds", type=int, default=20)
+    p.add_argument("--idle-s", type=float, default=10.0)
+    a = p.parse_args(argv)
+    write_result(run(a.hosts, a.drives, a.rounds, a.idle_s), a.out)
+    return 0

@@ -139,6 +139,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               ("--backend", "ecat", "--seconds", "120", "--seed", "1", "--report-only"),
               ("--backend", "ecat", "--seconds", "30", "--seed", "1", "--report-only"), True,
               sf.chaos_figures, sf.chaos_headline, sf.chaos_targets),
+    Benchmark("opcua", "drives-opcua with 1024 drives (real sim agents): CPU at rest, fault to an OPC UA client's data "
+              "change next to a plain Fleet subscriber", "bench.bench_opcua", ("--rounds", "20", "--idle-s", "10"),
+              ("--rounds", "4", "--idle-s", "3"), False, sf.opcua_figures, sf.opcua_headline, sf.opcua_targets),
 )
 
 

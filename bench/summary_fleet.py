@@ -269,3 +269,35 @@ def chaos_targets(r: Mapping[str, Any]) -> list[Target]:
     broken = ", ".join(f"{n} {m['violations']}" for n, m in r["monitors"].items() if m["violations"])
     return [at_most("violations, every monitor", r["violations_total"], 0, note=broken),
             at_most("harness errors (a part the twin could not bring back)", len(r.get("harness_errors") or []), 0)]
+
+
+# ---- bench_opcua ----------------------------------------------------------------------------------
+
+#: Issue 25: an OPC UA value changes within 500 ms of the status it comes from (worst round).
+OPCUA_CHANGE_MS_MAX = 500.0
+#: drives-opcua at rest with 1024 drives (every drive's heartbeat), % of one core.
+OPCUA_CPU_PCT_MAX = 25.0
+#: Its CPU per status taken in at rest (the Fleet's decoding included).
+OPCUA_CPU_US_PER_STATUS_MAX = 250.0
+
+
+opcua_figures = picked("drives", "fleet", "publishing_interval_ms", "server_ready_s", "statuses_per_s_idle",
+                       "server_cpu_idle_pct", "server_cpu_us_per_status", "server_cpu_changes_pct",
+                       "fault_to_client_ms", "fault_to_subscriber_ms", "client_over_subscriber_p50", "missed")
+
+
+def opcua_headline(r: Mapping[str, Any]) -> str:
+    c, z = r.get("fault_to_client_ms") or {}, r.get("fault_to_subscriber_ms") or {}
+    return (f"{r.get('drives')} drives: fault to OPC UA client p50/max {c.get('p50')}/{c.get('max')} ms (a plain "
+            f"Fleet subscriber {z.get('p50')}/{z.get('max')} ms, x{r.get('client_over_subscriber_p50')}; publishing "
+            f"interval {r.get('publishing_interval_ms')} ms); server CPU {r.get('server_cpu_idle_pct')} % at rest "
+            f"({r.get('statuses_per_s_idle')} statuses/s, {r.get('server_cpu_us_per_status')} us each)")
+
+
+def opcua_targets(r: Mapping[str, Any]) -> list[Target]:
+    return [at_most("fault to the OPC UA client's data change, max", (r.get("fault_to_client_ms") or {}).get("max"),
+                    OPCUA_CHANGE_MS_MAX, " ms"),
+            at_most("drives-opcua CPU at rest, % of one core", r.get("server_cpu_idle_pct"), OPCUA_CPU_PCT_MAX),
+            at_most("drives-opcua CPU per status taken in", r.get("server_cpu_us_per_status"),
+                    OPCUA_CPU_US_PER_STATUS_MAX, " us"),
+            at_most("rounds whose fault never reached the client", r.get("missed"), 0)]

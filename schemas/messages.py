@@ -235,11 +235,15 @@ class CommandRequest:
 
     TYPE: ClassVar[str] = "command_request"
     STRICT: ClassVar[bool] = True  # an agent never acts on a command with fields it does not know
+    #: Optional fields added after agents were deployed: encoded only when not at their default,
+    #: so a request that does not use them is what older (strict) agents accept.
+    SPARSE: ClassVar[tuple[str, ...]] = ("on_behalf_of",)
     request_id: str = _f(max_len=128, min_len=1, doc="caller-chosen id; a repeat returns the first outcome")
     op: str = _f(choices=DRIVE_OPS + AGENT_OPS, doc="the op, equal to the last chunk of the key")
     args: dict = _f({}, arg_value=True, doc="op arguments, see the op argument table")
     timeout_s: float = _f(5.0, range=(0.0, 3600.0), doc="deadline for the goal, from receipt")
     supervisor: str = _f("", max_len=NAME_LEN, name=True, doc="sender identity, for leases ('' = anonymous); on an @sup/<principal> key, '' or that principal")
+    on_behalf_of: str = _f("", max_len=NAME_LEN, name=True, doc="the user a gateway sends this for (an OPC UA user), for the audit; sent only when set")
 
 
 @dataclass(frozen=True)
@@ -483,6 +487,13 @@ def validate(msg: Any) -> Any:
     return msg
 
 
+def _drop_sparse(cls: type[Any], body: dict) -> None:
+    """Leave out the class's ``SPARSE`` fields (optional strings) that are empty (see ``CommandRequest``)."""
+    for name in getattr(cls, "SPARSE", ()):
+        if body.get(name) == "":
+            del body[name]
+
+
 def encode(msg: Any) -> bytes:
     """Validate and encode a message dataclass as msgpack (fields + ``v`` + ``type``).
 
@@ -492,6 +503,7 @@ def encode(msg: Any) -> bytes:
     if type(msg) not in _BY_TYPE.values():
         raise SchemaError(f"cannot encode {type(msg).__name__}: not a message type")
     body = _validated(type(msg), msg.__dict__, {"v": SCHEMA_VERSION, "type": msg.TYPE})
+    _drop_sparse(type(msg), body)
     try:
         return msgpack.packb(body, use_bin_type=True)
     except Exception as exc:  # defensive: validation admits only packable values
@@ -554,8 +566,12 @@ def encode_new(cls: type[Any], fields: dict) -> tuple[Any, bytes]:
         unknown = set(fields) - known | ({"v", "type"} & set(fields))
         raise SchemaError(f"{cls.TYPE}: unknown field(s) {', '.join(sorted(map(repr, unknown)))}")
     body = _validated(cls, fields, {"v": SCHEMA_VERSION, "type": cls.TYPE})
+    wire = body
+    if getattr(cls, "SPARSE", ()):
+        wire = dict(body)
+        _drop_sparse(cls, wire)
     try:
-        payload = msgpack.packb(body, use_bin_type=True)
+        payload = msgpack.packb(wire, use_bin_type=True)
     except Exception as exc:  # defensive: validation admits only packable values
         raise SchemaError(f"cannot encode {cls.TYPE}: {exc}") from None
     del body["v"], body["type"]

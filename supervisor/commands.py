@@ -9,6 +9,8 @@ per addressed drive (``missing`` for a drive that never answered).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import itertools
 import logging
@@ -16,7 +18,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import zenoh
 
@@ -46,6 +48,10 @@ log = logging.getLogger("supervisor.fleet")
 #: Extra time a query waits beyond the agents' own deadline (transport and scheduling).
 REPLY_MARGIN_S = 1.0
 DEFAULT_TIMEOUT_S = 5.0
+
+#: The user a gateway (drives-opcua) sends the current thread's commands for: carried in every
+#: request (``on_behalf_of``) so the agents' audit names them. Set with :meth:`FleetCommands.acting_for`.
+ACTING_FOR: contextvars.ContextVar[str] = contextvars.ContextVar("fleet_acting_for", default="")
 
 
 @dataclass(eq=False)  # identity: a set member of the Fleet while it waits
@@ -128,6 +134,23 @@ class FleetCommands:
 
     def _request_id(self, op: str) -> str:
         return f"{self.name}-{op}-{next(self._rid)}-{uuid.uuid4().hex[:8]}"
+
+    def _request(self, op: str, args: Mapping[str, Any] | None, timeout_s: float) -> CommandRequest:
+        """The request of every command this Fleet sends: its id, this supervisor, and the user
+        it acts for (:meth:`acting_for`), if any."""
+        return CommandRequest(self._request_id(op), op, dict(args or {}), float(timeout_s), self.name,
+                              ACTING_FOR.get())
+
+    @contextlib.contextmanager
+    def acting_for(self, user: str) -> Iterator[None]:
+        """Commands sent from this thread (and threads it starts through ``contextvars``) inside
+        the block carry ``user`` as ``on_behalf_of``: a gateway's way to have the agents' audit
+        name the person (an OPC UA user) behind its own principal. ``user`` must be a legal name."""
+        token = ACTING_FOR.set(keys.validate_name(user, "user"))
+        try:
+            yield
+        finally:
+            ACTING_FOR.reset(token)
 
     def _query(self, keyexprs: Sequence[str], request: CommandRequest,
                addressed: Iterable[DriveRef], wait_s: float, agent_level: bool = False) -> CommandResult:
@@ -234,7 +257,7 @@ class FleetCommands:
         args = dict(args or {})
         if op == "move" and args.get("sync") and not ("targets" in args or "axes" in args):
             raise ValueError("a synchronized move goes through Fleet.command or Fleet.group_move (one group)")
-        req = CommandRequest(self._request_id(op), op, args, float(timeout_s), self.name)
+        req = self._request(op, args, timeout_s)
         conflicts = self.conflicts()
         refused = [DriveResult(r.host, r.axis, "rejected", error=f"not sent: {conflicts[r.host]}")
                    for r in sel.drives if r.host in conflicts]
@@ -370,7 +393,7 @@ class FleetCommands:
         args: dict[str, Any] = {"command": command}
         if axis is not None:
             args["axis"] = self._axis_of_slave(axis, addressed)
-        req = CommandRequest(self._request_id("nmt"), "nmt", args, float(timeout_s), self.name)
+        req = self._request("nmt", args, timeout_s)
         return self._query(sorted(set(keyexprs)), req, [DriveRef(h, "") for h in addressed],
                            timeout_s + REPLY_MARGIN_S, agent_level=True)
 

@@ -11,6 +11,7 @@ per host naming its axes (the agent starts them in one cycle); across hosts two 
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -123,7 +124,9 @@ def _one_group(fleet: "Fleet", refs: Sequence[DriveRef], per_host: Mapping[str, 
     if len(per_host) == 1:
         return send(next(iter(per_host)), {})
     with ThreadPoolExecutor(max_workers=len(per_host)) as pool:
-        prepared = list(pool.map(lambda h: send(h, {"prepare": True}), per_host))
+        # Each host's query in the caller's context (the user it acts for, supervisor.commands.ACTING_FOR).
+        ctx = contextvars.copy_context()
+        prepared = list(pool.map(lambda h: ctx.copy().run(send, h, {"prepare": True}), per_host))
         merged = _merge("move", prepared)
         if not merged.ok:
             # Nothing moved: the drives whose host prepared fine are refused with the others' reasons.
@@ -133,7 +136,8 @@ def _one_group(fleet: "Fleet", refs: Sequence[DriveRef], per_host: Mapping[str, 
                 r if not r.ok else dataclasses.replace(r, outcome="rejected", error=why[:400]) for r in merged.results))
         duration = max(r.duration_s for r in merged.results)
         start_at_ns = time.time_ns() + int(margin_s * 1e9)
-        committed = list(pool.map(lambda h: send(h, {"duration_s": duration, "start_at_ns": start_at_ns}), per_host))
+        committed = list(pool.map(lambda h: ctx.copy().run(send, h, {"duration_s": duration, "start_at_ns": start_at_ns}),
+                                  per_host))
     return _merge("move", committed)
 
 

@@ -322,10 +322,12 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
 
     def _requester(self, key: str, request: m.CommandRequest | None) -> str:
         """Who is asking, for the audit trail: the requester :func:`requester` decided for a parsed
-        request (the key's authenticated principal, else the declared ``supervisor``); for a
-        refused one, the key's principal if it names one; '' -> anonymous."""
+        request (the key's authenticated principal, else the declared ``supervisor``), followed
+        by ``for <user>`` when it sends for someone (``on_behalf_of``, a gateway's claim about its
+        user); for a refused one, the key's principal if it names one; '' -> anonymous."""
         if request is not None:
-            return request.supervisor or "anonymous"
+            who = request.supervisor or "anonymous"
+            return f"{who} for {request.on_behalf_of}" if request.on_behalf_of else who
         try:
             return keys.command_principal(key) or "anonymous"
         except keys.InvalidKey:

@@ -4,12 +4,18 @@
     drives-pki issue DIR NAME --role ROLE [--role ROLE] [--hosts H1,H2] [--days N] [--san NAME|IP]... [--replace]
     drives-pki list DIR [--json]
     drives-pki revoke DIR NAME                           # (or remove): denied by every router after its restart
+    drives-pki user DIR NAME --role ROLE [--password-stdin]   # an OPC UA user (drives-opcua), password hashed
+    drives-pki crl DIR                                   # rewrite DIR/ca.crl (also done by init and revoke)
 
 Roles: router, agent (NAME = its host name), operator, maintenance, viewer, testbed (see
 ``bus_agent.security.roles.ROLES``). Certificates hold ``localhost`` and ``127.0.0.1`` as
 subjectAltNames; ``--san`` adds the names and addresses clients dial (a router's). Routers
 compile their ACL from DIR/principals.toml at start: restart them after issue or revoke.
 ``--hosts`` limits an operator's or maintainer's commands to those hosts (default: every host).
+``--opcua`` issues an RSA certificate fit for OPC UA (drives-opcua's server, its clients' application
+certificates, user certificates; ``bus_agent.security.pki``). ``user`` keeps a name, roles (viewer,
+operator, maintenance) and a salted scrypt hash of the password in DIR/users.toml; the password is
+asked twice on a terminal, or read as one line from stdin with ``--password-stdin``.
 
 Exit codes: 0 done; 2 bad arguments or a refused operation (nothing written).
 """
@@ -17,13 +23,15 @@ Exit codes: 0 done; 2 bad arguments or a refused operation (nothing written).
 from __future__ import annotations
 
 import argparse
+import getpass
 import json
 import sys
 from typing import Any, Sequence
 
-from bus_agent.security import pki
+from bus_agent.security import pki, users
 from bus_agent.security.principals import PrincipalsError, load_all
 from bus_agent.security.roles import ROLES, allowed_ops
+from bus_agent.security.users import USER_ROLES
 
 EXIT_OK, EXIT_USAGE = 0, 2
 
@@ -48,6 +56,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="commands to these hosts only (operator, maintenance; default: every host)")
     s.add_argument("--replace", action="store_true",
                    help="re-issue an existing principal (new key; the old certificate stays valid: revoke a leaked one)")
+    s.add_argument("--opcua", action="store_true",
+                   help="an RSA certificate with OPC UA's key usages and URI urn:zenoh-drives:NAME (drives-opcua)")
+    c = sub.add_parser("crl", help="rewrite DIR/ca.crl (revoked serials, signed by the CA; valid a year)")
+    c.add_argument("dir", metavar="DIR")
+    u = sub.add_parser("user", help="add or change an OPC UA user (drives-opcua): roles and a hashed password")
+    u.add_argument("dir", metavar="DIR")
+    u.add_argument("name", metavar="NAME")
+    u.add_argument("--role", action="append", required=True, choices=USER_ROLES,
+                   help="role (repeatable): viewer reads; operator enables and moves; maintenance resets faults")
+    u.add_argument("--password-stdin", action="store_true", help="read the password as one line from stdin")
     ls = sub.add_parser("list", help="the principals of DIR")
     ls.add_argument("dir", metavar="DIR")
     ls.add_argument("--json", action="store_true")
@@ -64,6 +82,18 @@ def _hosts(text: str) -> tuple[str, ...]:
     if not all(hosts):
         raise argparse.ArgumentTypeError(f"{text!r}: expected host names separated by commas, e.g. h1,h2")
     return hosts
+
+
+def _password(from_stdin: bool) -> str:
+    """The new password: one line of stdin, or asked twice without echo on a terminal."""
+    if from_stdin:
+        return sys.stdin.readline().rstrip("\r\n")
+    if not sys.stdin.isatty():
+        raise users.UsersError("no terminal to ask the password on: give --password-stdin and pipe it in")
+    first = getpass.getpass("password: ")
+    if getpass.getpass("again: ") != first:
+        raise users.UsersError("the two passwords differ; nothing written")
+    return first
 
 
 def _list(d: str, as_json: bool) -> int:
@@ -100,18 +130,24 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "plant network)")
         elif args.cmd == "issue":
             p = pki.issue(args.dir, args.name, args.role, days=args.days, sans=args.san, hosts=args.hosts,
-                          replace=args.replace)
+                          replace=args.replace, opcua=args.opcua)
             files = pki.paths(args.dir, p.name)
             print(f"drives-pki: issued {p.name} ({', '.join(p.roles)}; commands to "
                   f"{', '.join(p.hosts) or 'every host'}) until {p.not_after}: {files.cert}, {files.key}; "
                   f"sans {', '.join(p.sans)}. Restart the routers to load the new principals.toml.")
+        elif args.cmd == "user":
+            user = users.set_user(args.dir, args.name, args.role, _password(args.password_stdin))
+            print(f"drives-pki: user {user.name} ({', '.join(user.roles)}) written to {args.dir}/{users.FILE_NAME}; "
+                  "drives-opcua reads it at start")
+        elif args.cmd == "crl":
+            print(f"drives-pki: wrote {pki.write_crl(args.dir)}")
         elif args.cmd == "list":
             return _list(args.dir, args.json)
         elif args.cmd in ("revoke", "remove"):
             r = pki.revoke(args.dir, args.name)
             print(f"drives-pki: revoked {r.name} (serial {r.serial}). Copy principals.toml to every router and restart "
                   "them: until then they still admit it.")
-    except (pki.PkiError, PrincipalsError, OSError) as exc:
+    except (pki.PkiError, PrincipalsError, users.UsersError, OSError) as exc:
         print(f"drives-pki: {exc}", file=sys.stderr)
         return EXIT_USAGE
     return EXIT_OK

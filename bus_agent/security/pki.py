@@ -5,12 +5,20 @@ Layout of a PKI directory (``drives-pki init DIR``)::
     DIR/ca.pem  DIR/ca.key                 the CA (key 0600; keep it off the plant network)
     DIR/<name>.pem  DIR/<name>.key         one certificate and key (0600) per principal
     DIR/principals.toml                    names and roles (bus_agent.security.principals)
+    DIR/ca.crl                             revoked serials, signed by the CA (for OPC UA peers)
 
 Certificates: ECDSA P-256, CN = the principal's name (zenoh's ACL matches the first CN of the
 peer's leaf certificate), key usage digitalSignature, extended key usage serverAuth and
 clientAuth (routers and agents both listen and connect). subjectAltName holds the names and
 addresses clients dial (``verify_name_on_connect``): ``localhost`` and ``127.0.0.1`` by default,
 plus ``--san``. A node needs ca.pem, its own pem/key and principals.toml, never ca.key.
+
+OPC UA (``issue(..., opcua=True)``, ``drives-pki issue --opcua``): the application and user
+certificates of drives-opcua and its clients. OPC UA's Basic256Sha256 needs RSA, so these hold
+an RSA 2048 key, the key usages OPC UA asks for (digitalSignature, nonRepudiation,
+keyEncipherment, dataEncipherment) and the application URI ``urn:zenoh-drives:<name>``
+(:func:`opcua_uri`) as a subjectAltName URI. They serve for Zenoh's TLS as well (the drives-opcua
+server's principal uses one certificate for both).
 """
 
 from __future__ import annotations
@@ -24,7 +32,7 @@ from typing import Iterable, Sequence
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric import ec, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from bus_agent.security import principals as pfile
@@ -57,7 +65,12 @@ def paths(pki_dir: str | Path, name: str) -> Paths:
     return Paths(d / f"{name}.pem", d / f"{name}.key", d / CA_CERT)
 
 
-def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+def opcua_uri(name: str) -> str:
+    """The OPC UA application URI of an ``--opcua`` certificate of ``name`` (its SAN URI)."""
+    return f"urn:zenoh-drives:{name}"
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey) -> None:
     data = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                              serialization.NoEncryption())
     # Created 0600 from the start: never readable by others, not even for an instant.
@@ -97,7 +110,31 @@ def init(pki_dir: str | Path, name: str = "zenoh-drives CA", days: int = DEFAULT
     _write_cert(d / CA_CERT, cert)
     if not (d / pfile.FILE_NAME).exists():
         pfile.save(d, [])
+    write_crl(d)
     return d / CA_CERT
+
+
+#: The CA's certificate revocation list (PEM), rewritten by init and revoke: OPC UA clients and
+#: servers (node-opcua, UaExpert) want one for every issuer they trust.
+CA_CRL = "ca.crl"
+CRL_DAYS = 365
+
+
+def write_crl(pki_dir: str | Path) -> Path:
+    """Write ``DIR/ca.crl``: the serials of every revoked principal, signed by the CA, valid
+    :data:`CRL_DAYS` (``drives-pki crl DIR`` renews it)."""
+    d = Path(pki_dir)
+    ca_cert, ca_key = _load_ca(d)
+    now = _now()
+    builder = (x509.CertificateRevocationListBuilder().issuer_name(ca_cert.subject)
+               .last_update(now - CLOCK_SKEW).next_update(now + dt.timedelta(days=CRL_DAYS)))
+    for r in pfile.load_all(d)[1].values() if (d / pfile.FILE_NAME).exists() else ():
+        if r.serial:
+            builder = builder.add_revoked_certificate(
+                x509.RevokedCertificateBuilder().serial_number(int(r.serial, 16)).revocation_date(now).build())
+    crl = builder.sign(ca_key, hashes.SHA256())
+    (d / CA_CRL).write_bytes(crl.public_bytes(serialization.Encoding.PEM))
+    return d / CA_CRL
 
 
 def _san(text: str) -> x509.GeneralName:
@@ -126,12 +163,13 @@ def _load_ca(d: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
 
 def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = DEFAULT_DAYS,
           sans: Iterable[str] = (), hosts: Sequence[str] = (), valid_from: dt.datetime | None = None,
-          replace: bool = False) -> pfile.Principal:
+          replace: bool = False, opcua: bool = False) -> pfile.Principal:
     """Issue ``name``'s certificate and key, signed by the CA of ``pki_dir``, and record it in
     principals.toml. ``sans`` are added to :data:`DEFAULT_SANS`. ``hosts`` limits its commands
     to those hosts (the ACL's rules name them; empty: every host). ``valid_from`` (tests: an
     expired certificate) defaults to now. ``replace`` re-issues an existing name (new key; the
     old certificate stays valid until it expires: to shut a key out, :func:`revoke` it).
+    ``opcua``: an RSA certificate fit for OPC UA (see the module docstring).
     Raises :class:`PkiError` (nothing is written then), also for a revoked name."""
     d = Path(pki_dir)
     try:
@@ -156,15 +194,18 @@ def issue(pki_dir: str | Path, name: str, roles: Sequence[str], *, days: int = D
     san_list = list(dict.fromkeys([*DEFAULT_SANS, *sans]))
     general = [_san(s) for s in san_list]
     start = valid_from or _now()
-    key = ec.generate_private_key(ec.SECP256R1())
+    if opcua:
+        general.append(x509.UniformResourceIdentifier(opcua_uri(name)))
+    key: ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey = (
+        rsa.generate_private_key(public_exponent=65537, key_size=2048) if opcua else ec.generate_private_key(ec.SECP256R1()))
     cert = (x509.CertificateBuilder()
             .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
             .issuer_name(ca_cert.subject).public_key(key.public_key())
             .serial_number(x509.random_serial_number())
             .not_valid_before(start - CLOCK_SKEW).not_valid_after(start + dt.timedelta(days=days))
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
-                                         data_encipherment=False, key_agreement=False, key_cert_sign=False,
+            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=opcua, key_encipherment=opcua,
+                                         data_encipherment=opcua, key_agreement=False, key_cert_sign=False,
                                          crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
             .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
                            critical=False)
@@ -202,6 +243,7 @@ def revoke(pki_dir: str | Path, name: str) -> pfile.Revoked:
     entry = pfile.Revoked(name, known.pop(name).serial, _stamp(_now()))
     revoked[name] = entry
     pfile.save(d, known.values(), revoked.values())
+    write_crl(d)
     files = paths(d, name)
     for f in (files.key, files.cert):
         if f.exists():

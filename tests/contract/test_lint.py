@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_pyflakes_clean():
-    done = subprocess.run([sys.executable, "-m", "pyflakes", "schemas", "bus_agent", "supervisor", "dashboard", "twin", "examples", "bench", "tests"],
+    done = subprocess.run([sys.executable, "-m", "pyflakes", "schemas", "bus_agent", "supervisor", "dashboard", "twin", "drives_opcua", "examples", "bench", "tests"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
 

@@ -83,7 +83,23 @@ def test_round_trip_examples(msg):
     assert m.decode(data, type(msg)) == msg
     body = msgpack.unpackb(data, raw=False)
     assert body["v"] == m.SCHEMA_VERSION and body["type"] == msg.TYPE
-    assert set(body) == {"v", "type"} | {f.name for f in dataclasses.fields(msg)}
+    sparse = {n for n in getattr(msg, "SPARSE", ()) if getattr(msg, n) == ""}
+    assert set(body) == {"v", "type"} | {f.name for f in dataclasses.fields(msg)} - sparse
+
+
+def test_sparse_request_fields_go_on_the_wire_only_when_set():
+    """A command_request without ``on_behalf_of`` is byte for byte what agents that predate the
+    field accept (they refuse unknown fields); with it, the field is carried and decoded."""
+    plain = m.CommandRequest("r1", "enable", {}, 5.0, "sup")
+    body = msgpack.unpackb(m.encode(plain), raw=False)
+    assert "on_behalf_of" not in body
+    assert m.encode_new(m.CommandRequest, {"request_id": "r1", "op": "enable", "supervisor": "sup"})[1] == m.encode(plain)
+    acting = dataclasses.replace(plain, on_behalf_of="alice")
+    data = m.encode(acting)
+    assert msgpack.unpackb(data, raw=False)["on_behalf_of"] == "alice"
+    assert m.decode(data) == acting
+    with pytest.raises(SchemaError, match="on_behalf_of"):
+        m.encode(dataclasses.replace(plain, on_behalf_of="not a name"))
 
 
 @given(any_message)

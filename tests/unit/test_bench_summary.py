@@ -296,3 +296,16 @@ def test_chaos_targets_are_zero_violations_and_zero_harness_errors() -> None:
     assert sf.chaos_figures(run)["monitors"]["one_terminal_reply"] == {"checked": 180, "skipped": 20, "violations": 0}
     clean = {**run, "monitors": {"one_terminal_reply": run["monitors"]["one_terminal_reply"]}, "violations_total": 0}
     assert sf.chaos_targets(clean)[0].met is True and "violations: none" in sf.chaos_headline(clean)
+
+
+def test_opcua_targets_read_the_worst_round_the_rest_cpu_and_misses() -> None:
+    run = {"drives": 1024, "fault_to_client_ms": {"n": 20, "p50": 17.0, "max": 510.0},
+           "fault_to_subscriber_ms": {"p50": 3.0, "max": 14.0}, "server_cpu_idle_pct": 20.0,
+           "server_cpu_us_per_status": 260.0, "missed": 0, "client_over_subscriber_p50": 5.7,
+           "publishing_interval_ms": 20}
+    change, cpu, per_status, missed = sf.opcua_targets(run)
+    assert (change.measured, change.met) == (510.0, False)  # over the 500 ms
+    assert cpu.met is True and per_status.met is False and missed.met is True
+    assert [t.met for t in sf.opcua_targets({})] == [None, None, None, None]
+    assert "fault to OPC UA client p50/max 17.0/510.0 ms" in sf.opcua_headline(run)
+    assert sf.opcua_figures(run)["client_over_subscriber_p50"] == 5.7

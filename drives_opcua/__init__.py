@@ -1,0 +1,1 @@
+"""drives-opcua: the fleet as an OPC UA server (docs/opcua.md)."""
