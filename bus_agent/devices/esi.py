@@ -189,7 +189,7 @@ class EsiDevice:
     dc_modes: tuple[DcOpMode, ...] = ()
     init_cmds: tuple[InitCmd, ...] = ()
     eeprom: bytes | None = None
-    source: str = ""
+    source: str = field(default="", compare=False)
 
     @property
     def identity(self) -> tuple[int, int, int]:

@@ -18,7 +18,8 @@ from typing import Callable, Mapping
 from bus_agent.bus.base import ALState
 from bus_agent.sim.drive_model import Emcy, ObjectEntry, SdoAbort
 from bus_agent.sim.ecat.profiles import FLEXIBLE, PdoCatalog
-from bus_agent.sim.ecat.sii import MBX_IN_SIZE, MBX_OUT_SIZE, SmType
+from bus_agent.sim.ecat.image import BitImage
+from bus_agent.sim.ecat.sii import COE_COMPLETE_ACCESS, MBX_IN_SIZE, MBX_OUT_SIZE, SmType
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +78,7 @@ class SdoAbortCode(IntEnum):
     READ_ONLY = 0x06010002
     NO_OBJECT = 0x06020000
     NOT_MAPPABLE = 0x06040041
+    INCOMPATIBLE = 0x06040043
     PDO_TOO_LONG = 0x06040042
     LENGTH_MISMATCH = 0x06070010
     LENGTH_TOO_HIGH = 0x06070012
@@ -181,6 +183,15 @@ class PdoConfig:
     def _same_side(assign: int, pdo: int) -> bool:
         return 0x1600 <= pdo <= 0x17FF if assign == 0x1C12 else 0x1A00 <= pdo <= 0x1BFF
 
+    def _excluded(self, pdos: list[int]) -> tuple[int, int] | None:
+        """Two PDOs of ``pdos`` that exclude each other (ESI <Exclude>), or None."""
+        ex = self.catalog.excludes
+        for k, a in enumerate(pdos):
+            for b in pdos[k + 1:]:
+                if b in ex.get(a, ()) or a in ex.get(b, ()):
+                    return a, b
+        return None
+
     def _write_assign(self, index: int, sub: int, value: int) -> None:
         table = self.assign[index]
         if sub == 0:
@@ -188,6 +199,9 @@ class PdoConfig:
                 raise SdoAbort(SdoAbortCode.VALUE_RANGE)
             if any(table[k] not in self.maps for k in range(value)):
                 raise SdoAbort(SdoAbortCode.VALUE_RANGE, "assignment references no PDO")
+            clash = self._excluded(table[:value])
+            if clash:
+                raise SdoAbort(SdoAbortCode.INCOMPATIBLE, f"PDOs 0x{clash[0]:04X} and 0x{clash[1]:04X} exclude each other")
             if sum(self._pdo_bits(table[k]) for k in range(value)) > MAX_PDO_BYTES * 8:
                 raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
             self.assign_count[index] = value
@@ -196,6 +210,9 @@ class PdoConfig:
             raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
         if value != 0 and not (value in self.maps and self._same_side(index, value)):
             raise SdoAbort(SdoAbortCode.VALUE_RANGE, f"PDO 0x{value:04X} is not offered by this drive")
+        clash = self._excluded([p for p in table[:sub - 1] if p] + [value]) if value else None
+        if clash:
+            raise SdoAbort(SdoAbortCode.INCOMPATIBLE, f"PDOs 0x{clash[0]:04X} and 0x{clash[1]:04X} exclude each other")
         table[sub - 1] = value
 
     def _pdo_bits(self, pdo: int) -> int:
@@ -224,18 +241,26 @@ class PdoConfig:
         obj = self._objects.get((obj_index, obj_sub))
         if obj is None:
             raise SdoAbort(SdoAbortCode.NO_OBJECT, f"0x{obj_index:04X}:{obj_sub} does not exist")
-        if not obj.pdo_mappable or obj.datatype not in _STRUCT_CODE or bits != obj.size * 8:
+        if not obj.pdo_mappable or obj.datatype not in _STRUCT_CODE or bits != obj.bits:
             raise SdoAbort(SdoAbortCode.NOT_MAPPABLE)
         if rx and obj.access == "ro":
             raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "read-only object in an RxPDO")
         if not rx and obj.access == "wo":
             raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "write-only object in a TxPDO")
 
-    def struct_for(self, sm_assign: int) -> tuple[struct.Struct, list[tuple[int, int]]]:
-        """Struct packing the assigned entries, and their (index, subindex) in order."""
+    def struct_for(self, sm_assign: int) -> tuple["struct.Struct | BitImage", list[tuple[int, int]]]:
+        """Struct packing the assigned entries, and their (index, subindex) in order. A layout
+        with padding, bit-sized entries or objects the dictionary lacks (an ESI's) gets a
+        :class:`BitImage` with the same ``pack_into``/``unpack_from``."""
         layout = self.layout(sm_assign)
-        codes = "".join(_STRUCT_CODE[self._objects[(i, s)].datatype] for i, s, _b in layout)
-        return struct.Struct("<" + codes), [(i, s) for i, s, _b in layout]
+        objs = [self._objects.get((i, s)) for i, s, _b in layout]
+        if all(o is not None and o.datatype in _STRUCT_CODE and o.bits == b == o.size * 8
+               for o, (_i, _s, b) in zip(objs, layout)):
+            codes = "".join(_STRUCT_CODE[o.datatype] for o in objs)
+            return struct.Struct("<" + codes), [(i, s) for i, s, _b in layout]
+        signed = [o is not None and o.datatype.startswith("i") for o in objs]
+        image = BitImage([(i, s, b, sg) for (i, s, b), sg in zip(layout, signed)])
+        return image, image.keys
 
 
 class SdoServer:
@@ -244,10 +269,16 @@ class SdoServer:
     ``al_state`` returns the current AL state (PDO configuration writes depend on it).
     """
 
-    def __init__(self, model, al_state: Callable[[], ALState], catalog: PdoCatalog = FLEXIBLE):
+    def __init__(self, model, al_state: Callable[[], ALState], catalog: PdoCatalog = FLEXIBLE, *,
+                 mailbox_size: int = MBX_IN_SIZE, coe_details: int = 0, builtin: bool = True):
         self.model = model
         self.pdo = PdoConfig(model.objects, catalog)
         self._al_state = al_state
+        data_max = mailbox_size - MBX_HEADER.size
+        self.normal_upload_max = data_max - 10  # CoE 2 + SDO 4 + size 4
+        self.segment_max = data_max - 3  # CoE 2 + command 1
+        self.complete_access = bool(coe_details & COE_COMPLETE_ACCESS)
+        self.builtin = builtin  # the built-in dictionary: also the scratch object 0x2FFF
         self._scratch = b""
         #: (sync mode, SYNC0 cycle ns) for 0x1C32/0x1C33, set by the ESC
         self.sync_info: Callable[[], tuple[int, int]] | None = None
@@ -286,7 +317,7 @@ class SdoServer:
             return self.pdo.read(index, sub)
         if index in SYNC_PARAMETER_INDEXES:
             return self._sync_parameter(index, sub)
-        if index == SCRATCH_INDEX:
+        if index == SCRATCH_INDEX and self.builtin:
             if sub != 0:
                 raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
             return self._scratch
@@ -303,7 +334,7 @@ class SdoServer:
             if sub != 1 or len(data) != 2:
                 raise SdoAbort(SdoAbortCode.READ_ONLY if sub != 1 else SdoAbortCode.LENGTH_MISMATCH)
             return  # the sync mode follows the DC activation (0x0981); a written one is accepted
-        if index == SCRATCH_INDEX:
+        if index == SCRATCH_INDEX and self.builtin:
             if sub != 0:
                 raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
             if len(data) > SCRATCH_MAX:
@@ -345,6 +376,13 @@ class SdoServer:
             log.debug("SDO abort 0x%04X:%d code 0x%08X %s", index, sub, code, exc)
             return _abort(index, sub, code)
 
+    def _store(self, index: int, sub: int, data: bytes) -> None:
+        """A finished download; ``sub`` bit 8 marks complete access."""
+        if sub & 0x100:
+            self._write_complete(index, sub & 0xFF, data)
+        else:
+            self.write_object(index, sub, data)
+
     def _segment_object(self) -> tuple[int, int]:
         if self._upload is not None:
             return self._upload[0], self._upload[1]
@@ -352,19 +390,61 @@ class SdoServer:
             return self._download[0], self._download[1]
         return 0, 0
 
+    # -- complete access (ETG.1000.6 5.6.2.1.2: subindex 0 travels as 16 bits) ------------------
+    def _entry_size(self, index: int, sub: int) -> int:
+        if self.pdo.handles(index):
+            return 1 if sub == 0 or index == 0x1C00 else (2 if index in self.pdo.assign else 4)
+        entry = self.model.objects.get((index, sub))
+        if entry is None:
+            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        return entry.size
+
+    def _read_complete(self, index: int, sub: int) -> bytes:
+        if sub > 1:
+            raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access starts at subindex 0 or 1")
+        count = self.read_object(index, 0)[0]
+        out = bytearray(bytes([count, 0]) if sub == 0 else b"")
+        for k in range(1, count + 1):
+            try:
+                out += self.read_object(index, k)
+            except SdoAbort as exc:
+                if exc.code != SdoAbortCode.NO_SUBINDEX:
+                    raise
+        return bytes(out)
+
+    def _write_complete(self, index: int, sub: int, data: bytes) -> None:
+        if sub > 1:
+            raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access starts at subindex 0 or 1")
+        count = data[0] if sub == 0 else self.read_object(index, 0)[0]
+        pos = 2 if sub == 0 else 0
+        values = []
+        for k in range(1, count + 1):
+            size = self._entry_size(index, k)
+            if pos + size > len(data):
+                raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
+            values.append(data[pos:pos + size])
+            pos += size
+        if sub == 0:
+            self.write_object(index, 0, b"\0")
+        for k, value in enumerate(values, 1):
+            self.write_object(index, k, value)
+        if sub == 0:
+            self.write_object(index, 0, bytes([count]))
+
     def _upload_initiate(self, cmd: int, index: int, sub: int) -> bytes:
         self.reset()
-        if cmd & 0x10:
+        if cmd & 0x10 and not self.complete_access:
             raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access not supported")
-        data = self.read_object(index, sub)
+        data = self._read_complete(index, sub) if cmd & 0x10 else self.read_object(index, sub)
         n = len(data)
+        ca = cmd & 0x10
         if 0 < n <= 4:
-            return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x43 | ((4 - n) << 2), index, sub) \
+            return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x43 | ca | ((4 - n) << 2), index, sub) \
                 + data + b"\0" * (4 - n)
-        first = data[:NORMAL_UPLOAD_MAX]
-        if n > NORMAL_UPLOAD_MAX:
+        first = data[:self.normal_upload_max]
+        if n > self.normal_upload_max:
             self._upload = (index, sub, data, len(first), 0)
-        return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x41, index, sub) + struct.pack("<I", n) + first
+        return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x41 | ca, index, sub) + struct.pack("<I", n) + first
 
     def _upload_segment(self, cmd: int) -> bytes:
         if self._upload is None:
@@ -372,7 +452,7 @@ class SdoServer:
         index, sub, data, offset, toggle = self._upload
         if (cmd & 0x10) != toggle:
             raise SdoAbort(SdoAbortCode.TOGGLE)
-        chunk = data[offset: offset + SEGMENT_MAX]
+        chunk = data[offset: offset + self.segment_max]
         offset += len(chunk)
         last = offset >= len(data)
         scmd = toggle | (1 if last else 0)
@@ -384,22 +464,23 @@ class SdoServer:
 
     def _download_initiate(self, req: memoryview, cmd: int, index: int, sub: int) -> bytes:
         self.reset()
-        if cmd & 0x10:
+        if cmd & 0x10 and not self.complete_access:
             raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access not supported")
         if len(req) < 10:
             raise SdoAbort(SdoAbortCode.INVALID_COMMAND)
         if cmd & 0x02:  # expedited
             n = 4 - ((cmd >> 2) & 0x03) if cmd & 0x01 else 4
-            self.write_object(index, sub, bytes(req[6:6 + n]))
+            self._store(index, sub | (0x100 if cmd & 0x10 else 0), bytes(req[6:6 + n]))
         else:
             size = struct.unpack_from("<I", req, 6)[0]
             if size > SCRATCH_MAX:
                 raise SdoAbort(SdoAbortCode.LENGTH_TOO_HIGH)
             chunk = bytes(req[10:])
+            sub_ca = sub | (0x100 if cmd & 0x10 else 0)
             if len(chunk) >= size:
-                self.write_object(index, sub, chunk[:size])
+                self._store(index, sub_ca, chunk[:size])
             else:
-                self._download = (index, sub, size, bytearray(chunk), 0)
+                self._download = (index, sub_ca, size, bytearray(chunk), 0)
         return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x60, index, sub) + b"\0\0\0\0"
 
     def _download_segment(self, req: memoryview, cmd: int) -> bytes:
@@ -418,13 +499,14 @@ class SdoServer:
             if len(buf) != size:
                 raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
             self._download = None
-            self.write_object(index, sub, bytes(buf))
+            self._store(index, sub, bytes(buf))
         else:
             self._download = (index, sub, size, buf, toggle ^ 0x10)
         return struct.pack("<HB", CoeService.SDO_RESPONSE << 12, 0x20 | toggle) + b"\0" * 7
 
 
 def _abort(index: int, sub: int, code: int) -> bytes:
+    sub &= 0xFF  # a complete-access download carries a flag above the subindex
     # SOEM recognises an abort by service 2 (request) and command 0x80.
     return SDO_HEADER.pack(CoeService.SDO_REQUEST << 12, 0x80, index, sub) + struct.pack("<I", code)
 
@@ -437,8 +519,9 @@ class Mailbox:
     repeat request (SM1 activate bit 1 toggle).
     """
 
-    def __init__(self, sdo: SdoServer):
+    def __init__(self, sdo: SdoServer, out_size: int = MBX_OUT_SIZE):
         self.sdo = sdo
+        self.out_size = out_size
         self.queue: deque[bytes] = deque()
         self.last_counter = 0
         self._out_counter = 0
@@ -489,7 +572,7 @@ class Mailbox:
             log.debug("mailbox counter %d repeated: resend ignored", counter)
             return
         self.last_counter = counter
-        if length < 2 or length > MBX_OUT_SIZE - MBX_HEADER.size:
+        if length < 2 or length > self.out_size - MBX_HEADER.size:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.INVALID_SIZE)))
             return
         if mtype != MbxType.COE:
