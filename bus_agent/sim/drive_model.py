@@ -133,7 +133,8 @@ class DriveModel:
         self._values[(0x1018, 2)] = p.product_code
         self._values[(0x1018, 3)] = p.revision
         self._values[(0x1018, 4)] = self.serial & 0xFFFFFFFF
-        self._values[(0x6502, 0)] = p.supported_modes
+        if (0x6502, 0) not in self.objects or self.objects is OBJECTS:
+            self._values[(0x6502, 0)] = p.supported_modes  # else the device file's value (some give 0)
         self._values[(0x6060, 0)] = self._values[(0x6061, 0)] = p.power_on_mode
         # 0x60FD: manufacturer bits 16..31 carry the serial, so each drive's inputs differ
         self._values[(0x60FD, 0)] = (self.serial & 0xFFFF) << 16

@@ -123,3 +123,34 @@ def test_quirk_file_slave_as_its_esi_says(ecat_segment):
         assert s.state & 0x10 and s.al_status == 0x0030, (s.state, hex(s.al_status))
     finally:
         m.close()
+
+
+def test_configurable_file_sdo_information_complete_access_and_remapping(ecat_segment):
+    path = ROOT / "tests" / "esi" / "configurable.xml"
+    ifname, _control = ecat_segment(1, esi=(f"{path}@4203265:3",))
+    m = _configure(ifname, 1, map_=False)
+    try:
+        s = m.slaves[0]
+        assert (s.man, s.id, s.rev, s.name) == (0xABC, 4203265, 3, "Configurable drive")
+        assert struct.unpack("<h", s.sdo_read(0x2101, 0))[0] == -12
+        assert struct.unpack("<I", s.sdo_read(0x6502, 0))[0] == 0  # as the file says
+        # complete access (CompleteAccess="true"): subindex 0 as 16 bits, then the entries
+        assert s.sdo_read(0x1A00, 0, ca=True) == struct.pack("<BxIIII", 4, 0x60410010, 0x60640020, 0x606C0020,
+                                                                  0x60610008)
+        # SDO information (SdoInfo="true"): the file's dictionary, names included
+        od = {obj.index: obj for obj in s.od}
+        assert od[0x2100].name in ("Current limit", b"Current limit")
+        assert [e.data_type for e in od[0x2101].entries] == [0x0003]  # INT
+        assert 0x603F in od and 0x6098 not in od  # the model's own objects stay internal
+        # Fixed="0": the TxPDO is the master's to map, a vendor object included
+        s.sdo_write(0x1A00, 0, b"\0")
+        s.sdo_write(0x1A00, 4, struct.pack("<I", 0x21010010))
+        s.sdo_write(0x1A00, 0, b"\4")
+        m.config_map()
+        assert (len(s.output), len(s.input)) == (7, 12)
+        assert m.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
+        m.send_processdata()
+        m.receive_processdata(2000)
+        assert struct.unpack_from("<h", s.input, 10)[0] == -12  # the vendor object in the image
+    finally:
+        m.close()

@@ -2,8 +2,8 @@
 
 Device side of ETG.1000.6 §5.6 (mailbox) and CiA 301 SDO semantics as CoE carries them:
 expedited, normal and segmented upload/download, aborts, emergencies (service 1), the
-SyncManager communication objects 0x1C00/0x1C12/0x1C13 and the PDO mapping objects
-0x1600..0x1603 / 0x1A00..0x1A03 (remappable in PRE-OP only, abort 0x08000022 otherwise).
+SyncManager communication objects (:mod:`bus_agent.sim.ecat.pdo_config`), complete access and
+SDO information (:mod:`bus_agent.sim.ecat.sdo_info`) where the device's CoE flags offer them.
 Everything else is delegated to the drive model's object dictionary.
 """
 
@@ -17,18 +17,19 @@ from typing import Callable, Mapping
 
 from bus_agent.bus.base import ALState
 from bus_agent.sim.drive_model import Emcy, ObjectEntry, SdoAbort
+from bus_agent.sim.ecat import sdo_info
+from bus_agent.sim.ecat.pdo_config import PdoConfig, SdoAbortCode
 from bus_agent.sim.ecat.profiles import FLEXIBLE, PdoCatalog
-from bus_agent.sim.ecat.image import BitImage
-from bus_agent.sim.ecat.sii import COE_COMPLETE_ACCESS, MBX_IN_SIZE, MBX_OUT_SIZE, SmType
+from bus_agent.sim.ecat.sii import COE_COMPLETE_ACCESS, COE_SDO_INFO, MBX_IN_SIZE, MBX_OUT_SIZE
 
 log = logging.getLogger(__name__)
 
 MBX_HEADER = struct.Struct("<HHBB")  # length, address, channel/priority, type | counter << 4
 SDO_HEADER = struct.Struct("<HBHB")  # CoE header, command, index, subindex
-MBX_MAX_DATA = MBX_IN_SIZE - MBX_HEADER.size  # 122 bytes after the mailbox header
-NORMAL_UPLOAD_MAX = MBX_MAX_DATA - 10  # CoE 2 + SDO 4 + size 4
-SEGMENT_MAX = MBX_MAX_DATA - 3  # CoE 2 + command 1
 MAX_PENDING = 16  # responses/emergencies queued behind SM1
+SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
+SCRATCH_MAX = 512
+SYNC_PARAMETER_INDEXES = (0x1C32, 0x1C33)
 
 
 class MbxType(IntEnum):
@@ -67,202 +68,6 @@ class CoeService(IntEnum):
     SDO_INFO = 8
 
 
-class SdoAbortCode(IntEnum):
-    """SDO abort codes (CiA 301 Table 22 / ETG.1000.6 Table 41)."""
-
-    TOGGLE = 0x05030000
-    TIMEOUT = 0x05040000
-    INVALID_COMMAND = 0x05040001
-    UNSUPPORTED_ACCESS = 0x06010000
-    WRITE_ONLY = 0x06010001
-    READ_ONLY = 0x06010002
-    NO_OBJECT = 0x06020000
-    NOT_MAPPABLE = 0x06040041
-    INCOMPATIBLE = 0x06040043
-    PDO_TOO_LONG = 0x06040042
-    LENGTH_MISMATCH = 0x06070010
-    LENGTH_TOO_HIGH = 0x06070012
-    NO_SUBINDEX = 0x06090011
-    VALUE_RANGE = 0x06090030
-    GENERAL = 0x08000000
-    WRONG_STATE = 0x08000022
-
-
-SM_COMM_TYPES = (SmType.MBX_OUT, SmType.MBX_IN, SmType.OUTPUTS, SmType.INPUTS)  # 0x1C00:1..4
-MAX_PDO_BYTES = 256
-SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
-SCRATCH_MAX = 512
-SYNC_PARAMETER_INDEXES = (0x1C32, 0x1C33)
-
-_STRUCT_CODE = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i"}
-
-
-class PdoConfig:
-    """0x1C00, 0x1C12/0x1C13 (PDO assignment) and 0x16xx/0x1Axx/0x1Bxx (PDO mapping) of one drive.
-
-    ``objects`` is the drive's object dictionary, used to validate mapped entries; ``catalog``
-    says which PDOs exist, their power-on content and what the master may change
-    (:mod:`bus_agent.sim.ecat.profiles`).
-    """
-
-    def __init__(self, objects: Mapping[tuple[int, int], ObjectEntry], catalog: PdoCatalog = FLEXIBLE):
-        self._objects = objects
-        self.catalog = catalog
-        self.reset()
-
-    def reset(self) -> None:
-        """Power-on content of the catalogue (a power cycle forgets every change)."""
-        c = self.catalog
-        self.assign: dict[int, list[int]] = {k: list(v) + [0] * (c.max_pdos - len(v)) for k, v in c.assign.items()}
-        self.assign_count = {k: len(v) for k, v in c.assign.items()}
-        self.maps: dict[int, list[int]] = {p: list(v) + [0] * (c.max_entries - len(v)) for p, v in c.maps.items()}
-        self.map_count: dict[int, int] = {p: len(v) for p, v in c.maps.items()}
-
-    def handles(self, index: int) -> bool:
-        return index in (0x1C00, 0x1C12, 0x1C13) or index in self.maps
-
-    # -- layout ---------------------------------------------------------------------------
-    def layout(self, sm_assign: int) -> list[tuple[int, int, int]]:
-        """(index, subindex, bits) of every entry assigned to SM2 (0x1C12) or SM3 (0x1C13)."""
-        out = []
-        for pdo in self.assign[sm_assign][: self.assign_count[sm_assign]]:
-            for entry in self.maps[pdo][: self.map_count[pdo]]:
-                out.append((entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF))
-        return out
-
-    def size_bytes(self, sm_assign: int) -> int:
-        return (sum(bits for _i, _s, bits in self.layout(sm_assign)) + 7) // 8
-
-    # -- SDO access -----------------------------------------------------------------------
-    def read(self, index: int, sub: int) -> bytes:
-        if index == 0x1C00:
-            if sub == 0:
-                return bytes([len(SM_COMM_TYPES)])
-            if 1 <= sub <= len(SM_COMM_TYPES):
-                return bytes([SM_COMM_TYPES[sub - 1]])
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        if index in self.assign:
-            if sub == 0:
-                return bytes([self.assign_count[index]])
-            if 1 <= sub <= self.catalog.max_pdos:
-                return struct.pack("<H", self.assign[index][sub - 1])
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        if index in self.maps:
-            if sub == 0:
-                return bytes([self.map_count[index]])
-            if 1 <= sub <= self.catalog.max_entries:
-                return struct.pack("<I", self.maps[index][sub - 1])
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        raise SdoAbort(SdoAbortCode.NO_OBJECT)
-
-    def write(self, index: int, sub: int, data: bytes, al_state: ALState) -> None:
-        """Download to a communication object; only in PRE-OP (ETG.1000.6 §5.6.7.4)."""
-        if index == 0x1C00:
-            self.read(index, sub)  # abort for a missing subindex first
-            raise SdoAbort(SdoAbortCode.READ_ONLY)
-        if index not in self.assign and index not in self.maps:
-            raise SdoAbort(SdoAbortCode.NO_OBJECT)
-        c = self.catalog
-        limit = c.max_pdos if index in self.assign else c.max_entries
-        if sub > limit:
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        if index not in c.writable_assign and index not in c.writable_maps:
-            raise SdoAbort(SdoAbortCode.READ_ONLY, f"0x{index:04X} is fixed in this drive")
-        size = 1 if sub == 0 else (2 if index in self.assign else 4)
-        if len(data) != size:
-            raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
-        if al_state != ALState.PREOP:
-            raise SdoAbort(SdoAbortCode.WRONG_STATE, "PDO configuration only in PRE-OP")
-        value = int.from_bytes(data, "little")
-        if index in self.assign:
-            self._write_assign(index, sub, value)
-        else:
-            self._write_map(index, sub, value)
-
-    @staticmethod
-    def _same_side(assign: int, pdo: int) -> bool:
-        return 0x1600 <= pdo <= 0x17FF if assign == 0x1C12 else 0x1A00 <= pdo <= 0x1BFF
-
-    def _excluded(self, pdos: list[int]) -> tuple[int, int] | None:
-        """Two PDOs of ``pdos`` that exclude each other (ESI <Exclude>), or None."""
-        ex = self.catalog.excludes
-        for k, a in enumerate(pdos):
-            for b in pdos[k + 1:]:
-                if b in ex.get(a, ()) or a in ex.get(b, ()):
-                    return a, b
-        return None
-
-    def _write_assign(self, index: int, sub: int, value: int) -> None:
-        table = self.assign[index]
-        if sub == 0:
-            if value > self.catalog.max_pdos:
-                raise SdoAbort(SdoAbortCode.VALUE_RANGE)
-            if any(table[k] not in self.maps for k in range(value)):
-                raise SdoAbort(SdoAbortCode.VALUE_RANGE, "assignment references no PDO")
-            clash = self._excluded(table[:value])
-            if clash:
-                raise SdoAbort(SdoAbortCode.INCOMPATIBLE, f"PDOs 0x{clash[0]:04X} and 0x{clash[1]:04X} exclude each other")
-            if sum(self._pdo_bits(table[k]) for k in range(value)) > MAX_PDO_BYTES * 8:
-                raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
-            self.assign_count[index] = value
-            return
-        if self.assign_count[index] != 0:
-            raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
-        if value != 0 and not (value in self.maps and self._same_side(index, value)):
-            raise SdoAbort(SdoAbortCode.VALUE_RANGE, f"PDO 0x{value:04X} is not offered by this drive")
-        clash = self._excluded([p for p in table[:sub - 1] if p] + [value]) if value else None
-        if clash:
-            raise SdoAbort(SdoAbortCode.INCOMPATIBLE, f"PDOs 0x{clash[0]:04X} and 0x{clash[1]:04X} exclude each other")
-        table[sub - 1] = value
-
-    def _pdo_bits(self, pdo: int) -> int:
-        return sum(e & 0xFF for e in self.maps[pdo][: self.map_count[pdo]])
-
-    def _write_map(self, index: int, sub: int, value: int) -> None:
-        entries = self.maps[index]
-        if sub == 0:
-            if value > self.catalog.max_entries:
-                raise SdoAbort(SdoAbortCode.VALUE_RANGE)
-            if any(entries[k] == 0 for k in range(value)):
-                raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "empty mapping entry")
-            if sum(e & 0xFF for e in entries[:value]) > MAX_PDO_BYTES * 8:
-                raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
-            self.map_count[index] = value
-            return
-        if self.map_count[index] != 0:
-            raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
-        if value != 0:
-            self.check_mappable(value, rx=index < 0x1A00)
-        entries[sub - 1] = value
-
-    def check_mappable(self, entry: int, rx: bool) -> None:
-        """Abort unless ``entry`` names a mappable object of the right direction and size."""
-        obj_index, obj_sub, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
-        obj = self._objects.get((obj_index, obj_sub))
-        if obj is None:
-            raise SdoAbort(SdoAbortCode.NO_OBJECT, f"0x{obj_index:04X}:{obj_sub} does not exist")
-        if not obj.pdo_mappable or obj.datatype not in _STRUCT_CODE or bits != obj.bits:
-            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE)
-        if rx and obj.access == "ro":
-            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "read-only object in an RxPDO")
-        if not rx and obj.access == "wo":
-            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "write-only object in a TxPDO")
-
-    def struct_for(self, sm_assign: int) -> tuple["struct.Struct | BitImage", list[tuple[int, int]]]:
-        """Struct packing the assigned entries, and their (index, subindex) in order. A layout
-        with padding, bit-sized entries or objects the dictionary lacks (an ESI's) gets a
-        :class:`BitImage` with the same ``pack_into``/``unpack_from``."""
-        layout = self.layout(sm_assign)
-        objs = [self._objects.get((i, s)) for i, s, _b in layout]
-        if all(o is not None and o.datatype in _STRUCT_CODE and o.bits == b == o.size * 8
-               for o, (_i, _s, b) in zip(objs, layout)):
-            codes = "".join(_STRUCT_CODE[o.datatype] for o in objs)
-            return struct.Struct("<" + codes), [(i, s) for i, s, _b in layout]
-        signed = [o is not None and o.datatype.startswith("i") for o in objs]
-        image = BitImage([(i, s, b, sg) for (i, s, b), sg in zip(layout, signed)])
-        return image, image.keys
-
-
 class SdoServer:
     """SDO request handling of one drive: one transfer at a time, as CoE allows.
 
@@ -278,6 +83,8 @@ class SdoServer:
         self.normal_upload_max = data_max - 10  # CoE 2 + SDO 4 + size 4
         self.segment_max = data_max - 3  # CoE 2 + command 1
         self.complete_access = bool(coe_details & COE_COMPLETE_ACCESS)
+        self.sdo_info = bool(coe_details & COE_SDO_INFO)
+        self.info_room = data_max - 2 - 4  # CoE header, SDO info header
         self.builtin = builtin  # the built-in dictionary: also the scratch object 0x2FFF
         self._scratch = b""
         #: (sync mode, SYNC0 cycle ns) for 0x1C32/0x1C33, set by the ESC
@@ -580,6 +387,11 @@ class Mailbox:
             return
         body = buf[MBX_HEADER.size: MBX_HEADER.size + length]
         service = (body[1] >> 4) & 0x0F
+        if service == CoeService.SDO_INFO and self.sdo.sdo_info:
+            model = self.sdo.model
+            for reply in sdo_info.handle(bytes(body[2:]), model.objects, model.value, self.sdo.info_room):
+                self._push(self._frame(MbxType.COE, struct.pack("<H", CoeService.SDO_INFO << 12) + reply))
+            return
         if service != CoeService.SDO_REQUEST:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.SERVICE_NOT_SUPPORTED)))
             return

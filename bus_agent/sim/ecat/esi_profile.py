@@ -13,7 +13,6 @@ model runs on whatever the mapping holds; every other object is plain SDO data.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Mapping
 
 from bus_agent.devices.esi import (BASE_TYPES, CoeFlags, DcOpMode, EsiDevice, EsiEntry, EsiObject, EsiPdo, EsiSm,
@@ -150,7 +149,7 @@ def _esi_object(e: ObjectEntry, value, object_name: str) -> EsiObject:
 def esi_from_profile(profile: EcatProfile) -> EsiDevice:
     """The ESI device of a built-in profile: what ``ecat-sim --write-esi`` writes."""
     from bus_agent.sim.drive_model import DriveModel
-    from bus_agent.sim.ecat.coe import SM_COMM_TYPES
+    from bus_agent.sim.ecat.pdo_config import SM_COMM_TYPES
 
     drive = profile.drive
     model = DriveModel(drive, serial=0)
