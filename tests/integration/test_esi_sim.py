@@ -135,20 +135,21 @@ def test_configurable_file_sdo_information_complete_access_and_remapping(ecat_se
         assert struct.unpack("<h", s.sdo_read(0x2101, 0))[0] == -12
         assert struct.unpack("<I", s.sdo_read(0x6502, 0))[0] == 0  # as the file says
         # complete access (CompleteAccess="true"): subindex 0 as 16 bits, then the entries
-        assert s.sdo_read(0x1A00, 0, ca=True) == struct.pack("<BxIIII", 4, 0x60410010, 0x60640020, 0x606C0020,
-                                                                  0x60610008)
+        assert s.sdo_read(0x1A00, 0, ca=True) == struct.pack("<BxIIIII", 5, 0x60410010, 0x60640020, 0x606C0020,
+                                                                  0x60610008, 0x21010010)
         # SDO information (SdoInfo="true"): the file's dictionary, names included
         od = {obj.index: obj for obj in s.od}
         assert od[0x2100].name in ("Current limit", b"Current limit")
         assert od[0x2101].data_type == 0x0003  # INT
         assert [e.name for e in od[0x1A00].entries][:2] in (["Number of entries", "Entry 1"], [b"Number of entries", b"Entry 1"])
         assert 0x603F in od and 0x6098 not in od  # the model's own objects stay internal
-        # Fixed="0": the TxPDO is the master's to map, a vendor object included
+        # Fixed="0": the TxPDO is the master's to map (here: the vendor object moved up)
         s.sdo_write(0x1A00, 0, b"\0")
         s.sdo_write(0x1A00, 4, struct.pack("<I", 0x21010010))
-        s.sdo_write(0x1A00, 0, b"\4")
+        s.sdo_write(0x1A00, 5, struct.pack("<I", 0x60610008))
+        s.sdo_write(0x1A00, 0, b"\5")
         m.config_map()
-        assert (len(s.output), len(s.input)) == (7, 12)
+        assert (len(s.output), len(s.input)) == (7, 13)
         assert m.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
         m.send_processdata()
         m.receive_processdata(2000)
