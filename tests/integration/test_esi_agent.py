@@ -52,3 +52,36 @@ def test_an_identity_matching_no_esi_device_stops_start_up(ecat_segment):
     with pytest.raises(EsiMatchError, match=r"slave 0 \('SimDrive402'\): identity vendor 0x00000ABC product "
                                             r"0x00402001 revision 0x00010000 matches no device in the ESI"):
         agent.cycle.open()
+
+
+def test_scan_names_the_esi_device_and_where_the_mapping_differs(ecat_segment):
+    import json
+    import subprocess
+    import sys
+
+    import pysoem
+
+    ifname, _control = ecat_segment(3, esi=(f"{ESI_DIR / 'quirks.xml'}", f"{ESI_DIR / 'configurable.xml'}",
+                                             f"{ESI_DIR / 'quirks.xml'}@0x00402200"))  # the boot loader
+    m = pysoem.Master()
+    m.open(ifname)
+    try:
+        assert m.config_init() == 3
+        m.slaves[1].sdo_write(0x1A00, 0, b"\4")  # the vendor object left out of the TxPDO
+    finally:
+        m.close()
+    out = subprocess.run([sys.executable, "-m", "bus_agent.cli", "scan", "--ifname", ifname, "--json",
+                          "--esi", str(ESI_DIR)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    slaves = json.loads(out.stdout)["slaves"]
+    assert [s["esi_device"] for s in slaves] == ["Quirk servo (predefined)", "Configurable drive", "Quirk boot loader"]
+    assert slaves[0]["esi_differences"] == []
+    assert slaves[2]["mailbox"] == ["FoE"] and slaves[2]["errors"] == []  # no CoE in its ESI: none simulated
+    assert slaves[1]["esi_differences"] == [
+        "TxPDO (0x1C13) 0x1A00 maps [6041:00/16 6064:00/32 606C:00/32 6061:00/8]; the ESI default is "
+        "[6041:00/16 6064:00/32 606C:00/32 6061:00/8 2101:00/16]"]
+    out = subprocess.run([sys.executable, "-m", "bus_agent.cli", "scan", "--ifname", ifname,
+                          "--esi", str(ESI_DIR / "configurable.xml")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 4
+    assert "slave 0 ('Quirk servo (predefined)'): identity vendor 0x00000ABC product 0x00402201 revision " \
+           "0x00020000 matches no device in the ESI" in out.stderr

@@ -326,9 +326,10 @@ class Mailbox:
     repeat request (SM1 activate bit 1 toggle).
     """
 
-    def __init__(self, sdo: SdoServer, out_size: int = MBX_OUT_SIZE):
+    def __init__(self, sdo: SdoServer, out_size: int = MBX_OUT_SIZE, coe: bool = True):
         self.sdo = sdo
         self.out_size = out_size
+        self.coe = coe  # False: a device without CoE (its ESI has none) refuses the protocol
         self.queue: deque[bytes] = deque()
         self.last_counter = 0
         self._out_counter = 0
@@ -382,7 +383,7 @@ class Mailbox:
         if length < 2 or length > self.out_size - MBX_HEADER.size:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.INVALID_SIZE)))
             return
-        if mtype != MbxType.COE:
+        if mtype != MbxType.COE or not self.coe:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.UNSUPPORTED_PROTOCOL)))
             return
         body = buf[MBX_HEADER.size: MBX_HEADER.size + length]

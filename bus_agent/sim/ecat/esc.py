@@ -19,7 +19,7 @@ from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbo
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
 from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_MODE_SM, DcClock
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
-from bus_agent.sim.ecat.sii import PDI_CONTROL, build_sii, type_code
+from bus_agent.sim.ecat.sii import MBX_PROTO_COE, PDI_CONTROL, build_sii, type_code
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +120,7 @@ class Esc:
         self.sms = ep.sms
         self.sdo = SdoServer(self.model, lambda: self.al_state, catalog, mailbox_size=self.sms[1].length,
                              coe_details=ep.coe_details, builtin=ep.dictionary is None)
-        self.mailbox = Mailbox(self.sdo, self.sms[0].length)
+        self.mailbox = Mailbox(self.sdo, self.sms[0].length, coe=bool(ep.mailbox_protocols & MBX_PROTO_COE))
         self.last = last
         self.on_change = on_change
         (self.mbx_out_start, self.mbx_out_size), (self.mbx_in_start, self.mbx_in_size) = \
@@ -138,7 +138,8 @@ class Esc:
         self.sii = bytearray(build_sii(
             vendor_id=profile.vendor_id, product_code=profile.product_code, revision=profile.revision,
             serial=position + 1, name=profile.device_name, order=ep.sii_order or profile.device_name,
-            pdos=self._sii_pdos(catalog), sms=self.sms, coe_details=ep.coe_details))
+            pdos=self._sii_pdos(catalog), sms=self.sms, coe_details=ep.coe_details,
+            mailbox_protocols=ep.mailbox_protocols))
         self.power_on()
 
     def _sii_pdos(self, catalog: PdoCatalog) -> list[tuple[int, int, list[tuple[int, int, int, int]]]]:

@@ -20,8 +20,8 @@ from bus_agent.devices.esi import (BASE_TYPES, CoeFlags, DcOpMode, EsiDevice, Es
 from bus_agent.sim.drive_model import OBJECTS, ObjectEntry
 from bus_agent.sim.drive_profiles import _COMMON_MODES, DriveProfile
 from bus_agent.sim.ecat.profiles import ABORT_WRONG_STATE, EcatProfile, PdoCatalog
-from bus_agent.sim.ecat.sii import (COE_COMPLETE_ACCESS, COE_DETAILS, COE_SDO_INFO, SM_DEFAULTS, SmDefault,
-                                    SmType)
+from bus_agent.sim.ecat.sii import (COE_COMPLETE_ACCESS, COE_DETAILS, COE_SDO_INFO, MAILBOX_PROTOCOL_BITS,
+                                    SM_DEFAULTS, SmDefault, SmType)
 
 _SM_TYPES = {"MBoxOut": SmType.MBX_OUT, "MBoxIn": SmType.MBX_IN, "Outputs": SmType.OUTPUTS, "Inputs": SmType.INPUTS}
 _SM_KINDS = {v: k for k, v in _SM_TYPES.items()}
@@ -114,7 +114,8 @@ def profile_from_esi(dev: EsiDevice, name: str | None = None) -> EcatProfile:
     return EcatProfile(name=name or f"esi:{dev.type_name or dev.name}", description=dev.label(), drive=drive,
                        pdos=catalog, dc=dev.dc_capable, dc_required=dev.dc_required, sync0_always=dev.dc_required,
                        dictionary=dictionary, hidden=hidden, sms=_sms(dev, (0, 0)), coe_details=details,
-                       sii_order=dev.type_name)
+                       sii_order=dev.type_name,
+                       mailbox_protocols=sum(MAILBOX_PROTOCOL_BITS.get(p, 0) for p in set(dev.mailbox_protocols)))
 
 
 def profiles_from_specs(specs: list[str]) -> list[EcatProfile]:

@@ -26,7 +26,7 @@ from typing import Mapping, Sequence
 from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
 from bus_agent.sim.drive_model import PROFILES as DRIVE_PROFILES
 from bus_agent.sim.drive_model import DriveProfile, ObjectEntry
-from bus_agent.sim.ecat.sii import COE_DETAILS, SM_DEFAULTS, SmDefault
+from bus_agent.sim.ecat.sii import COE_DETAILS, MBX_PROTO_COE, SM_DEFAULTS, SmDefault
 
 ABORT_READ_ONLY = 0x06010002
 ABORT_SUB0_FIRST = 0x06010003
@@ -93,6 +93,7 @@ class EcatProfile:
     sms: tuple[SmDefault, ...] = SM_DEFAULTS   # SM0..SM3: mailbox out/in, outputs, inputs
     coe_details: int = COE_DETAILS             # SII General byte 5 (SDO info 0x02, complete access 0x20)
     sii_order: str = ""                        # SII order string (the ESI <Type>)
+    mailbox_protocols: int = MBX_PROTO_COE     # SII word 0x1C (CoE 0x04, FoE 0x08, ...): without CoE no SDO
 
 
 _OMRON_DRIVE = DriveProfile(

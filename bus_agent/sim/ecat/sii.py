@@ -28,6 +28,8 @@ SM_CTRL_PD_IN = 0x20  # buffered, ECAT reads, ECAT irq
 
 PDI_CONTROL = 0x0005  # word 0x00 (register 0x0140)
 MBX_PROTO_COE = 0x0004
+#: SII word 0x1C bits of the ESI's <Mailbox> children (ETG.1000.6 Table 18)
+MAILBOX_PROTOCOL_BITS = {"AoE": 0x01, "EoE": 0x02, "CoE": 0x04, "FoE": 0x08, "SoE": 0x10, "VoE": 0x20}
 # GENERAL byte 5, CoE details: 0x01 SDO, 0x04 PDO assign, 0x08 PDO configuration (no SDO info,
 # no complete access: SOEM then reads the mapping one subindex at a time).
 COE_DETAILS = 0x0D
@@ -119,7 +121,7 @@ def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, 
               tx_entries: Sequence[tuple[int, int, int, str]] = (),
               alias: int = 0, order: str = "", sms: Sequence[SmDefault] = SM_DEFAULTS,
               pdos: Sequence[tuple[int, int, Sequence[tuple[int, int, int, "str | int"]]]] | None = None,
-              coe_details: int = COE_DETAILS) -> bytes:
+              coe_details: int = COE_DETAILS, mailbox_protocols: int = MBX_PROTO_COE) -> bytes:
     """The EEPROM byte image (little-endian words) of one drive (ETG.2010 layout).
 
     ``pdos``: (PDO index, SM or 0xFF, entries) for the TXPDO/RXPDO categories, entries as
@@ -141,7 +143,7 @@ def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, 
     words[0x0E], words[0x0F] = serial & 0xFFFF, (serial >> 16) & 0xFFFF
     words[0x18], words[0x19] = sms[0].start, sms[0].length
     words[0x1A], words[0x1B] = sms[1].start, sms[1].length
-    words[0x1C] = MBX_PROTO_COE
+    words[0x1C] = mailbox_protocols
     words[0x3E] = 0x000F  # EEPROM size: (15 + 1) KiBit
     words[0x3F] = 0x0001  # SII version
     image = struct.pack("<64H", *words)
