@@ -17,7 +17,7 @@ def _hex(value: int, digits: int = 4) -> str:
     return f"#x{value:0{digits}X}"
 
 
-def _add(parent: Element, tag: str, text: str | None = None, **attrs: str) -> Element:
+def _add(parent: Element, tag: str, text: str | None = None, **attrs: str | None) -> Element:
     el = SubElement(parent, tag, {k: v for k, v in attrs.items() if v is not None})
     if text is not None:
         el.text = text

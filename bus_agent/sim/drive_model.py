@@ -203,8 +203,9 @@ class DriveModel:
         """The model's current value of an object, whether or not its dictionary serves it."""
         return self._values[(index, subindex)]
 
-    def read(self, index: int, subindex: int) -> int | str:
-        """SDO upload of one entry (value as int, or str for "str" entries). Raises SdoAbort."""
+    def read(self, index: int, subindex: int) -> int | str | bytes:
+        """SDO upload of one entry (value as int, str for "str" and bytes for "bytes" entries).
+        Raises SdoAbort."""
         entry = self._entry(index, subindex)
         if entry.access == "wo":
             raise SdoAbort(ABORT_WRITE_ONLY, f"0x{index:04X}:{subindex} is write only")
@@ -247,8 +248,8 @@ class DriveModel:
         value = self.read(index, subindex)
         if entry.datatype == "str":
             return str(value).encode()
-        if entry.datatype == "bytes":
-            return bytes(value)
+        if isinstance(value, bytes):  # a "bytes" entry
+            return value
         return struct.pack(_INT_FORMATS[entry.datatype], int(value))
 
     def write_bytes(self, index: int, subindex: int, data: bytes) -> None:

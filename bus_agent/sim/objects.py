@@ -110,7 +110,7 @@ class ObjectEntry:
     datatype: str           # "u8","i8","u16","i16","u32","i32","str"
     access: str             # "ro","rw","wo"
     pdo_mappable: bool
-    default: int | str = 0
+    default: int | str | bytes = 0
     low: int | None = None
     high: int | None = None
     bitsize: int = 0

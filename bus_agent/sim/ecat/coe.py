@@ -398,9 +398,9 @@ class Mailbox:
             return
         if self._muted(body):
             return
-        reply = self.sdo.handle(body)
-        if reply is not None:
-            self._push(self._frame(MbxType.COE, reply))
+        answer = self.sdo.handle(body)
+        if answer is not None:
+            self._push(self._frame(MbxType.COE, answer))
 
     def emergency(self, emcy: Emcy) -> None:
         """Queue a CoE emergency (service 1): error code, error register, 5 bytes."""

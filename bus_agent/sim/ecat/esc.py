@@ -17,6 +17,7 @@ from bus_agent.bus.base import AL_ERROR_FLAG, ALState
 from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
+from bus_agent.sim.ecat.image import BitImage
 from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_MODE_SM, DcClock
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
 from bus_agent.sim.ecat.sii import MBX_PROTO_COE, PDI_CONTROL, build_sii, type_code
@@ -203,8 +204,8 @@ class Esc:
         self.last_step = 0.0  # when the segment last stepped this slave's drive model
         self.outputs_fresh = False
         # (struct, field map) of a remapped PDO; None for the default mapping
-        self.rx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
-        self.tx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
+        self.rx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
+        self.tx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
         self._tx_values: Callable[[], tuple] = tuple
         self.out_size = 0
         self.in_size = 0

@@ -41,7 +41,7 @@ def object_entry(o: EsiObject) -> ObjectEntry:
     kind = o.kind
     value = o.value()
     if kind == "string":
-        return ObjectEntry(o.index, o.subindex, o.name, "str", access, bool(o.pdo_mapping), value or "")
+        return ObjectEntry(o.index, o.subindex, o.name, "str", access, bool(o.pdo_mapping), str(value or ""))
     if kind in ("bool", "uint") and o.bits < 8:
         return ObjectEntry(o.index, o.subindex, o.name, "u8", access, bool(o.pdo_mapping), int(value or 0),
                            0, (1 << o.bits) - 1, bitsize=o.bits)
@@ -53,7 +53,7 @@ def object_entry(o: EsiObject) -> ObjectEntry:
     return ObjectEntry(o.index, o.subindex, o.name, dtype, access, bool(o.pdo_mapping), int(value or 0))
 
 
-def _sms(dev: EsiDevice, images: tuple[int, int]) -> tuple[SmDefault, ...]:
+def _sms(dev: EsiDevice) -> tuple[SmDefault, ...]:
     """SM0..SM3 from the ESI (kinds in order MBoxOut, MBoxIn, Outputs, Inputs); a missing one
     takes the built-in drive's."""
     out = []
@@ -103,7 +103,8 @@ def profile_from_esi(dev: EsiDevice, name: str | None = None) -> EcatProfile:
     power_on_mode = dictionary.get((0x6060, 0))
     drive = DriveProfile(
         name=dev.type_name or dev.name, vendor_id=dev.vendor_id, product_code=dev.product_code, revision=dev.revision,
-        device_name=dev.name, supported_modes=(modes.default if modes and modes.default else _COMMON_MODES),
+        device_name=dev.name,
+        supported_modes=(modes.default if modes and isinstance(modes.default, int) and modes.default else _COMMON_MODES),
         statusword_extra=0x0200, not_ready_on_power_up=False,
         power_on_mode=int(power_on_mode.default) if power_on_mode and isinstance(power_on_mode.default, int) else 0)
     coe = dev.coe or CoeFlags()
@@ -113,7 +114,7 @@ def profile_from_esi(dev: EsiDevice, name: str | None = None) -> EcatProfile:
     catalog = _catalog(dev, esi_objects)
     return EcatProfile(name=name or f"esi:{dev.type_name or dev.name}", description=dev.label(), drive=drive,
                        pdos=catalog, dc=dev.dc_capable, dc_required=dev.dc_required, sync0_always=dev.dc_required,
-                       dictionary=dictionary, hidden=hidden, sms=_sms(dev, (0, 0)), coe_details=details,
+                       dictionary=dictionary, hidden=hidden, sms=_sms(dev), coe_details=details,
                        sii_order=dev.type_name,
                        mailbox_protocols=sum(MAILBOX_PROTOCOL_BITS.get(p, 0) for p in set(dev.mailbox_protocols)))
 
@@ -196,7 +197,7 @@ def esi_from_profile(profile: EcatProfile) -> EsiDevice:
     rx = tuple(pdo_of(p, True, 0x1C12) for p in sorted(c.maps) if p < 0x1A00)
     tx = tuple(pdo_of(p, False, 0x1C13) for p in sorted(c.maps) if p >= 0x1A00)
     sms = tuple(EsiSm(_SM_KINDS[d.type], d.start, d.length, d.control, bool(d.enable)) for d in profile.sms)
-    dc = ()
+    dc: tuple[DcOpMode, ...] = ()
     if profile.dc:
         dc = (DcOpMode("DC", "DC-Synchron", 0x300),) + (() if profile.dc_required else (DcOpMode("SM", "SM-Synchron", 0),))
     coe = CoeFlags(**{attr: bool(COE_DETAILS & bit) for attr, bit in _COE_BITS.items()})

@@ -35,9 +35,9 @@ class BitImage:
             out.append(v)
         return tuple(out)
 
-    def pack_into(self, buf, offset: int, *values: int) -> None:
+    def pack_into(self, buf, offset: int, *values: "int | bytes") -> None:
         raw = 0
         for (off, bits, _signed), v in zip(self._fields, values):
-            v = int.from_bytes(v, "little") if isinstance(v, (bytes, bytearray)) else int(v)  # REAL etc.: raw
-            raw |= (v & ((1 << bits) - 1)) << off
+            n = int.from_bytes(v, "little") if isinstance(v, (bytes, bytearray)) else int(v)  # REAL etc.: raw
+            raw |= (n & ((1 << bits) - 1)) << off
         buf[offset: offset + self.size] = raw.to_bytes(self.size, "little")

@@ -202,7 +202,7 @@ class PdoConfig:
         objs = [self._objects.get((i, s)) for i, s, _b in layout]
         if all(o is not None and o.datatype in _STRUCT_CODE and o.bits == b == o.size * 8
                for o, (_i, _s, b) in zip(objs, layout)):
-            codes = "".join(_STRUCT_CODE[o.datatype] for o in objs)
+            codes = "".join(_STRUCT_CODE[o.datatype] for o in objs if o is not None)
             return struct.Struct("<" + codes), [(i, s) for i, s, _b in layout]
         signed = [o is not None and o.datatype.startswith("i") for o in objs]
         image = BitImage([(i, s, b, sg) for (i, s, b), sg in zip(layout, signed)])
