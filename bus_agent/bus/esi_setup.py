@@ -18,7 +18,7 @@ from typing import Iterable, Sequence
 
 from bus_agent.bus.base import BusError
 from bus_agent.bus.mapping import OBJECTS, ObjectInfo, SlaveMapping, SlaveSetup, StartupSdo
-from bus_agent.devices.esi import EsiDevice, InitCmd, match_identity
+from bus_agent.devices.esi import INT_TYPES, EsiDevice, InitCmd, match_identity
 
 log = logging.getLogger(__name__)
 
@@ -27,8 +27,6 @@ log = logging.getLogger(__name__)
 PREOP_TRANSITIONS = ("IP", "PS")
 SAFEOP_TRANSITIONS = ("SO",)
 _SDO_TYPE_OF_SIZE = {1: "u8", 2: "u16", 4: "u32", 8: "u64"}
-_INT_TYPES = {("uint", 8): "u8", ("uint", 16): "u16", ("uint", 32): "u32", ("uint", 64): "u64",
-              ("int", 8): "i8", ("int", 16): "i16", ("int", 32): "i32", ("int", 64): "i64"}
 NAME_MAX = 64  # status `objects` keys (schemas/messages.py)
 
 
@@ -89,7 +87,7 @@ def object_infos(dev: EsiDevice) -> tuple[tuple[tuple[int, int], ObjectInfo], ..
     for key, o in sorted(dev.objects.items()):
         if key in OBJECTS:
             continue
-        dtype = _INT_TYPES.get((o.kind, o.bits))
+        dtype = INT_TYPES.get((o.kind, o.bits))
         if dtype is None and o.kind in ("bool", "uint") and o.bits < 8:
             dtype = "u8"
         if dtype is None:

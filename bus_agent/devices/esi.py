@@ -37,13 +37,10 @@ BASE_TYPES: Mapping[str, tuple[str, int]] = {
     "ULINT": ("uint", 64), "BYTE": ("uint", 8), "WORD": ("uint", 16), "DWORD": ("uint", 32),
     "REAL": ("real", 32), "LREAL": ("real", 64),
 }
-#: ETG.1000.6 data type codes (SII PDO entries, SDO information) of the base types.
-TYPE_CODES: Mapping[str, int] = {
-    "BOOL": 0x01, "SINT": 0x02, "INT": 0x03, "DINT": 0x04, "USINT": 0x05, "UINT": 0x06, "UDINT": 0x07,
-    "REAL": 0x08, "STRING": 0x09, "OCTET_STRING": 0x0A, "INT24": 0x10, "LREAL": 0x11, "LINT": 0x15,
-    "UINT24": 0x16, "ULINT": 0x1B, "BYTE": 0x1E, "WORD": 0x1F, "DWORD": 0x20,
-    **{f"BIT{n}": 0x30 + n - 1 for n in range(1, 9)},
-}
+#: (kind, bits) of the integer types -> the project's short type names (u8..i64)
+INT_TYPES: Mapping[tuple[str, int], str] = {
+    ("uint", 8): "u8", ("uint", 16): "u16", ("uint", 32): "u32", ("uint", 64): "u64",
+    ("int", 8): "i8", ("int", 16): "i16", ("int", 32): "i32", ("int", 64): "i64"}
 #: InitCmd ``<Transition>`` codes (ETG.2000): I=INIT, P=PRE-OP, S=SAFE-OP, O=OP, B=BOOT.
 TRANSITIONS = frozenset({"IP", "PS", "SO", "SP", "OS", "OP", "PI", "SI", "OI", "IB", "BI", "II", "PP", "SS"})
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Mapping
 
-from bus_agent.devices.esi import (BASE_TYPES, CoeFlags, DcOpMode, EsiDevice, EsiEntry, EsiObject, EsiPdo, EsiSm,
+from bus_agent.devices.esi import (BASE_TYPES, INT_TYPES, CoeFlags, DcOpMode, EsiDevice, EsiEntry, EsiObject, EsiPdo, EsiSm,
                                    load_esi, parse_esi_spec, select_device)
 from bus_agent.sim.drive_model import OBJECTS, ObjectEntry
 from bus_agent.sim.drive_profiles import _COMMON_MODES, DriveProfile
@@ -25,8 +25,6 @@ from bus_agent.sim.ecat.sii import (COE_COMPLETE_ACCESS, COE_DETAILS, COE_SDO_IN
 
 _SM_TYPES = {"MBoxOut": SmType.MBX_OUT, "MBoxIn": SmType.MBX_IN, "Outputs": SmType.OUTPUTS, "Inputs": SmType.INPUTS}
 _SM_KINDS = {v: k for k, v in _SM_TYPES.items()}
-_INT_TYPES = {("uint", 8): "u8", ("uint", 16): "u16", ("uint", 32): "u32", ("uint", 64): "u64",
-              ("int", 8): "i8", ("int", 16): "i16", ("int", 32): "i32", ("int", 64): "i64"}
 #: simulator datatype -> ESI base type (the way back)
 ESI_TYPES = {"u8": "USINT", "u16": "UINT", "u32": "UDINT", "u64": "ULINT", "i8": "SINT", "i16": "INT",
              "i32": "DINT", "i64": "LINT"}
@@ -45,7 +43,7 @@ def object_entry(o: EsiObject) -> ObjectEntry:
     if kind in ("bool", "uint") and o.bits < 8:
         return ObjectEntry(o.index, o.subindex, o.name, "u8", access, bool(o.pdo_mapping), int(value or 0),
                            0, (1 << o.bits) - 1, bitsize=o.bits)
-    dtype = _INT_TYPES.get((kind, o.bits))
+    dtype = INT_TYPES.get((kind, o.bits))
     if dtype is None:
         size = (o.bits + 7) // 8
         raw = (o.default or b"")[:size].ljust(size, b"\0")
