@@ -207,6 +207,7 @@ class Esc:
         self.rx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
         self.tx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
         self._tx_values: Callable[[], tuple] = tuple
+        self._last_tx = None
         self.out_size = 0
         self.in_size = 0
         self.last_out = bytearray()
@@ -558,6 +559,7 @@ class Esc:
         self.tx_codec = None if tx_layout == default_tx else pdo.struct_for(0x1C13)
         if self.tx_codec is not None:
             self._tx_values = self.model.reader(self.tx_codec[1])
+        self._last_tx: tuple | None = None
         self.out_view = self.mv[self.pd_out_start:self.pd_out_start + self.out_size]
         self.last_out = bytearray(self.out_size)
 
@@ -591,4 +593,7 @@ class Esc:
             TX_STRUCT.pack_into(self.mem, self.pd_in_start, i.statusword, i.position_actual, i.velocity_actual,
                                 i.torque_actual, i.modes_of_operation_display, i.error_code)
             return
-        self.tx_codec[0].pack_into(self.mem, self.pd_in_start, *self._tx_values())
+        values = self._tx_values()
+        if values != self._last_tx:  # a drive at rest: nothing to pack (bit images cost a few us)
+            self._last_tx = values
+            self.tx_codec[0].pack_into(self.mem, self.pd_in_start, *values)

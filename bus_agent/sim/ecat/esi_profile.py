@@ -110,7 +110,8 @@ def profile_from_esi(dev: EsiDevice, name: str | None = None) -> EcatProfile:
     for attr, bit in _COE_BITS.items():
         details |= bit if getattr(coe, attr) else 0
     catalog = _catalog(dev, esi_objects)
-    return EcatProfile(name=name or f"esi:{dev.type_name or dev.name}", description=dev.label(), drive=drive,
+    label = "".join(c if c.isalnum() or c in "-_." else "_" for c in dev.type_name or dev.name)  # one word
+    return EcatProfile(name=name or f"esi:{label}", description=dev.label(), drive=drive,
                        pdos=catalog, dc=dev.dc_capable, dc_required=dev.dc_required, sync0_always=dev.dc_required,
                        dictionary=dictionary, hidden=hidden, sms=_sms(dev), coe_details=details,
                        sii_order=dev.type_name,

@@ -2,42 +2,51 @@
 
 Same ``pack_into``/``unpack_from`` interface as :class:`struct.Struct`, so the ESC uses either.
 Used only for layouts that a struct cannot describe (bit-sized or unaligned entries); the
-built-in profiles keep their structs.
+built-in profiles keep their structs. Both functions are generated once per layout as
+straight-line code over one integer (no per-field loop per step).
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Callable, Sequence
+
+
+def _raw(v: Any) -> int:
+    """A value as an integer (REAL and other raw entries come as bytes)."""
+    return int.from_bytes(v, "little") if isinstance(v, (bytes, bytearray)) else int(v)
 
 
 class BitImage:
     """Entries (index, subindex, bits, signed) packed LSB-first in order; index 0 is padding."""
 
+    unpack_from: Callable[..., tuple[int, ...]]
+    pack_into: Callable[..., None]
+
     def __init__(self, entries: Sequence[tuple[int, int, int, bool]]):
         self.size = (sum(b for _i, _s, b, _sg in entries) + 7) // 8
+        #: (index, subindex) of the values, in order (padding left out)
+        self.keys = [(i, s) for i, s, _b, _sg in entries if i]
         fields = []
         offset = 0
-        for index, sub, bits, signed in entries:
+        for index, _sub, bits, signed in entries:
             if index:
                 fields.append((offset, bits, signed))
             offset += bits
-        self._fields = tuple(fields)
-        #: (index, subindex) of the values, in order (padding left out)
-        self.keys = [(i, s) for i, s, _b, _sg in entries if i]
-
-    def unpack_from(self, buf, offset: int = 0) -> tuple[int, ...]:
-        raw = int.from_bytes(bytes(buf[offset: offset + self.size]), "little")
-        out = []
-        for off, bits, signed in self._fields:
-            v = (raw >> off) & ((1 << bits) - 1)
-            if signed and v >> (bits - 1):
-                v -= 1 << bits
-            out.append(v)
-        return tuple(out)
-
-    def pack_into(self, buf, offset: int, *values: "int | bytes") -> None:
-        raw = 0
-        for (off, bits, _signed), v in zip(self._fields, values):
-            n = int.from_bytes(v, "little") if isinstance(v, (bytes, bytearray)) else int(v)  # REAL etc.: raw
-            raw |= (n & ((1 << bits) - 1)) << off
-        buf[offset: offset + self.size] = raw.to_bytes(self.size, "little")
+        n = self.size
+        gets, puts = [], []
+        for k, (off, bits, signed) in enumerate(fields):
+            mask = (1 << bits) - 1
+            get = f"(r >> {off}) & {mask}"
+            if signed:
+                get = f"((({get}) ^ {1 << (bits - 1)}) - {1 << (bits - 1)})"
+            gets.append(get)
+            puts.append(f"((raw(v[{k}]) & {mask}) << {off})")
+        src = (f"def unpack_from(buf, offset=0):\n"
+               f"    r = from_bytes(bytes(buf[offset:offset + {n}]), 'little')\n"
+               f"    return ({''.join(g + ', ' for g in gets)})\n"
+               f"def pack_into(buf, offset, *v):\n"
+               f"    buf[offset:offset + {n}] = ({' | '.join(puts) or '0'}).to_bytes({n}, 'little')\n")
+        ns: dict[str, Any] = {"from_bytes": int.from_bytes, "raw": _raw}
+        exec(compile(src, "<BitImage>", "exec"), ns)
+        self.unpack_from = ns["unpack_from"]
+        self.pack_into = ns["pack_into"]
