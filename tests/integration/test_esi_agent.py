@@ -35,6 +35,7 @@ def test_agent_matches_esi_devices_makes_init_cmds_and_names_vendor_objects(ecat
         # InitCmds: quirk PS 0x2001 = 300; configurable's 0x2100 InitCmd yields to the TOML's 1000
         assert struct.unpack("<H", agent.bus.sdo_read(0, 0x2001, 0, 2))[0] == 300
         assert struct.unpack("<H", agent.bus.sdo_read(1, 0x2100, 0, 2))[0] == 1000
+        assert agent.bus.sdo_read(1, 0x2102, 0, 1) == b"\x02"  # the SO InitCmd, made in SAFE-OP
         d1 = agent.drive("axis1")
         assert dict(zip(d1.object_names, d1.objects)) == {"Motor temperature": -12}  # ESI name, INT decoded
         before = [d.position for d in agent.cycle.latest.drives]

@@ -65,6 +65,14 @@ def test_namespaced_file_with_decimal_identity():
         select_device([dev], 4203265, 4, "configurable.xml")
 
 
+def test_a_file_whose_bytes_are_not_its_declared_encoding_is_read_as_latin_1():
+    text = (ESI / "configurable.xml").read_text().replace("Config Drives Ltd", "Config Antriebe M\u00fcnchen")
+    (dev,) = parse_esi(text.encode("latin-1"), "mislabelled.xml")  # declared UTF-8, written Latin-1
+    assert dev.vendor_name == "Config Antriebe München"
+    (dev,) = parse_esi(b"\xef\xbb\xbf" + text.encode("utf-8"), "bom.xml")  # UTF-8 with a byte order mark
+    assert dev.vendor_name == "Config Antriebe München"
+
+
 @pytest.mark.parametrize("data,match", [
     (b"<EtherCATInfo><Vendor>", "not well-formed"),
     (b"<Other/>", "root element is <Other>"),
