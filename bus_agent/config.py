@@ -258,6 +258,9 @@ def _validate(c: AgentConfig) -> None:
                           "or a [can] table)")
     if c.can is not None:
         validate_can(c.can)
+    if c.esi is not None and not c.ifname:
+        raise ConfigError("esi: ESI files describe EtherCAT slaves: they go with ifname (the pysoem backend), "
+                          "not with sim_drives or can")
     if c.sim_profile not in SIM_PROFILES:
         raise ConfigError(f"sim_profile: {c.sim_profile!r} is not one of {', '.join(SIM_PROFILES)}")
     if not 100 <= c.cycle_us <= 1_000_000:

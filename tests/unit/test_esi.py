@@ -125,3 +125,17 @@ def test_bit_image_packs_bits_padding_and_signed_values():
     img.pack_into(buf, 0, -2, 1, 0x000F)
     assert img.size == 7 and bytes(buf) == b"\xfe\xff\xff\xff\x01\x0f\x00"
     assert img.unpack_from(buf) == (-2, 1, 0x000F) and img.keys == [(0x607A, 0), (0x2003, 0), (0x6040, 0)]
+
+
+def test_esi_configuration(tmp_path):
+    from bus_agent.cli import _parser, build_config
+    from bus_agent.config import ConfigError, EsiConfig, load_config
+
+    cfg = build_config(_parser().parse_args(["--ifname", "veth0", "--esi", str(ESI)]))
+    assert cfg.esi == EsiConfig(str(ESI), init_cmds=True)
+    toml = tmp_path / "a.toml"
+    toml.write_text(f'host = "h1"\nifname = "veth0"\n[esi]\npath = "{ESI}"\ninit_cmds = false\n')
+    assert load_config(toml).esi == EsiConfig(str(ESI), init_cmds=False)
+    assert load_config(toml).with_overrides(esi="/other").esi == EsiConfig("/other", init_cmds=False)
+    with pytest.raises(ConfigError, match="ESI files describe EtherCAT slaves"):
+        build_config(_parser().parse_args(["--sim", "2", "--esi", str(ESI)]))
