@@ -43,6 +43,13 @@ def test_agent_matches_esi_devices_makes_init_cmds_and_names_vendor_objects(ecat
         assert all(o.outcome == "done" for o in outs), outs
         after = [d.position for d in agent.cycle.latest.drives]
         assert after == before  # no jump
+        # a power cycle forgets the InitCmds' values: made again before the slave returns to OP
+        assert control.request("unplug", slave=1)["ok"]
+        _wait(lambda: agent.drive("axis1").lost, 10, "axis1 lost")
+        assert control.request("plug", slave=1)["ok"]
+        _wait(lambda: not agent.drive("axis1").lost and agent.drive("axis1").al_state == "op", 30, "axis1 back in OP")
+        assert agent.bus.sdo_read(1, 0x2102, 0, 1) == b"\x02"  # SO
+        assert struct.unpack("<H", agent.bus.sdo_read(1, 0x2100, 0, 2))[0] == 1000  # the TOML's, not the InitCmd
     finally:
         agent.cycle.stop()
 
