@@ -207,7 +207,7 @@ class Esc:
         self.rx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
         self.tx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
         self._tx_values: Callable[[], tuple] = tuple
-        self._last_tx = None
+        self._last_tx: tuple | None = None  # the inputs last packed (a bit image only when they change)
         self.out_size = 0
         self.in_size = 0
         self.last_out = bytearray()
@@ -559,7 +559,7 @@ class Esc:
         self.tx_codec = None if tx_layout == default_tx else pdo.struct_for(0x1C13)
         if self.tx_codec is not None:
             self._tx_values = self.model.reader(self.tx_codec[1])
-        self._last_tx: tuple | None = None
+        self._last_tx = None
         self.out_view = self.mv[self.pd_out_start:self.pd_out_start + self.out_size]
         self.last_out = bytearray(self.out_size)
 
