@@ -95,8 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "product code (and revision), by default the first with CiA 402 objects (docs/simulator.md)")
     p.add_argument("--write-esi", metavar="PATH",
                    help="write an ESI file describing every built-in profile to PATH and exit")
-    p.add_argument("--profile", default="generic",
-                   help="slave profile, or one per slave: 'generic*2,omron1s' (the last repeats); see below")
+    p.add_argument("--profile",
+                   help="slave profile (default generic), or one per slave: 'generic*2,omron1s' (the last repeats); see below")
     p.add_argument("--name", default="seg0", help="segment name (the Zenoh control key chunk)")
     p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port; "
                    f"actions: {', '.join(ACTIONS)} (docs/virtual-ethercat.md)")
@@ -121,7 +121,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--ifname is required")
     start_logging(args)
     try:
-        profiles = args.profile
+        if args.esi and args.profile:
+            raise ValueError("--profile and --esi: give the slaves one way (an --esi per file, in segment order)")
+        profiles = args.profile = args.profile or "generic"
         if args.esi:
             from bus_agent.sim.ecat.esi_profile import profiles_from_specs
 
