@@ -139,3 +139,27 @@ def test_esi_configuration(tmp_path):
     assert load_config(toml).with_overrides(esi="/other").esi == EsiConfig("/other", init_cmds=False)
     with pytest.raises(ConfigError, match="ESI files describe EtherCAT slaves"):
         build_config(_parser().parse_args(["--sim", "2", "--esi", str(ESI)]))
+
+
+def test_sdo_information_fragments_and_descriptions():
+    import struct
+
+    from bus_agent.sim.ecat import sdo_info
+
+    prof = profile_from_esi(load_esi(ESI / "configurable.xml")[0])
+    objects = prof.dictionary
+    values = lambda i, s: objects[(i, s)].default  # noqa: E731
+    replies = sdo_info.handle(struct.pack("<BBHH", 1, 0, 0, 1), objects, values, room=10)
+    indexes = sorted({i for i, _s in objects})
+    assert len(replies) == (2 + 2 * len(indexes) + 9) // 10  # 10-byte pieces (list type first)
+    assert [struct.unpack_from("<BBH", r)[2] for r in replies] == list(range(len(replies) - 1, -1, -1))
+    assert all(r[0] == 0x82 for r in replies[:-1]) and replies[-1][0] == 0x02  # bit 7: more follow
+    body = b"".join(r[4:] for r in replies)
+    assert struct.unpack(f"<H{len(indexes)}H", body) == (1, *indexes)
+    (desc,) = sdo_info.handle(struct.pack("<BBHH", 3, 0, 0, 0x1A00), objects, values, room=100)
+    assert struct.unpack_from("<HHBB", desc, 4) == (0x1A00, 0x0007, 5, 8) and desc[10:] == b"TxPDO 1 mapping"
+    (entry,) = sdo_info.handle(struct.pack("<BBHHBB", 5, 0, 0, 0x2101, 0, 0), objects, values, room=100)
+    assert struct.unpack_from("<HBBHHH", entry, 4) == (0x2101, 0, 0, 0x0003, 16, 0x07 | 0x80)
+    assert entry[14:] == b"Motor temperature"
+    (err,) = sdo_info.handle(struct.pack("<BBHH", 3, 0, 0, 0x5000), objects, values, room=100)
+    assert struct.unpack("<BBHI", err) == (7, 0, 0, 0x06020000)

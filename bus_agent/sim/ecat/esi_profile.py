@@ -13,6 +13,7 @@ model runs on whatever the mapping holds; every other object is plain SDO data.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Mapping
 
 from bus_agent.devices.esi import (BASE_TYPES, INT_TYPES, CoeFlags, DcOpMode, EsiDevice, EsiEntry, EsiObject, EsiPdo, EsiSm,
@@ -38,6 +39,10 @@ def object_entry(o: EsiObject) -> ObjectEntry:
     access = o.access if o.access in ("ro", "rw", "wo") else "rw"
     kind = o.kind
     value = o.value()
+    name = o.name
+    if o.object_name and o.object_name != name and not name.startswith(o.object_name + ":"):
+        name = f"{o.object_name}: {name}"  # a record's entry, named as the built-in ones: "object: entry"
+    o = replace(o, name=name)
     if kind == "string":
         return ObjectEntry(o.index, o.subindex, o.name, "str", access, bool(o.pdo_mapping), str(value or ""))
     if kind in ("bool", "uint") and o.bits < 8:

@@ -104,5 +104,6 @@ def handle(req: bytes, objects: Mapping[tuple[int, int], ObjectEntry], values, r
         if entry.pdo_mappable:
             access |= 0x40 if entry.access != "ro" else 0x80
         body = struct.pack("<HBBHHH", index, sub, 0, _type_code(entry), _bits(entry, values(index, sub)), access)
-        return _fragments(InfoOpcode.ENTRY_DESC_RES, body + entry.name.encode("latin-1", "replace"), room)
+        name = entry.name.split(": ", 1)[-1] if (index, 1) in objects else entry.name  # a record's: the entry's
+        return _fragments(InfoOpcode.ENTRY_DESC_RES, body + name.encode("latin-1", "replace"), room)
     return _error(ABORT_INVALID_COMMAND)
