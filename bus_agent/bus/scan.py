@@ -42,6 +42,7 @@ class SlaveScan:
     errors: tuple[str, ...] = field(default=())
     device: str | None = None                 # --esi: the matched ESI device's name
     differences: tuple[str, ...] | None = None  # --esi: where the mapping differs from its default
+    names: tuple[tuple[tuple[int, int], str], ...] = ()  # --esi: vendor objects' names
 
     def to_dict(self) -> dict[str, Any]:
         m = self.mapping
@@ -53,8 +54,11 @@ class SlaveScan:
         if self.device is not None or self.differences is not None:
             out.update(esi_device=self.device, esi_differences=list(self.differences or ()))
         if m is not None:
+            names = dict(self.names)
+
             def entries(es):  # type: ignore[no-untyped-def]
-                return [{"index": e.index, "subindex": e.subindex, "name": "padding" if e.padding else e.name,
+                return [{"index": e.index, "subindex": e.subindex,
+                         "name": "padding" if e.padding else names.get(e.key, e.name),
                          "bit_offset": e.bit_offset, "bits": e.bits, "pdo": e.pdo} for e in es]
             out.update(rx_pdos=list(m.rx_pdos), tx_pdos=list(m.tx_pdos), rx=entries(m.rx), tx=entries(m.tx),
                        sm2_bytes=m.out_bytes, sm3_bytes=m.in_bytes)
@@ -79,18 +83,20 @@ def render_text(scans: Sequence[SlaveScan]) -> str:
         lines.append(f"slave {s.position} {s.name!r}: vendor 0x{s.vendor_id:08X} product 0x{s.product_code:08X} "
                      f"revision 0x{s.revision:08X} serial {s.serial}; DC {'yes' if s.dc else 'no'}; "
                      f"mailbox {','.join(s.mailbox) or 'none'}; modes "
-                     + (",".join(str(m) for m in s.modes) if s.modes is not None else "unknown (no 0x6502)"))
+                     + (",".join(str(m) for m in s.modes) if s.modes else
+                        "none listed (0x6502 = 0)" if s.modes is not None else "unknown (no 0x6502)"))
         if s.device is not None:
             lines.append(f"  ESI device {s.device!r}: mapping "
                          + ("as its ESI default" if not s.differences else "differs from its ESI default:"))
             lines.extend(f"    - {d}" for d in s.differences or ())
         m = s.mapping
+        names = dict(s.names)
         if m is not None:
             for side, pdos, es, sm, size in (("RxPDO", m.rx_pdos, m.rx, "SM2", m.out_bytes),
                                              ("TxPDO", m.tx_pdos, m.tx, "SM3", m.in_bytes)):
                 lines.append(f"  {side} {', '.join(f'0x{p:04X}' for p in pdos) or 'none'} ({sm} {size} bytes)")
                 for e in es:
-                    what = "padding" if e.padding else f"0x{e.index:04X}:{e.subindex:02X} {e.name}"
+                    what = "padding" if e.padding else f"0x{e.index:04X}:{e.subindex:02X} {names.get(e.key, e.name)}"
                     lines.append(f"    bit {e.bit_offset:4d} +{e.bits:<2d} {what}")
         for err in s.errors:
             lines.append(f"  ! {err}")
@@ -191,7 +197,7 @@ def with_esi(scans: Sequence[SlaveScan], devices: Sequence[Any], source: str) ->
     default; and a line per slave whose identity matches no device."""
     from dataclasses import replace
 
-    from bus_agent.bus.esi_setup import mapping_differences
+    from bus_agent.bus.esi_setup import mapping_differences, object_infos
     from bus_agent.devices.esi import match_identity
 
     out, unmatched = [], []
@@ -203,7 +209,8 @@ def with_esi(scans: Sequence[SlaveScan], devices: Sequence[Any], source: str) ->
             out.append(s)
             continue
         diffs = tuple(mapping_differences(dev, s.mapping)) if s.mapping is not None else ()
-        out.append(replace(s, device=dev.name, differences=diffs))
+        out.append(replace(s, device=dev.name, differences=diffs,
+                           names=tuple((key, info.name) for key, info in object_infos(dev))))
     return out, unmatched
 
 

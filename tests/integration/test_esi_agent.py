@@ -84,6 +84,7 @@ def test_scan_names_the_esi_device_and_where_the_mapping_differs(ecat_segment):
     slaves = json.loads(out.stdout)["slaves"]
     assert [s["esi_device"] for s in slaves] == ["Quirk servo (predefined)", "Configurable drive", "Quirk boot loader"]
     assert slaves[0]["esi_differences"] == []
+    assert [e["name"] for e in slaves[0]["rx"]][:3] == ["target_position", "Brake release", "padding"]  # ESI names
     assert slaves[2]["mailbox"] == ["FoE"] and slaves[2]["errors"] == []  # no CoE in its ESI: none simulated
     assert slaves[1]["esi_differences"] == [
         "TxPDO (0x1C13) 0x1A00 maps [6041:00/16 6064:00/32 606C:00/32 6061:00/8]; the ESI default is "

@@ -24,6 +24,9 @@ from bus_agent.sim.ecat.profiles import ABORT_WRONG_STATE, EcatProfile, PdoCatal
 from bus_agent.sim.ecat.sii import (COE_COMPLETE_ACCESS, COE_DETAILS, COE_SDO_INFO, MAILBOX_PROTOCOL_BITS,
                                     SM_DEFAULTS, SmDefault, SmType)
 
+#: Objects every CoE slave has (device type, identity), served from the built-in dictionary when a
+#: file omits them (ESI dictionaries are documentation and some leave them out).
+MANDATORY_OBJECTS = (0x1000, 0x1018)
 _SM_TYPES = {"MBoxOut": SmType.MBX_OUT, "MBoxIn": SmType.MBX_IN, "Outputs": SmType.OUTPUTS, "Inputs": SmType.INPUTS}
 _SM_KINDS = {v: k for k, v in _SM_TYPES.items()}
 #: simulator datatype -> ESI base type (the way back)
@@ -95,6 +98,9 @@ def profile_from_esi(dev: EsiDevice, name: str | None = None) -> EcatProfile:
     esi_objects = dev.objects
     if esi_objects:
         dictionary: dict[tuple[int, int], ObjectEntry] = {k: object_entry(o) for k, o in esi_objects.items()}
+        for key, entry in OBJECTS.items():  # mandatory in every CoE slave (ETG.1000.6), whatever the file lists
+            if key[0] in MANDATORY_OBJECTS and not any(i == key[0] for i, _s in esi_objects):
+                dictionary[key] = entry
     else:  # a file without dictionary (e.g. from `ethercat xml`): the built-in objects
         dictionary = dict(OBJECTS)
     hidden = {}
