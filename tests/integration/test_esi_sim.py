@@ -156,3 +156,23 @@ def test_configurable_file_sdo_information_complete_access_and_remapping(ecat_se
         assert struct.unpack_from("<h", s.input, 10)[0] == -12  # the vendor object in the image
     finally:
         m.close()
+
+
+def test_a_file_without_coe_maps_from_the_sii(ecat_segment):
+    """An `ethercat xml`-style file (no CoE, no dictionary): the slave answers no CoE, so SOEM
+    sizes the process data from the SII's PDO categories (ETG.2010), 1-bit and padding entries
+    included; the image carries the drive model's statusword."""
+    ifname, _control = ecat_segment(1, esi=(str(ROOT / "tests" / "esi" / "no_coe.xml"),))
+    m = _configure(ifname, 1)
+    try:
+        s = m.slaves[0]
+        assert (s.man, s.id, s.name) == (0xABC, 0x00402401, "NoCoeDrive")
+        assert (len(s.output), len(s.input)) == (3, 5)  # 16 + 8 bits out; 16 + 1 + 7 + 8 + 8 bits in
+        with pytest.raises(pysoem.MailboxError, match="mailbox protocol is not supported"):
+            s.sdo_read(0x1018, 1)  # no CoE
+        assert m.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
+        m.send_processdata()
+        m.receive_processdata(2000)
+        assert struct.unpack_from("<H", s.input)[0] & 0x004F in (0x0040, 0x0000)  # switch on disabled / not ready
+    finally:
+        m.close()

@@ -60,11 +60,14 @@ def object_entry(o: EsiObject) -> ObjectEntry:
 
 
 def _sms(dev: EsiDevice) -> tuple[SmDefault, ...]:
-    """SM0..SM3 from the ESI (kinds in order MBoxOut, MBoxIn, Outputs, Inputs); a missing one
-    takes the built-in drive's."""
+    """SM0..SM3 from the ESI (kinds in order MBoxOut, MBoxIn, Outputs, Inputs; an ``<Sm>``
+    without kind, as `ethercat xml` writes them, by its position); a missing one takes the
+    built-in drive's."""
     out = []
     for k, default in enumerate(SM_DEFAULTS):
         sm = next((s for s in dev.sms if _SM_TYPES.get(s.kind) == default.type), None)
+        if sm is None and k < len(dev.sms) and not dev.sms[k].kind:
+            sm = dev.sms[k]
         if sm is None:
             out.append(default)
             continue
