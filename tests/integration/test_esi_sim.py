@@ -167,12 +167,13 @@ def test_a_file_without_coe_maps_from_the_sii(ecat_segment):
     try:
         s = m.slaves[0]
         assert (s.man, s.id, s.name) == (0xABC, 0x00402401, "NoCoeDrive")
-        assert (len(s.output), len(s.input)) == (3, 5)  # 16 + 8 bits out; 16 + 1 + 7 + 8 + 8 bits in
+        assert (len(s.output), len(s.input)) == (3, 7)  # 16 + 8 bits out; 16 + 16 + 1 + 7 + 8 + 8 bits in
         with pytest.raises(pysoem.MailboxError, match="mailbox protocol is not supported"):
             s.sdo_read(0x1018, 1)  # no CoE
         assert m.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
         m.send_processdata()
         m.receive_processdata(2000)
-        assert struct.unpack_from("<H", s.input)[0] & 0x004F in (0x0040, 0x0000)  # switch on disabled / not ready
+        error_code, statusword = struct.unpack_from("<HH", s.input)  # the error code comes first
+        assert error_code == 0 and statusword & 0x004F in (0x0040, 0x0000)  # switch on disabled / not ready
     finally:
         m.close()
