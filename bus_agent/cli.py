@@ -147,6 +147,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"bus-agent: configuration error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if config.esi is not None:  # an unreadable ESI is a configuration error: found before the bus opens
+        from bus_agent.devices.esi import EsiError, load_esi
+
+        try:
+            load_esi(config.esi.path)
+        except EsiError as exc:
+            print(f"bus-agent: configuration error: esi.path: {exc}", file=sys.stderr)
+            return EXIT_USAGE
 
     stop = StopSignals()  # SIGTERM/SIGINT; the handler takes no lock (a burst of signals must not hang)
 

@@ -163,3 +163,14 @@ def test_sdo_information_fragments_and_descriptions():
     assert entry[14:] == b"Motor temperature"
     (err,) = sdo_info.handle(struct.pack("<BBHH", 3, 0, 0, 0x5000), objects, values, room=100)
     assert struct.unpack("<BBHI", err) == (7, 0, 0, 0x06020000)
+
+
+def test_an_unreadable_esi_is_a_configuration_error_before_the_bus_opens(tmp_path, capsys):
+    from bus_agent.cli import main
+
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<EtherCATInfo><Vendor>")
+    assert main(["--ifname", "zdnosuchif0", "--esi", str(bad)]) == 2
+    assert "configuration error: esi.path: " in capsys.readouterr().err
+    assert main(["--ifname", "zdnosuchif0", "--esi", str(tmp_path / "none")]) == 2
+    assert "no such file or directory" in capsys.readouterr().err
