@@ -25,7 +25,7 @@ from bus_agent.sim.ecat.sii import MBX_PROTO_COE, PDI_CONTROL, build_sii, type_c
 log = logging.getLogger(__name__)
 
 MEM_SIZE = 0x2000  # 4 KiB registers + 4 KiB process RAM (more when an ESI places SMs higher)
-MAX_IMAGE = 0x400  # room behind the highest SM start
+MAX_IMAGE = 0x400  # room for a process image behind its SM start
 REG_END = 0x1000
 
 
@@ -127,8 +127,8 @@ class Esc:
         (self.mbx_out_start, self.mbx_out_size), (self.mbx_in_start, self.mbx_in_size) = \
             [(d.start, d.length) for d in self.sms[:2]]
         self.pd_out_start, self.pd_in_start = self.sms[2].start, self.sms[3].start
-        # process RAM up to the highest SM start plus the largest image (the ESI's layout)
-        self.mem_size = max(MEM_SIZE, max(d.start for d in self.sms) + MAX_IMAGE)
+        # process RAM up to the end of the highest SM (an ESI's layout; process images up to MAX_IMAGE)
+        self.mem_size = max(MEM_SIZE, max(d.start + max(d.length, MAX_IMAGE) for d in self.sms))
         self.mem = bytearray(self.mem_size)
         self.mv = memoryview(self.mem)
         self.dc = DcClock(self.mem) if self.ecat_profile.dc else None
