@@ -137,7 +137,8 @@ def test_configurable_file_sdo_information_complete_access_and_remapping(ecat_se
         # complete access (CompleteAccess="true"): subindex 0 as 16 bits, then the entries
         assert s.sdo_read(0x1A00, 0, ca=True) == struct.pack("<BxIIIII", 5, 0x60410010, 0x60640020, 0x606C0020,
                                                                   0x60610008, 0x21010010)
-        # SDO information (SdoInfo="true"): the file's dictionary, names included
+        # SDO information (SdoInfo="true"): the file's dictionary, names included; with its
+        # 48-byte mailbox the object list comes in fragments, which SOEM puts together
         od = {obj.index: obj for obj in s.od}
         assert od[0x2100].name in ("Current limit", b"Current limit")
         assert od[0x2101].data_type == 0x0003  # INT
