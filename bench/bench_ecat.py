@@ -1,6 +1,7 @@
 """Benchmark: unmodified pysoem cycling against ``ecat-sim`` over a veth pair.
 
     python -m bench.bench_ecat --drives 16 --seconds 60 --cycle-us 1000 [--out FILE]
+    python -m bench.bench_ecat --drives 16 --esi tests/esi/quirks.xml*16 --dc-cycle-ns 1000000
 
 Brings the segment to OP, then runs send_processdata + receive_processdata on drift-free
 deadlines (t0 + k * cycle). Reports round-trip percentiles, missed frames (no answer within
@@ -24,7 +25,7 @@ def run(args) -> dict:
 
     from bus_agent.sim.ecat.control import ControlClient
 
-    with segment("ecb", args.drives, args.sim_rt_priority) as seg:
+    with segment("ecb", args.drives, args.sim_rt_priority, esi=args.esi) as seg:
         control = ControlClient(seg.control_path)
         m = pysoem.Master()
         try:
@@ -41,7 +42,7 @@ def run(args) -> dict:
 
 
 def _measure(m, seg, control, args, pysoem) -> dict:
-    expected = pysoem_to_op(m, seg.master_if, args.drives, args.timeout_us)
+    expected = pysoem_to_op(m, seg.master_if, args.drives, args.timeout_us, args.dc_cycle_ns)
 
     cycles = int(args.seconds * 1e6 / args.cycle_us)
     cycle_s = args.cycle_us / 1e6
@@ -77,7 +78,7 @@ def _measure(m, seg, control, args, pysoem) -> dict:
     frames = counters1["frames"] - counters0["frames"]
     rtts.sort()
     return {
-        "drives": args.drives, "cycle_us": args.cycle_us, "seconds": round(elapsed, 3), "cycles": cycles,
+        "drives": args.drives, "esi": args.esi, "cycle_us": args.cycle_us, "seconds": round(elapsed, 3), "cycles": cycles,
         "frames": frames, "frames_per_cycle": round(frames / cycles, 2) if cycles else 0,
         "expected_wkc": expected,
         "rtt_us": {"p50": round(percentile(rtts, 0.5), 1), "p99": round(percentile(rtts, 0.99), 1),
@@ -100,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout-us", type=int, default=2000, help="receive_processdata timeout")
     p.add_argument("--sim-rt-priority", type=int, default=20, help="SCHED_FIFO priority of ecat-sim (0: off)")
     p.add_argument("--master-rt-priority", type=int, default=10, help="SCHED_FIFO priority of this master (0: off)")
+    p.add_argument("--esi", metavar="SPEC", help="slaves from an ESI file: ecat-sim --esi SPEC (e.g. "
+                   "tests/esi/quirks.xml*16: 1-bit and padding entries, bit-level images)")
+    p.add_argument("--dc-cycle-ns", type=int, default=0, help="config_dc and SYNC0 at this cycle before OP "
+                   "(slaves whose ESI offers only DC need it)")
     args = p.parse_args(argv)
     return main_result("bench_ecat", lambda: run(args), args.out)
 

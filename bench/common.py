@@ -55,9 +55,11 @@ class Segment:
 
 
 @contextlib.contextmanager
-def segment(prefix: str, drives: int, sim_rt_priority: int = 20, profile: str = "generic") -> Iterator[Segment]:
-    """veth pair up, ``ecat-sim`` with ``drives`` drives of ``profile`` on its far end (SCHED_FIFO
-    ``sim_rt_priority``, 0: off), ready to be scanned; everything torn down on exit."""
+def segment(prefix: str, drives: int, sim_rt_priority: int = 20, profile: str = "generic",
+            esi: str | None = None) -> Iterator[Segment]:
+    """veth pair up, ``ecat-sim`` with ``drives`` drives of ``profile`` (or of ``esi``, an
+    ``--esi`` spec) on its far end (SCHED_FIFO ``sim_rt_priority``, 0: off), ready to be scanned;
+    everything torn down on exit."""
     from bus_agent.sim.netns import pair_names, veth_down, veth_up
 
     master_if, sim_if = pair_names(f"{prefix}{os.getpid() % 100000:05d}", 0)
@@ -69,7 +71,8 @@ def segment(prefix: str, drives: int, sim_rt_priority: int = 20, profile: str = 
         with open(os.path.join(workdir, "sim.log"), "w") as sim_log:
             sim = subprocess.Popen(
                 [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim_if, "--drives", str(drives),
-                 "--control", ctl, "--rt-priority", str(sim_rt_priority), "--profile", profile],
+                 "--control", ctl, "--rt-priority", str(sim_rt_priority),
+                 *(("--esi", esi) if esi else ("--profile", profile))],
                 cwd=ROOT, stdout=subprocess.PIPE, stderr=sim_log, text=True)
         ready, _, _ = select.select([sim.stdout], [], [], SIM_READY_TIMEOUT_S)
         if not ready or not sim.stdout.readline().startswith("ecat-sim ready"):

@@ -62,6 +62,11 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("ecat_64", "pysoem against ecat-sim, 64 drives (2 frames per cycle)", "bench.bench_ecat",
               ("--drives", "64", "--seconds", "60"), ("--drives", "64", "--seconds", "3"), True,
               s.ecat_figures, s.ecat_headline, s.no_targets),
+    Benchmark("ecat_16_esi", "pysoem against ecat-sim, 16 drives from tests/esi/quirks.xml (bit-level images, "
+              "SYNC0), 1 kHz", "bench.bench_ecat",
+              ("--drives", "16", "--esi", "tests/esi/quirks.xml*16", "--dc-cycle-ns", "1000000", "--seconds", "60"),
+              ("--drives", "16", "--esi", "tests/esi/quirks.xml*16", "--dc-cycle-ns", "1000000", "--seconds", "5"),
+              True, s.ecat_figures, s.ecat_headline, s.no_targets),
     Benchmark("agent", "agent cycle (16 drives, 1 kHz) next to a bare pysoem loop; gateway under Zenoh load; "
               "16-drive enable latency", "bench.bench_agent",
               ("--seconds", "60", "--rounds", "6", "--rt-priority", "10"),

@@ -4,7 +4,8 @@
                                                # listens on tcp/127.0.0.1:7447 (drivectl's default)
     bus-agent --config /etc/zenoh-drives/agent.toml
     bus-agent --ifname eth1 --host h1 --connect tcp/router:7447
-    bus-agent scan --ifname eth1 [--json | --toml]   # read the segment (PRE-OP), no Zenoh
+    bus-agent --ifname eth1 --esi /etc/zenoh-drives/esi/   # slaves matched to their ESI devices
+    bus-agent scan --ifname eth1 [--esi PATH] [--json | --toml]   # read the segment (PRE-OP), no Zenoh
 
 Flags override the configuration file. Once everything is up it prints one line,
 ``bus-agent ready host=<host> drives=<a,b,..> backend=<sim|pysoem> listen=<eps> connect=<eps>``.
@@ -65,6 +66,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--nodes", metavar="IDS", help="CANopen node ids of --can, e.g. 1,2,3 (slave positions in that order)")
     p.add_argument("--sync-counter", type=int, metavar="N",
                    help="--can: SYNC carries a counter 1..N (2..240, written to every node's 0x1019; default: none)")
+    p.add_argument("--esi", metavar="PATH", help="ESI file or directory of the slaves' devices: each slave matched "
+                   "by identity (none matching stops start-up), InitCmds made, vendor objects named ([esi] in the "
+                   "config; docs/device-files.md)")
     p.add_argument("--profile", choices=SIM_PROFILES, help="simulated drive profile (default generic)")
     p.add_argument("--cycle-us", type=int, metavar="US", help="cycle period in microseconds (default 1000)")
     p.add_argument("--heartbeat-s", type=float, metavar="S", help="status heartbeat period (default 1.0 s)")
@@ -101,7 +105,7 @@ def build_config(args: argparse.Namespace) -> AgentConfig:
     overrides = dict(host=args.host, ifname=args.ifname, sim_drives=args.sim, sim_profile=args.profile, can=can,
                      cycle_us=args.cycle_us, heartbeat_s=args.heartbeat_s, zenoh_mode=args.mode,
                      listen=args.listen, connect=args.connect, rt_priority=args.rt_priority,
-                     record_s=args.record_s,
+                     record_s=args.record_s, esi=args.esi,
                      pki=args.pki, identity=args.identity, insecure=args.insecure,
                      gateway="thread" if args.gateway_thread else None)
     if args.config:
@@ -150,6 +154,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"bus-agent: configuration error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if config.esi is not None:  # an unreadable ESI is a configuration error: found before the bus opens
+        from bus_agent.devices.esi import EsiError, load_esi
+
+        try:
+            load_esi(config.esi.path)
+        except EsiError as exc:
+            print(f"bus-agent: configuration error: esi.path: {exc}", file=sys.stderr)
+            return EXIT_USAGE
 
     stop = StopSignals()  # SIGTERM/SIGINT; the handler takes no lock (a burst of signals must not hang)
 

@@ -138,6 +138,16 @@ class RecorderConfig:
 
 
 @dataclass(frozen=True)
+class EsiConfig:
+    """``[esi]`` (or ``--esi PATH``): every slave is matched to a device of these ESI files by its
+    identity (none matching stops start-up); its InitCmds are made (``init_cmds = false``: not;
+    ``[[drives.sdo]]`` of the same object wins) and its vendor objects named in ``objects``."""
+
+    path: str
+    init_cmds: bool = True
+
+
+@dataclass(frozen=True)
 class AgentConfig:
     host: str
     zenoh: ZenohConfig = ZenohConfig()
@@ -160,6 +170,7 @@ class AgentConfig:
     can: CanConfig | None = None        # canopen backend: a CAN bus of CANopen nodes
     #: [startup] soem_call_s: deadline of each SOEM call start-up cannot interrupt (pysoem backend)
     soem_call_s: float = 30.0
+    esi: EsiConfig | None = None        # [esi]: the slaves' ESI files (bus_agent.bus.esi_setup)
 
     def __post_init__(self) -> None:
         if self.zenoh.pki and not self.zenoh.identity:  # an agent's principal is its host name
@@ -187,12 +198,14 @@ class AgentConfig:
         """A copy with CLI flags applied (``host``, ``ifname``, ``sim_drives``, ``sim_profile``,
         ``cycle_us``, ``reflex``, ``heartbeat_s``, ``zenoh_mode``, ``listen``, ``connect``,
         ``scouting``, ``pki``, ``identity``, ``insecure``, ``gateway``, ``rt_priority``, ``record_s``: the
-        recorder's ring length); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
+        recorder's ring length, ``esi``: a path); None values are ignored. ``ifname`` clears ``sim_drives`` and vice versa."""
         o = {k: v for k, v in overrides.items() if v is not None}
         zkeys = {"zenoh_mode": "mode", "listen": "listen", "connect": "connect", "scouting": "scouting",
                  "pki": "pki", "identity": "identity", "insecure": "insecure"}
         top = {"host", "ifname", "sim_drives", "sim_profile", "cycle_us", "reflex", "heartbeat_s", "gateway",
-               "rt_priority", "can"}
+               "rt_priority", "can", "esi"}
+        if isinstance(o.get("esi"), str):  # --esi PATH: the file's [esi] options kept
+            o["esi"] = dataclasses.replace(self.esi, path=o["esi"]) if self.esi else EsiConfig(o["esi"])
         record_s = o.pop("record_s", None)
         if record_s is not None:
             o["recorder"] = dataclasses.replace(self.recorder, seconds=record_s)
@@ -247,6 +260,9 @@ def _validate(c: AgentConfig) -> None:
                           "or a [can] table)")
     if c.can is not None:
         validate_can(c.can)
+    if c.esi is not None and not c.ifname:
+        raise ConfigError("esi: ESI files describe EtherCAT slaves: they go with ifname (the pysoem backend), "
+                          "not with sim_drives or can")
     if c.sim_profile not in SIM_PROFILES:
         raise ConfigError(f"sim_profile: {c.sim_profile!r} is not one of {', '.join(SIM_PROFILES)}")
     if not 100 <= c.cycle_us <= 1_000_000:
@@ -509,9 +525,16 @@ def config_from_dict(data: Mapping[str, Any]) -> AgentConfig:
         recorder=recorder,
         can=can_from_table(t.table("can")) if "can" in t.data else None,
         soem_call_s=float(soem_call_s),
+        esi=_esi(t.table("esi")) if "esi" in t.data else None,
     )
     t.done()
     return cfg
+
+
+def _esi(t: Table) -> EsiConfig:
+    esi = EsiConfig(path=t.get("path", str), init_cmds=t.get("init_cmds", bool, True))
+    t.done()
+    return esi
 
 
 def load_config(path: str | Path) -> AgentConfig:

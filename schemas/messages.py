@@ -161,7 +161,7 @@ class DriveStatus:
     absent: list = _f([], items=Meta(str, {"choices": ("position", "velocity", "torque")}),
                       doc="actual values the drive does not map (their fields read 0 and mean nothing)")
     objects: dict = _f({}, keys=Meta(str, {"max_len": 64}), values=Meta(int, {"range": (-(2**63), 2**64 - 1)}),
-                       doc="other mapped input objects by name (CiA 402 table, else '0xIIII:SS') -> value")
+                       doc="other mapped input objects by name (CiA 402 table, else the ESI's, else '0xIIII:SS') -> value")
     axis_state: str = _f("disabled", choices=AXIS_STATES, open=True, doc="PLCopen axis state of the motion layer")
     homed: bool = _f(False, doc="the last home command of this axis succeeded (false after a failed or aborted one)")
     target_position: int = _f(0, range=I32, doc="0x607A target position written last")

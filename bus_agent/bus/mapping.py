@@ -465,3 +465,7 @@ class SlaveSetup:
     #: DC: (SYNC0 cycle ns, shift ns) to start before OP, None = no SYNC0 (bus_agent.bus.dc)
     sync0: tuple[int, int] | None = None
     sync0_before_safeop: bool = False     # start SYNC0 in PRE-OP (drives that need it before SAFE-OP)
+    #: SDOs made in SAFE-OP just before OP (the ESI's ``SO`` InitCmds, bus_agent.bus.esi_setup)
+    safeop_sdos: tuple[StartupSdo, ...] = ()
+    #: names and types of vendor objects (from the slave's ESI) for the codec and ``objects``
+    objects: tuple[tuple[tuple[int, int], ObjectInfo], ...] = ()

@@ -35,6 +35,7 @@ from bus_agent.bus.mailbox import SiiMailbox
 from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
+from bus_agent.bus.pysoem_init_cmds import apply_safeop_sdos
 from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_EEP_CONFIG, REG_FMMU0, REG_SM0, SOEM_CALL_S,
                                           STATE_ACK, PysoemStartup, al_state)
 from bus_agent.startup_guard import StartupSteps
@@ -262,6 +263,8 @@ class PysoemBus(PysoemStartup):
                 return False
             if step == "sync0" and time.monotonic() - self._sync0_armed_at.get(position, 0.0) < SYNC0_START_S:
                 return False
+            if step in ("to_safeop", "sync0") and not self._safeop_sdos_again(position):
+                return False
             self._write_al_control(position, int(ALState.OP))
             self._recover_step[position] = "to_op"
             return False
@@ -311,6 +314,19 @@ class PysoemBus(PysoemStartup):
         self._write_al_control(position, int(ALState.INIT))
         self._recover_step[position] = "to_init"
         return False
+
+    def _safeop_sdos_again(self, position: int) -> bool:
+        """After a reconfiguration: the slave's SAFE-OP start-up SDOs (ESI ``SO`` InitCmds), as at
+        start-up. False (try again at the next call) when one is refused."""
+        setup = self._setups.get(position)
+        if setup is None or not setup.safeop_sdos:
+            return True
+        try:
+            apply_safeop_sdos(self._slaves, {position: setup}, self._sdo, lambda: None)
+        except BusError as e:
+            log.warning("%s", e)
+            return False
+        return True
 
     # ---- emergencies (CoE EMCY) -------------------------------------------------------------------
 

@@ -22,6 +22,7 @@ from bus_agent.bus.mapping import (MappingError, SlaveMapping, SlaveSetup, abort
                                    plan_writes, read_mapping)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.bus.pysoem_dc import PysoemDc
+from bus_agent.bus.pysoem_init_cmds import apply_safeop_sdos
 from bus_agent.startup_guard import StartupAbandoned, StartupSteps
 
 log = logging.getLogger("bus_agent.bus.pysoem_bus")
@@ -416,7 +417,7 @@ class PysoemStartup(PysoemDc):
         for pos, s in enumerate(self._slaves):
             mp = self._mappings[pos]
             try:
-                codec = DriveCodec(mp)
+                codec = DriveCodec(mp, dict(self._setups.get(pos, SlaveSetup()).objects))
             except MappingError as e:
                 raise BusError(f"slave {pos} ({s.name!r}): {e}") from None
             if len(s.output) != codec.out_size or len(s.input) != codec.in_size:
@@ -442,6 +443,7 @@ class PysoemStartup(PysoemDc):
             self.set_outputs(pos, DriveOutputs())
         self.exchange()
         self._wait_sync0_start(exchange=True)
+        apply_safeop_sdos(self._slaves, self._setups, self._sdo, self.exchange)
         m.state = pysoem.OP_STATE
         m.write_state()
         with self.startup_steps.step(f"{self.ifname}: to OP", OP_DEADLINE_S + 1.0):

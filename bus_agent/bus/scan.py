@@ -37,6 +37,9 @@ class SlaveScan:
     modes: tuple[int, ...] | None       # from 0x6502; None when the drive has none
     mapping: SlaveMapping | None
     errors: tuple[str, ...] = field(default=())
+    device: str | None = None                 # --esi: the matched ESI device's name
+    differences: tuple[str, ...] | None = None  # --esi: where the mapping differs from its default
+    names: tuple[tuple[tuple[int, int], str], ...] = ()  # --esi: vendor objects' names
 
     def to_dict(self) -> dict[str, Any]:
         m = self.mapping
@@ -45,9 +48,14 @@ class SlaveScan:
             "product_code": self.product_code, "revision": self.revision, "serial": self.serial, "dc": self.dc,
             "mailbox": list(self.mailbox), "modes": list(self.modes) if self.modes is not None else None,
             "errors": list(self.errors)}
+        if self.device is not None or self.differences is not None:
+            out.update(esi_device=self.device, esi_differences=list(self.differences or ()))
         if m is not None:
+            names = dict(self.names)
+
             def entries(es):  # type: ignore[no-untyped-def]
-                return [{"index": e.index, "subindex": e.subindex, "name": "padding" if e.padding else e.name,
+                return [{"index": e.index, "subindex": e.subindex,
+                         "name": "padding" if e.padding else names.get(e.key, e.name),
                          "bit_offset": e.bit_offset, "bits": e.bits, "pdo": e.pdo} for e in es]
             out.update(rx_pdos=list(m.rx_pdos), tx_pdos=list(m.tx_pdos), rx=entries(m.rx), tx=entries(m.tx),
                        sm2_bytes=m.out_bytes, sm3_bytes=m.in_bytes)
@@ -68,14 +76,20 @@ def render_text(scans: Sequence[SlaveScan]) -> str:
         lines.append(f"slave {s.position} {s.name!r}: vendor 0x{s.vendor_id:08X} product 0x{s.product_code:08X} "
                      f"revision 0x{s.revision:08X} serial {s.serial}; DC {'yes' if s.dc else 'no'}; "
                      f"mailbox {','.join(s.mailbox) or 'none'}; modes "
-                     + (",".join(str(m) for m in s.modes) if s.modes is not None else "unknown (no 0x6502)"))
+                     + (",".join(str(m) for m in s.modes) if s.modes else
+                        "none listed (0x6502 = 0)" if s.modes is not None else "unknown (no 0x6502)"))
+        if s.device is not None:
+            lines.append(f"  ESI device {s.device!r}: mapping "
+                         + ("as its ESI default" if not s.differences else "differs from its ESI default:"))
+            lines.extend(f"    - {d}" for d in s.differences or ())
         m = s.mapping
+        names = dict(s.names)
         if m is not None:
             for side, pdos, es, sm, size in (("RxPDO", m.rx_pdos, m.rx, "SM2", m.out_bytes),
                                              ("TxPDO", m.tx_pdos, m.tx, "SM3", m.in_bytes)):
                 lines.append(f"  {side} {', '.join(f'0x{p:04X}' for p in pdos) or 'none'} ({sm} {size} bytes)")
                 for e in es:
-                    what = "padding" if e.padding else f"0x{e.index:04X}:{e.subindex:02X} {e.name}"
+                    what = "padding" if e.padding else f"0x{e.index:04X}:{e.subindex:02X} {names.get(e.key, e.name)}"
                     lines.append(f"    bit {e.bit_offset:4d} +{e.bits:<2d} {what}")
         for err in s.errors:
             lines.append(f"  ! {err}")
@@ -171,22 +185,61 @@ def scan_segment(ifname: str) -> list[SlaveScan]:
         m.close()
 
 
+def with_esi(scans: Sequence[SlaveScan], devices: Sequence[Any], source: str) -> tuple[list[SlaveScan], list[str]]:
+    """Each scan with its ESI device's name and the differences of its mapping from the ESI
+    default; and a line per slave whose identity matches no device."""
+    from dataclasses import replace
+
+    from bus_agent.bus.esi_setup import mapping_differences, object_infos
+    from bus_agent.devices.esi import match_identity
+
+    out, unmatched = [], []
+    for s in scans:
+        dev = match_identity(devices, s.vendor_id, s.product_code, s.revision)
+        if dev is None:
+            unmatched.append(f"slave {s.position} ({s.name!r}): identity vendor 0x{s.vendor_id:08X} product "
+                             f"0x{s.product_code:08X} revision 0x{s.revision:08X} matches no device in the ESI {source}")
+            out.append(s)
+            continue
+        diffs = tuple(mapping_differences(dev, s.mapping)) if s.mapping is not None else ()
+        out.append(replace(s, device=dev.name, differences=diffs,
+                           names=tuple((key, info.name) for key, info in object_infos(dev))))
+    return out, unmatched
+
+
 def main(argv: Sequence[str]) -> int:
-    """``bus-agent scan --ifname IF [--json] [--toml]``: exit 0, or 3 when the segment cannot be read."""
+    """``bus-agent scan --ifname IF [--esi PATH] [--json] [--toml]``: exit 0, 3 when the segment
+    cannot be read, 4 when a slave matches no device of the ESI (the report is printed)."""
     import argparse
     import sys
 
     p = argparse.ArgumentParser(prog="bus-agent scan", description="Read an EtherCAT segment without controlling "
                                 "it: identities, DC, mailbox, modes, PDO mapping (never beyond PRE-OP, no Zenoh).")
     p.add_argument("--ifname", required=True, help="NIC (or veth end) of the segment; needs root")
+    p.add_argument("--esi", metavar="PATH", help="ESI file or directory: name each slave's device (by identity) and "
+                   "list where its mapping differs from the ESI default")
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--json", action="store_true", help="one JSON document")
     fmt.add_argument("--toml", action="store_true", help="[[drives]] blocks for the agent's configuration")
     args = p.parse_args(list(argv))
+    devices = None
+    if args.esi:
+        from bus_agent.devices.esi import EsiError, load_esi
+
+        try:
+            devices = load_esi(args.esi)
+        except EsiError as e:
+            print(f"bus-agent scan: --esi: {e}", file=sys.stderr)
+            return 2
     try:
         scans = scan_segment(args.ifname)
     except BusError as e:
         print(f"bus-agent scan: {e}", file=sys.stderr)
         return 3
+    unmatched: list[str] = []
+    if devices is not None:
+        scans, unmatched = with_esi(scans, devices, args.esi)
     print(render_json(scans) if args.json else render_toml(scans) if args.toml else render_text(scans))
-    return 0
+    for line in unmatched:
+        print(f"bus-agent scan: {line}", file=sys.stderr)
+    return 4 if unmatched else 0

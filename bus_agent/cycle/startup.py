@@ -12,6 +12,8 @@ from typing import Sequence
 
 from bus_agent.bus.base import ALState, BusError, SlaveALStatus, SlaveInfo
 from bus_agent.bus.dc import DcSync
+from bus_agent.bus.esi_setup import esi_setup, match_slaves
+from bus_agent.devices.esi import EsiDevice, EsiError, load_esi
 from bus_agent.bus.mapping import SlaveSetup
 from bus_agent.cia402.controller import ControllerConfig, DriveController
 from bus_agent.cia402.states import Mode
@@ -67,7 +69,12 @@ class StartupMixin(CycleBase):
                 if dc.identity is None:
                     log.info("slave %d (%s) axis %s: identity not configured, accepting vendor 0x%08X product 0x%08X",
                              dc.slave, info.name, dc.axis, ident.vendor_id, ident.product_code)
-            overrides = {k: v for k, v in self._slave_setups(configs).items() if v != SlaveSetup()}
+            devices = self._esi_devices()
+            setups = self._slave_setups(configs)
+            for pos, dev in devices.items():
+                if pos in setups:
+                    setups[pos] = esi_setup(setups[pos], dev, self.config.esi.init_cmds)  # type: ignore[union-attr]
+            overrides = {k: v for k, v in setups.items() if v != SlaveSetup()}
             self.bus.start(overrides or None)
             supported = {dc.slave: self._read_supported_modes(dc) for dc in configs}
             for dc in configs:
@@ -105,6 +112,22 @@ class StartupMixin(CycleBase):
         log.info("host %s: %d slave(s) in OP, %d drive(s) %s, expected working counter %d",
                  self.config.host, len(self.slaves), len(self.drives), ",".join(self.axes), self.bus.expected_wkc)
         return self.slaves
+
+    def _esi_devices(self) -> dict[int, EsiDevice]:
+        """``[esi]``/``--esi``: each slave's ESI device by identity (EsiMatchError when one has
+        none; ConfigError for an unreadable file)."""
+        esi = self.config.esi
+        if esi is None:
+            return {}
+        try:
+            devices = load_esi(esi.path)
+        except EsiError as e:
+            raise ConfigError(f"esi.path: {e}") from None
+        found = match_slaves(devices, ((s.position, s.name, s.identity.vendor_id, s.identity.product_code,
+                                        s.identity.revision) for s in self.slaves), esi.path)
+        for pos, dev in found.items():
+            log.info("slave %d: ESI device %s (%s)", pos, dev.label(), dev.source)
+        return found
 
     def _slave_setups(self, configs: Sequence[DriveConfig]) -> dict[int, SlaveSetup]:
         """Mapping policy, start-up SDOs and SYNC0 per slave. ``[dc] mode = "auto"``: SYNC0 at the
@@ -172,6 +195,9 @@ class StartupMixin(CycleBase):
         except BusError as e:
             log.info("axis %s (slave %d): supported drive modes (0x6502) not available, any mode is tried: %s",
                      d.axis, d.slave, e)
+            return None
+        if bits == 0:  # some drives (and their ESI) give 0x6502 = 0: nothing said, any mode tried
+            log.info("axis %s (slave %d): 0x6502 = 0 (no modes listed), any mode is tried", d.axis, d.slave)
             return None
         modes = decode_supported_modes(bits)
         log.info("axis %s (slave %d): 0x6502 = 0x%08X, modes %s", d.axis, d.slave, bits, sorted(modes))

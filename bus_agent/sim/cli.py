@@ -2,6 +2,8 @@
 
     ecat-sim --ifname vethX --drives 16 [--profile generic*2,omron1s,roassign] [--name seg0]
              [--control /run/seg0.sock | --control 5555] [--zenoh-connect tcp/127.0.0.1:7447]...
+    ecat-sim --ifname vethX --esi FILE[@PRODUCT[:REVISION]][*COUNT] [--esi ...]...
+    ecat-sim --write-esi PATH
 
 Unmodified SOEM/pysoem on the other end of the veth pair finds, configures and runs the
 drives. Prints one readiness line on stdout (``ecat-sim ready ...``) once frames are served.
@@ -89,10 +91,15 @@ def build_parser() -> argparse.ArgumentParser:
                                        "  no-mailbox   no mailbox (SII mailbox sizes 0): no CoE, no SDO\n"
                                        "  no-coe       a mailbox without CoE: CoE requests get the mailbox error\n"
                                        "               'unsupported protocol'")
-    p.add_argument("--ifname", required=True, help="network interface to serve (one end of a veth pair)")
-    p.add_argument("--drives", type=int, default=1, help="number of slaves on the segment (1..1000)")
-    p.add_argument("--profile", default="generic",
-                   help="slave profile, or one per slave: 'generic*2,omron1s' (the last repeats); see below")
+    p.add_argument("--ifname", help="network interface to serve (one end of a veth pair)")
+    p.add_argument("--drives", type=int, help="number of slaves on the segment (1..1000; default 1, or the --esi count)")
+    p.add_argument("--esi", action="append", default=[], metavar="FILE[@PRODUCT[:REVISION]][*COUNT]",
+                   help="slaves from a vendor's ESI file, repeatable, in segment order: the device with this "
+                        "product code (and revision), by default the first with CiA 402 objects (docs/simulator.md)")
+    p.add_argument("--write-esi", metavar="PATH",
+                   help="write an ESI file describing every built-in profile to PATH and exit")
+    p.add_argument("--profile",
+                   help="slave profile (default generic), or one per slave: 'generic*2,omron1s' (the last repeats); see below")
     p.add_argument("--name", default="seg0", help="segment name (the Zenoh control key chunk)")
     p.add_argument("--control", help="local JSON control socket: a UNIX datagram path or a TCP loopback port; "
                    f"actions: {', '.join(ACTIONS)} (docs/virtual-ethercat.md)")
@@ -109,10 +116,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.write_esi:
+        return _write_esi(args.write_esi)
+    if not args.ifname:
+        parser.error("--ifname is required")
     start_logging(args)
     try:
-        segment = Segment(args.drives, args.profile)
+        if args.esi and args.profile:
+            raise ValueError("--profile and --esi: give the slaves one way (an --esi per file, in segment order)")
+        profiles = args.profile = args.profile or "generic"
+        if args.esi:
+            from bus_agent.sim.ecat.esi_profile import profiles_from_specs
+
+            profiles = profiles_from_specs(args.esi)
+            if args.drives is not None and args.drives != len(profiles):
+                raise ValueError(f"--drives {args.drives} but the --esi arguments give {len(profiles)} slave(s)")
+            args.drives = len(profiles)
+            args.profile = ",".join(p.name for p in profiles)
+        elif args.drives is None:
+            args.drives = 1
+        segment = Segment(args.drives, profiles)
         loop = FrameLoop(segment, args.ifname, step_s=args.step_us / 1e6, stale_s=args.stale_us / 1e6)
     except (ValueError, OSError) as exc:
         print(f"ecat-sim: {exc}", file=sys.stderr)
@@ -166,6 +191,21 @@ def main(argv: list[str] | None = None) -> int:
             session.close()
         loop.close()
         log.info("counters: %s", loop.counters)
+    return 0
+
+
+def _write_esi(path: str) -> int:
+    """``--write-esi``: one ESI file with a device per built-in profile."""
+    from bus_agent.devices.esi_write import write_esi
+    from bus_agent.sim.ecat.esi_profile import esi_from_profile
+
+    try:
+        with open(path, "wb") as f:
+            f.write(write_esi([esi_from_profile(p) for p in PROFILES.values()]))
+    except OSError as exc:
+        print(f"ecat-sim: --write-esi {path}: {exc}", file=sys.stderr)
+        return 2
+    print(f"ecat-sim: wrote {path} ({', '.join(PROFILES)})")
     return 0
 
 

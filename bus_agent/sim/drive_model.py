@@ -98,10 +98,21 @@ class DriveModel:
 
     objects: Mapping[tuple[int, int], ObjectEntry] = OBJECTS
 
-    def __init__(self, profile: DriveProfile = PROFILES["generic"], serial: int = 0) -> None:
+    def __init__(self, profile: DriveProfile = PROFILES["generic"], serial: int = 0,
+                 dictionary: Mapping[tuple[int, int], ObjectEntry] | None = None,
+                 hidden: Mapping[tuple[int, int], int] | None = None) -> None:
+        """``dictionary``: the object dictionary served by SDO (default: :data:`OBJECTS`), e.g.
+        from a device's ESI; its defaults replace the model's. The model keeps its own objects
+        either way (those the dictionary lacks are internal: SDO abort 0x06020000). ``hidden``:
+        further internal values (PDO entries of objects the dictionary lacks) -> power-on value."""
         if isinstance(profile, str):  # tolerated convenience
             profile = PROFILES[profile]
         self.profile = profile
+        if dictionary is not None:
+            self.objects = dictionary
+        self._indexes = _INDEXES if dictionary is None else frozenset(i for i, _s in dictionary)
+        self._power_on_values = {**{k: e.default for k, e in OBJECTS.items()}, **(hidden or {}),
+                                 **({} if dictionary is None else {k: e.default for k, e in dictionary.items()})}
         self.serial = serial
         self.pdo_config_locked = False
         self._emcy: list[Emcy] = []
@@ -116,13 +127,14 @@ class DriveModel:
 
     def _reset_power_on(self) -> None:
         p = self.profile
-        self._values: dict[tuple[int, int], int | str] = {k: e.default for k, e in OBJECTS.items()}
+        self._values: dict[tuple[int, int], int | str | bytes] = dict(self._power_on_values)
         self._values[(0x1008, 0)] = p.device_name
         self._values[(0x1018, 1)] = p.vendor_id
         self._values[(0x1018, 2)] = p.product_code
         self._values[(0x1018, 3)] = p.revision
         self._values[(0x1018, 4)] = self.serial & 0xFFFFFFFF
-        self._values[(0x6502, 0)] = p.supported_modes
+        if (0x6502, 0) not in self.objects or self.objects is OBJECTS:
+            self._values[(0x6502, 0)] = p.supported_modes  # else the device file's value (some give 0)
         self._values[(0x6060, 0)] = self._values[(0x6061, 0)] = p.power_on_mode
         # 0x60FD: manufacturer bits 16..31 carry the serial, so each drive's inputs differ
         self._values[(0x60FD, 0)] = (self.serial & 0xFFFF) << 16
@@ -180,15 +192,20 @@ class DriveModel:
     # ---------------------------------------------------------------- object access (SDO)
 
     def _entry(self, index: int, subindex: int) -> ObjectEntry:
-        entry = OBJECTS.get((index, subindex))
+        entry = self.objects.get((index, subindex))
         if entry is None:
-            if index in _INDEXES:
+            if index in self._indexes:
                 raise SdoAbort(ABORT_NO_SUBINDEX, f"0x{index:04X} has no subindex {subindex}")
             raise SdoAbort(ABORT_NO_OBJECT, f"no object 0x{index:04X}")
         return entry
 
-    def read(self, index: int, subindex: int) -> int | str:
-        """SDO upload of one entry (value as int, or str for "str" entries). Raises SdoAbort."""
+    def value(self, index: int, subindex: int) -> int | str | bytes:
+        """The model's current value of an object, whether or not its dictionary serves it."""
+        return self._values[(index, subindex)]
+
+    def read(self, index: int, subindex: int) -> int | str | bytes:
+        """SDO upload of one entry (value as int, str for "str" and bytes for "bytes" entries).
+        Raises SdoAbort."""
         entry = self._entry(index, subindex)
         if entry.access == "wo":
             raise SdoAbort(ABORT_WRITE_ONLY, f"0x{index:04X}:{subindex} is write only")
@@ -200,7 +217,7 @@ class DriveModel:
         entry = self._entry(index, subindex)
         if entry.access == "ro":
             raise SdoAbort(ABORT_READ_ONLY, f"0x{index:04X}:{subindex} ({entry.name}) is read only")
-        if entry.datatype == "str" or not isinstance(value, int) or isinstance(value, bool):
+        if entry.datatype in ("str", "bytes") or not isinstance(value, int) or isinstance(value, bool):
             raise SdoAbort(ABORT_LENGTH_MISMATCH, f"0x{index:04X}:{subindex} takes an integer")
         lo, hi = entry.value_range()
         if not lo <= value <= hi:
@@ -231,6 +248,8 @@ class DriveModel:
         value = self.read(index, subindex)
         if entry.datatype == "str":
             return str(value).encode()
+        if isinstance(value, bytes):  # a "bytes" entry
+            return value
         return struct.pack(_INT_FORMATS[entry.datatype], int(value))
 
     def write_bytes(self, index: int, subindex: int, data: bytes) -> None:
@@ -241,8 +260,21 @@ class DriveModel:
         if entry.datatype == "str" or len(data) != entry.size:
             raise SdoAbort(ABORT_LENGTH_MISMATCH,
                            f"0x{index:04X}:{subindex} takes {entry.size} bytes, got {len(data)}")
+        if entry.datatype == "bytes":
+            self._values[(index, subindex)] = bytes(data)
+            self._mutations += 1
+            return
         (value,) = struct.unpack(_INT_FORMATS[entry.datatype], bytes(data))
         self.write(index, subindex, value)
+
+    def write_mapped(self, index: int, subindex: int, value: int) -> None:
+        """An RxPDO value other than the model's own outputs: as :meth:`write` for an object of
+        the dictionary; one the dictionary lacks (an ESI maps it anyway) is stored as it is."""
+        if (index, subindex) in self.objects:
+            self.write(index, subindex, value)
+        elif self._values.get((index, subindex)) != value:
+            self._values[(index, subindex)] = value
+            self._mutations += 1
 
     def set_pdo_config_locked(self, locked: bool) -> None:
         """Lock 0x1C12/0x1C13/0x1600/0x1A00 against writes (SAFE-OP and OP: abort 0x08000022)."""

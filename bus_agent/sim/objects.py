@@ -85,10 +85,12 @@ def error_register_for(error_code: int) -> int:
 # --------------------------------------------------------------------------------------------
 # Object dictionary
 
-_INT_FORMATS: dict[str, str] = {"u8": "<B", "i8": "<b", "u16": "<H", "i16": "<h", "u32": "<I", "i32": "<i"}
+_INT_FORMATS: dict[str, str] = {"u8": "<B", "i8": "<b", "u16": "<H", "i16": "<h", "u32": "<I", "i32": "<i",
+                                "u64": "<Q", "i64": "<q"}
 _INT_RANGES: dict[str, tuple[int, int]] = {
     "u8": (0, 0xFF), "i8": (-0x80, 0x7F), "u16": (0, 0xFFFF), "i16": (-0x8000, 0x7FFF),
     "u32": (0, 0xFFFFFFFF), "i32": (-0x80000000, 0x7FFFFFFF),
+    "u64": (0, (1 << 64) - 1), "i64": (-(1 << 63), (1 << 63) - 1),
 }
 
 
@@ -98,6 +100,8 @@ class ObjectEntry:
 
     ``low``/``high`` narrow the value range the drive accepts (SDO abort 0x06090030 beyond);
     ``default`` is the power-on value (identity values come from the profile instead).
+    ``bitsize`` is the size in bits where it is not the type's (BOOL and BITn entries of a
+    device file: 1..8 bits in a u8; "bytes" entries: raw octets of this size).
     """
 
     index: int
@@ -106,19 +110,22 @@ class ObjectEntry:
     datatype: str           # "u8","i8","u16","i16","u32","i32","str"
     access: str             # "ro","rw","wo"
     pdo_mappable: bool
-    default: int | str = 0
+    default: int | str | bytes = 0
     low: int | None = None
     high: int | None = None
+    bitsize: int = 0
 
     @property
     def size(self) -> int:
         """Size in bytes; 0 for "str" (variable: the length of the current value)."""
         fmt = _INT_FORMATS.get(self.datatype)
-        return struct.calcsize(fmt) if fmt else 0
+        if fmt:
+            return struct.calcsize(fmt)
+        return (self.bitsize + 7) // 8 if self.datatype == "bytes" else 0
 
     @property
     def bits(self) -> int:
-        return self.size * 8
+        return self.bitsize or self.size * 8
 
     def value_range(self) -> tuple[int, int]:
         lo, hi = _INT_RANGES[self.datatype]

@@ -67,12 +67,13 @@ def _wait_ready(proc: subprocess.Popen, stderr_path: Path) -> str:
 
 @pytest.fixture
 def ecat_segment():
-    """Factory: ``ifname, control = ecat_segment(16, "generic")``."""
+    """Factory: ``ifname, control = ecat_segment(16, "generic")``; slaves from ESI files:
+    ``ecat_segment(2, esi=("FILE@PRODUCT*2",))``."""
     require_root()
     require(shutil.which("ip") is not None, "iproute2 (`ip`)", "install iproute2")
     started: list[SimProcess] = []
 
-    def factory(n: int, profile: str = "generic", *extra: str) -> EcatSegment:
+    def factory(n: int, profile: str = "generic", *extra: str, esi: tuple[str, ...] = ()) -> EcatSegment:
         prefix = f"ecs{os.getpid() % 100000:05d}{next(_counter) % 10}"
         master, sim = pair_names(prefix, 0)
         veth_up(master, sim)
@@ -80,8 +81,8 @@ def ecat_segment():
         sock_path = os.path.join(workdir, "ctl.sock")
         stderr_path = Path(workdir) / "stderr.log"
         proc = subprocess.Popen(
-            [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim, "--drives", str(n), "--profile", profile,
-             "--name", prefix, "--control", sock_path, "--rt-priority", "20", "--log-level", "INFO", *extra],
+            [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", sim, "--drives", str(n),
+             *([a for spec in esi for a in ("--esi", spec)] if esi else ["--profile", profile]), "--name", prefix, "--control", sock_path, "--rt-priority", "20", "--log-level", "INFO", *extra],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=stderr_path.open("w"), text=True)
         handle = SimProcess(proc, master, workdir, ControlClient(sock_path))
         started.append(handle)

@@ -2,8 +2,8 @@
 
 Device side of ETG.1000.6 §5.6 (mailbox) and CiA 301 SDO semantics as CoE carries them:
 expedited, normal and segmented upload/download, aborts, emergencies (service 1), the
-SyncManager communication objects 0x1C00/0x1C12/0x1C13 and the PDO mapping objects
-0x1600..0x1603 / 0x1A00..0x1A03 (remappable in PRE-OP only, abort 0x08000022 otherwise).
+SyncManager communication objects (:mod:`bus_agent.sim.ecat.pdo_config`), complete access and
+SDO information (:mod:`bus_agent.sim.ecat.sdo_info`) where the device's CoE flags offer them.
 Everything else is delegated to the drive model's object dictionary.
 """
 
@@ -17,17 +17,19 @@ from typing import Callable, Mapping
 
 from bus_agent.bus.base import ALState
 from bus_agent.sim.drive_model import Emcy, ObjectEntry, SdoAbort
+from bus_agent.sim.ecat import sdo_info
+from bus_agent.sim.ecat.pdo_config import PdoConfig, SdoAbortCode
 from bus_agent.sim.ecat.profiles import FLEXIBLE, PdoCatalog
-from bus_agent.sim.ecat.sii import MBX_IN_SIZE, MBX_OUT_SIZE, SmType
+from bus_agent.sim.ecat.sii import COE_COMPLETE_ACCESS, COE_SDO_INFO, MBX_IN_SIZE, MBX_OUT_SIZE
 
 log = logging.getLogger(__name__)
 
 MBX_HEADER = struct.Struct("<HHBB")  # length, address, channel/priority, type | counter << 4
 SDO_HEADER = struct.Struct("<HBHB")  # CoE header, command, index, subindex
-MBX_MAX_DATA = MBX_IN_SIZE - MBX_HEADER.size  # 122 bytes after the mailbox header
-NORMAL_UPLOAD_MAX = MBX_MAX_DATA - 10  # CoE 2 + SDO 4 + size 4
-SEGMENT_MAX = MBX_MAX_DATA - 3  # CoE 2 + command 1
 MAX_PENDING = 16  # responses/emergencies queued behind SM1
+SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
+SCRATCH_MAX = 512
+SYNC_PARAMETER_INDEXES = (0x1C32, 0x1C33)
 
 
 class MbxType(IntEnum):
@@ -66,188 +68,24 @@ class CoeService(IntEnum):
     SDO_INFO = 8
 
 
-class SdoAbortCode(IntEnum):
-    """SDO abort codes (CiA 301 Table 22 / ETG.1000.6 Table 41)."""
-
-    TOGGLE = 0x05030000
-    TIMEOUT = 0x05040000
-    INVALID_COMMAND = 0x05040001
-    UNSUPPORTED_ACCESS = 0x06010000
-    WRITE_ONLY = 0x06010001
-    READ_ONLY = 0x06010002
-    NO_OBJECT = 0x06020000
-    NOT_MAPPABLE = 0x06040041
-    PDO_TOO_LONG = 0x06040042
-    LENGTH_MISMATCH = 0x06070010
-    LENGTH_TOO_HIGH = 0x06070012
-    NO_SUBINDEX = 0x06090011
-    VALUE_RANGE = 0x06090030
-    GENERAL = 0x08000000
-    WRONG_STATE = 0x08000022
-
-
-SM_COMM_TYPES = (SmType.MBX_OUT, SmType.MBX_IN, SmType.OUTPUTS, SmType.INPUTS)  # 0x1C00:1..4
-MAX_PDO_BYTES = 256
-SCRATCH_INDEX = 0x2FFF  # emulator object: octet string to exercise segmented transfers
-SCRATCH_MAX = 512
-SYNC_PARAMETER_INDEXES = (0x1C32, 0x1C33)
-
-_STRUCT_CODE = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i"}
-
-
-class PdoConfig:
-    """0x1C00, 0x1C12/0x1C13 (PDO assignment) and 0x16xx/0x1Axx/0x1Bxx (PDO mapping) of one drive.
-
-    ``objects`` is the drive's object dictionary, used to validate mapped entries; ``catalog``
-    says which PDOs exist, their power-on content and what the master may change
-    (:mod:`bus_agent.sim.ecat.profiles`).
-    """
-
-    def __init__(self, objects: Mapping[tuple[int, int], ObjectEntry], catalog: PdoCatalog = FLEXIBLE):
-        self._objects = objects
-        self.catalog = catalog
-        self.reset()
-
-    def reset(self) -> None:
-        """Power-on content of the catalogue (a power cycle forgets every change)."""
-        c = self.catalog
-        self.assign: dict[int, list[int]] = {k: list(v) + [0] * (c.max_pdos - len(v)) for k, v in c.assign.items()}
-        self.assign_count = {k: len(v) for k, v in c.assign.items()}
-        self.maps: dict[int, list[int]] = {p: list(v) + [0] * (c.max_entries - len(v)) for p, v in c.maps.items()}
-        self.map_count: dict[int, int] = {p: len(v) for p, v in c.maps.items()}
-
-    def handles(self, index: int) -> bool:
-        return index in (0x1C00, 0x1C12, 0x1C13) or index in self.maps
-
-    # -- layout ---------------------------------------------------------------------------
-    def layout(self, sm_assign: int) -> list[tuple[int, int, int]]:
-        """(index, subindex, bits) of every entry assigned to SM2 (0x1C12) or SM3 (0x1C13)."""
-        out = []
-        for pdo in self.assign[sm_assign][: self.assign_count[sm_assign]]:
-            for entry in self.maps[pdo][: self.map_count[pdo]]:
-                out.append((entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF))
-        return out
-
-    def size_bytes(self, sm_assign: int) -> int:
-        return (sum(bits for _i, _s, bits in self.layout(sm_assign)) + 7) // 8
-
-    # -- SDO access -----------------------------------------------------------------------
-    def read(self, index: int, sub: int) -> bytes:
-        if index == 0x1C00:
-            if sub == 0:
-                return bytes([len(SM_COMM_TYPES)])
-            if 1 <= sub <= len(SM_COMM_TYPES):
-                return bytes([SM_COMM_TYPES[sub - 1]])
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        if index in self.assign:
-            if sub == 0:
-                return bytes([self.assign_count[index]])
-            if 1 <= sub <= self.catalog.max_pdos:
-                return struct.pack("<H", self.assign[index][sub - 1])
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        if index in self.maps:
-            if sub == 0:
-                return bytes([self.map_count[index]])
-            if 1 <= sub <= self.catalog.max_entries:
-                return struct.pack("<I", self.maps[index][sub - 1])
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        raise SdoAbort(SdoAbortCode.NO_OBJECT)
-
-    def write(self, index: int, sub: int, data: bytes, al_state: ALState) -> None:
-        """Download to a communication object; only in PRE-OP (ETG.1000.6 §5.6.7.4)."""
-        if index == 0x1C00:
-            self.read(index, sub)  # abort for a missing subindex first
-            raise SdoAbort(SdoAbortCode.READ_ONLY)
-        if index not in self.assign and index not in self.maps:
-            raise SdoAbort(SdoAbortCode.NO_OBJECT)
-        c = self.catalog
-        limit = c.max_pdos if index in self.assign else c.max_entries
-        if sub > limit:
-            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
-        if index not in c.writable_assign and index not in c.writable_maps:
-            raise SdoAbort(SdoAbortCode.READ_ONLY, f"0x{index:04X} is fixed in this drive")
-        size = 1 if sub == 0 else (2 if index in self.assign else 4)
-        if len(data) != size:
-            raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
-        if al_state != ALState.PREOP:
-            raise SdoAbort(SdoAbortCode.WRONG_STATE, "PDO configuration only in PRE-OP")
-        value = int.from_bytes(data, "little")
-        if index in self.assign:
-            self._write_assign(index, sub, value)
-        else:
-            self._write_map(index, sub, value)
-
-    @staticmethod
-    def _same_side(assign: int, pdo: int) -> bool:
-        return 0x1600 <= pdo <= 0x17FF if assign == 0x1C12 else 0x1A00 <= pdo <= 0x1BFF
-
-    def _write_assign(self, index: int, sub: int, value: int) -> None:
-        table = self.assign[index]
-        if sub == 0:
-            if value > self.catalog.max_pdos:
-                raise SdoAbort(SdoAbortCode.VALUE_RANGE)
-            if any(table[k] not in self.maps for k in range(value)):
-                raise SdoAbort(SdoAbortCode.VALUE_RANGE, "assignment references no PDO")
-            if sum(self._pdo_bits(table[k]) for k in range(value)) > MAX_PDO_BYTES * 8:
-                raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
-            self.assign_count[index] = value
-            return
-        if self.assign_count[index] != 0:
-            raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
-        if value != 0 and not (value in self.maps and self._same_side(index, value)):
-            raise SdoAbort(SdoAbortCode.VALUE_RANGE, f"PDO 0x{value:04X} is not offered by this drive")
-        table[sub - 1] = value
-
-    def _pdo_bits(self, pdo: int) -> int:
-        return sum(e & 0xFF for e in self.maps[pdo][: self.map_count[pdo]])
-
-    def _write_map(self, index: int, sub: int, value: int) -> None:
-        entries = self.maps[index]
-        if sub == 0:
-            if value > self.catalog.max_entries:
-                raise SdoAbort(SdoAbortCode.VALUE_RANGE)
-            if any(entries[k] == 0 for k in range(value)):
-                raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "empty mapping entry")
-            if sum(e & 0xFF for e in entries[:value]) > MAX_PDO_BYTES * 8:
-                raise SdoAbort(SdoAbortCode.PDO_TOO_LONG)
-            self.map_count[index] = value
-            return
-        if self.map_count[index] != 0:
-            raise SdoAbort(self.catalog.sub0_first_abort, "set subindex 0 to 0 before changing entries")
-        if value != 0:
-            self.check_mappable(value, rx=index < 0x1A00)
-        entries[sub - 1] = value
-
-    def check_mappable(self, entry: int, rx: bool) -> None:
-        """Abort unless ``entry`` names a mappable object of the right direction and size."""
-        obj_index, obj_sub, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
-        obj = self._objects.get((obj_index, obj_sub))
-        if obj is None:
-            raise SdoAbort(SdoAbortCode.NO_OBJECT, f"0x{obj_index:04X}:{obj_sub} does not exist")
-        if not obj.pdo_mappable or obj.datatype not in _STRUCT_CODE or bits != obj.size * 8:
-            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE)
-        if rx and obj.access == "ro":
-            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "read-only object in an RxPDO")
-        if not rx and obj.access == "wo":
-            raise SdoAbort(SdoAbortCode.NOT_MAPPABLE, "write-only object in a TxPDO")
-
-    def struct_for(self, sm_assign: int) -> tuple[struct.Struct, list[tuple[int, int]]]:
-        """Struct packing the assigned entries, and their (index, subindex) in order."""
-        layout = self.layout(sm_assign)
-        codes = "".join(_STRUCT_CODE[self._objects[(i, s)].datatype] for i, s, _b in layout)
-        return struct.Struct("<" + codes), [(i, s) for i, s, _b in layout]
-
-
 class SdoServer:
     """SDO request handling of one drive: one transfer at a time, as CoE allows.
 
     ``al_state`` returns the current AL state (PDO configuration writes depend on it).
     """
 
-    def __init__(self, model, al_state: Callable[[], ALState], catalog: PdoCatalog = FLEXIBLE):
+    def __init__(self, model, al_state: Callable[[], ALState], catalog: PdoCatalog = FLEXIBLE, *,
+                 mailbox_size: int = MBX_IN_SIZE, coe_details: int = 0, builtin: bool = True):
         self.model = model
         self.pdo = PdoConfig(model.objects, catalog)
         self._al_state = al_state
+        data_max = mailbox_size - MBX_HEADER.size
+        self.normal_upload_max = data_max - 10  # CoE 2 + SDO 4 + size 4
+        self.segment_max = data_max - 3  # CoE 2 + command 1
+        self.complete_access = bool(coe_details & COE_COMPLETE_ACCESS)
+        self.sdo_info = bool(coe_details & COE_SDO_INFO)
+        self.info_room = data_max - 2 - 4  # CoE header, SDO info header
+        self.builtin = builtin  # the built-in dictionary: also the scratch object 0x2FFF
         self._scratch = b""
         #: (sync mode, SYNC0 cycle ns) for 0x1C32/0x1C33, set by the ESC
         self.sync_info: Callable[[], tuple[int, int]] | None = None
@@ -286,7 +124,7 @@ class SdoServer:
             return self.pdo.read(index, sub)
         if index in SYNC_PARAMETER_INDEXES:
             return self._sync_parameter(index, sub)
-        if index == SCRATCH_INDEX:
+        if index == SCRATCH_INDEX and self.builtin:
             if sub != 0:
                 raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
             return self._scratch
@@ -303,7 +141,7 @@ class SdoServer:
             if sub != 1 or len(data) != 2:
                 raise SdoAbort(SdoAbortCode.READ_ONLY if sub != 1 else SdoAbortCode.LENGTH_MISMATCH)
             return  # the sync mode follows the DC activation (0x0981); a written one is accepted
-        if index == SCRATCH_INDEX:
+        if index == SCRATCH_INDEX and self.builtin:
             if sub != 0:
                 raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
             if len(data) > SCRATCH_MAX:
@@ -345,6 +183,13 @@ class SdoServer:
             log.debug("SDO abort 0x%04X:%d code 0x%08X %s", index, sub, code, exc)
             return _abort(index, sub, code)
 
+    def _store(self, index: int, sub: int, data: bytes) -> None:
+        """A finished download; ``sub`` bit 8 marks complete access."""
+        if sub & 0x100:
+            self._write_complete(index, sub & 0xFF, data)
+        else:
+            self.write_object(index, sub, data)
+
     def _segment_object(self) -> tuple[int, int]:
         if self._upload is not None:
             return self._upload[0], self._upload[1]
@@ -352,19 +197,61 @@ class SdoServer:
             return self._download[0], self._download[1]
         return 0, 0
 
+    # -- complete access (ETG.1000.6 5.6.2.1.2: subindex 0 travels as 16 bits) ------------------
+    def _entry_size(self, index: int, sub: int) -> int:
+        if self.pdo.handles(index):
+            return 1 if sub == 0 or index == 0x1C00 else (2 if index in self.pdo.assign else 4)
+        entry = self.model.objects.get((index, sub))
+        if entry is None:
+            raise SdoAbort(SdoAbortCode.NO_SUBINDEX)
+        return entry.size
+
+    def _read_complete(self, index: int, sub: int) -> bytes:
+        if sub > 1:
+            raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access starts at subindex 0 or 1")
+        count = self.read_object(index, 0)[0]
+        out = bytearray(bytes([count, 0]) if sub == 0 else b"")
+        for k in range(1, count + 1):
+            try:
+                out += self.read_object(index, k)
+            except SdoAbort as exc:
+                if exc.code != SdoAbortCode.NO_SUBINDEX:
+                    raise
+        return bytes(out)
+
+    def _write_complete(self, index: int, sub: int, data: bytes) -> None:
+        if sub > 1:
+            raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access starts at subindex 0 or 1")
+        count = data[0] if sub == 0 else self.read_object(index, 0)[0]
+        pos = 2 if sub == 0 else 0
+        values = []
+        for k in range(1, count + 1):
+            size = self._entry_size(index, k)
+            if pos + size > len(data):
+                raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
+            values.append(data[pos:pos + size])
+            pos += size
+        if sub == 0:
+            self.write_object(index, 0, b"\0")
+        for k, value in enumerate(values, 1):
+            self.write_object(index, k, value)
+        if sub == 0:
+            self.write_object(index, 0, bytes([count]))
+
     def _upload_initiate(self, cmd: int, index: int, sub: int) -> bytes:
         self.reset()
-        if cmd & 0x10:
+        if cmd & 0x10 and not self.complete_access:
             raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access not supported")
-        data = self.read_object(index, sub)
+        data = self._read_complete(index, sub) if cmd & 0x10 else self.read_object(index, sub)
         n = len(data)
+        ca = cmd & 0x10
         if 0 < n <= 4:
-            return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x43 | ((4 - n) << 2), index, sub) \
+            return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x43 | ca | ((4 - n) << 2), index, sub) \
                 + data + b"\0" * (4 - n)
-        first = data[:NORMAL_UPLOAD_MAX]
-        if n > NORMAL_UPLOAD_MAX:
+        first = data[:self.normal_upload_max]
+        if n > self.normal_upload_max:
             self._upload = (index, sub, data, len(first), 0)
-        return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x41, index, sub) + struct.pack("<I", n) + first
+        return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x41 | ca, index, sub) + struct.pack("<I", n) + first
 
     def _upload_segment(self, cmd: int) -> bytes:
         if self._upload is None:
@@ -372,7 +259,7 @@ class SdoServer:
         index, sub, data, offset, toggle = self._upload
         if (cmd & 0x10) != toggle:
             raise SdoAbort(SdoAbortCode.TOGGLE)
-        chunk = data[offset: offset + SEGMENT_MAX]
+        chunk = data[offset: offset + self.segment_max]
         offset += len(chunk)
         last = offset >= len(data)
         scmd = toggle | (1 if last else 0)
@@ -384,22 +271,23 @@ class SdoServer:
 
     def _download_initiate(self, req: memoryview, cmd: int, index: int, sub: int) -> bytes:
         self.reset()
-        if cmd & 0x10:
+        if cmd & 0x10 and not self.complete_access:
             raise SdoAbort(SdoAbortCode.UNSUPPORTED_ACCESS, "complete access not supported")
         if len(req) < 10:
             raise SdoAbort(SdoAbortCode.INVALID_COMMAND)
         if cmd & 0x02:  # expedited
             n = 4 - ((cmd >> 2) & 0x03) if cmd & 0x01 else 4
-            self.write_object(index, sub, bytes(req[6:6 + n]))
+            self._store(index, sub | (0x100 if cmd & 0x10 else 0), bytes(req[6:6 + n]))
         else:
             size = struct.unpack_from("<I", req, 6)[0]
             if size > SCRATCH_MAX:
                 raise SdoAbort(SdoAbortCode.LENGTH_TOO_HIGH)
             chunk = bytes(req[10:])
+            sub_ca = sub | (0x100 if cmd & 0x10 else 0)
             if len(chunk) >= size:
-                self.write_object(index, sub, chunk[:size])
+                self._store(index, sub_ca, chunk[:size])
             else:
-                self._download = (index, sub, size, bytearray(chunk), 0)
+                self._download = (index, sub_ca, size, bytearray(chunk), 0)
         return SDO_HEADER.pack(CoeService.SDO_RESPONSE << 12, 0x60, index, sub) + b"\0\0\0\0"
 
     def _download_segment(self, req: memoryview, cmd: int) -> bytes:
@@ -418,13 +306,14 @@ class SdoServer:
             if len(buf) != size:
                 raise SdoAbort(SdoAbortCode.LENGTH_MISMATCH)
             self._download = None
-            self.write_object(index, sub, bytes(buf))
+            self._store(index, sub, bytes(buf))
         else:
             self._download = (index, sub, size, buf, toggle ^ 0x10)
         return struct.pack("<HB", CoeService.SDO_RESPONSE << 12, 0x20 | toggle) + b"\0" * 7
 
 
 def _abort(index: int, sub: int, code: int) -> bytes:
+    sub &= 0xFF  # a complete-access download carries a flag above the subindex
     # SOEM recognises an abort by service 2 (request) and command 0x80.
     return SDO_HEADER.pack(CoeService.SDO_REQUEST << 12, 0x80, index, sub) + struct.pack("<I", code)
 
@@ -437,8 +326,12 @@ class Mailbox:
     repeat request (SM1 activate bit 1 toggle).
     """
 
-    def __init__(self, sdo: SdoServer):
+    def __init__(self, sdo: SdoServer, out_size: int = MBX_OUT_SIZE, coe: bool = True):
         self.sdo = sdo
+        self.out_size = out_size
+        #: False: a device without CoE (its ESI has none, or the profile modifier ``no-coe``):
+        #: every request is answered with the mailbox error "unsupported protocol".
+        self.coe = coe
         self.queue: deque[bytes] = deque()
         self.last_counter = 0
         self._out_counter = 0
@@ -450,9 +343,6 @@ class Mailbox:
         #: Fault injection (control action ``refuse_sdo``): (index, subindex) -> abort code that
         #: answers every upload and download of that object, as from a drive without it (0x06020000).
         self.refuse: dict[tuple[int, int], int] = {}
-        #: False for a mailbox without CoE (profile modifier ``no-coe``): every request is
-        #: answered with the mailbox error "unsupported protocol".
-        self.coe = True
 
     def _muted(self, body: memoryview) -> bool:
         """True for an SDO upload request that the ``mute`` fault swallows (counts it down)."""
@@ -495,7 +385,7 @@ class Mailbox:
             log.debug("mailbox counter %d repeated: resend ignored", counter)
             return
         self.last_counter = counter
-        if length < 2 or length > MBX_OUT_SIZE - MBX_HEADER.size:
+        if length < 2 or length > self.out_size - MBX_HEADER.size:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.INVALID_SIZE)))
             return
         if mtype != MbxType.COE or not self.coe:
@@ -503,6 +393,11 @@ class Mailbox:
             return
         body = buf[MBX_HEADER.size: MBX_HEADER.size + length]
         service = (body[1] >> 4) & 0x0F
+        if service == CoeService.SDO_INFO and self.sdo.sdo_info:
+            model = self.sdo.model
+            for reply in sdo_info.handle(bytes(body[2:]), model.objects, model.value, self.sdo.info_room):
+                self._push(self._frame(MbxType.COE, struct.pack("<H", CoeService.SDO_INFO << 12) + reply))
+            return
         if service != CoeService.SDO_REQUEST:
             self._push(self._frame(MbxType.ERR, struct.pack("<HH", 1, MbxError.SERVICE_NOT_SUPPORTED)))
             return
@@ -515,9 +410,9 @@ class Mailbox:
                 log.info("SDO 0x%04X:%02X: aborted 0x%08X (refuse_sdo fault)", key[0], key[1], code)
                 self._push(self._frame(MbxType.COE, _abort(key[0], key[1], code)))
                 return
-        reply = self.sdo.handle(body)
-        if reply is not None:
-            self._push(self._frame(MbxType.COE, reply))
+        answer = self.sdo.handle(body)
+        if answer is not None:
+            self._push(self._frame(MbxType.COE, answer))
 
     def emergency(self, emcy: Emcy) -> None:
         """Queue a CoE emergency (service 1): error code, error register, 5 bytes."""

@@ -17,15 +17,15 @@ from bus_agent.bus.base import AL_ERROR_FLAG, ALState
 from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
 from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
+from bus_agent.sim.ecat.image import BitImage
 from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_MODE_SM, DcClock
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
-from bus_agent.sim.ecat.sii import (MBX_IN_SIZE, MBX_IN_START, MBX_OUT_SIZE, MBX_OUT_START, MBX_PROTO_FOE,
-                                    PDI_CONTROL, PD_IN_START, PD_OUT_START, SM_DEFAULTS, build_sii,
-                                    without_mailbox)
+from bus_agent.sim.ecat.sii import MBX_PROTO_COE, MBX_PROTO_FOE, PDI_CONTROL, build_sii, type_code, without_mailbox
 
 log = logging.getLogger(__name__)
 
-MEM_SIZE = 0x2000  # 4 KiB registers + 4 KiB process RAM
+MEM_SIZE = 0x2000  # 4 KiB registers + 4 KiB process RAM (more when an ESI places SMs higher)
+MAX_IMAGE = 0x400  # room for a process image behind its SM start
 REG_END = 0x1000
 
 
@@ -115,13 +115,21 @@ class Esc:
         self.position = position
         self.ecat_profile = as_ecat(profile)
         self.profile = profile = self.ecat_profile.drive
-        self.model = DriveModel(profile, serial=position + 1)
-        catalog = self.ecat_profile.pdos
-        self.sdo = SdoServer(self.model, lambda: self.al_state, catalog)
-        self.mailbox = Mailbox(self.sdo)
+        ep = self.ecat_profile
+        self.model = DriveModel(profile, serial=position + 1, dictionary=ep.dictionary, hidden=ep.hidden)
+        catalog = ep.pdos
+        self.sms = ep.sms
+        self.sdo = SdoServer(self.model, lambda: self.al_state, catalog, mailbox_size=self.sms[1].length,
+                             coe_details=ep.coe_details, builtin=ep.dictionary is None)
+        self.mailbox = Mailbox(self.sdo, self.sms[0].length, coe=bool(ep.mailbox_protocols & MBX_PROTO_COE))
         self.last = last
         self.on_change = on_change
-        self.mem = bytearray(MEM_SIZE)
+        (self.mbx_out_start, self.mbx_out_size), (self.mbx_in_start, self.mbx_in_size) = \
+            [(d.start, d.length) for d in self.sms[:2]]
+        self.pd_out_start, self.pd_in_start = self.sms[2].start, self.sms[3].start
+        # process RAM up to the end of the highest SM (an ESI's layout; process images up to MAX_IMAGE)
+        self.mem_size = max(MEM_SIZE, max(d.start + max(d.length, MAX_IMAGE) for d in self.sms))
+        self.mem = bytearray(self.mem_size)
         self.mv = memoryview(self.mem)
         self.dc = DcClock(self.mem) if self.ecat_profile.dc else None
         self.sdo.sync_info = self._sync_info
@@ -130,8 +138,9 @@ class Esc:
         self.wkc_fault = False
         self.sii = bytearray(build_sii(
             vendor_id=profile.vendor_id, product_code=profile.product_code, revision=profile.revision,
-            serial=position + 1, name=profile.device_name,
-            rx_entries=self._sii_entries(catalog, 0x1C12), tx_entries=self._sii_entries(catalog, 0x1C13)))
+            serial=position + 1, name=profile.device_name, order=ep.sii_order or profile.device_name,
+            pdos=self._sii_pdos(catalog), sms=self.sms, coe_details=ep.coe_details,
+            mailbox_protocols=ep.mailbox_protocols))
         self.has_mailbox = self.ecat_profile.mailbox != "none"
         if not self.has_mailbox:
             self.sii[:] = without_mailbox(self.sii)
@@ -140,20 +149,26 @@ class Esc:
             self.mailbox.coe = False
         self.power_on()
 
-    def _sii_entries(self, catalog: PdoCatalog, assign: int) -> list[tuple[int, int, int, str]]:
-        """(index, subindex, bits, datatype) of the power-on assigned PDOs, for the SII categories."""
+    def _sii_pdos(self, catalog: PdoCatalog) -> list[tuple[int, int, list[tuple[int, int, int, int]]]]:
+        """(PDO index, SM, entries) of every PDO, for the SII categories: the power-on assigned
+        ones on SM2/SM3, the others (alternatives) on 0xFF; empty alternatives left out."""
         out = []
-        for pdo in catalog.assign[assign]:
-            for e in catalog.maps[pdo]:
-                i, s, b = e >> 16, (e >> 8) & 0xFF, e & 0xFF
-                obj = self.model.objects.get((i, s))
-                out.append((i, s, b, obj.datatype if obj else "u8"))
+        for assign, sm in ((0x1C13, 3), (0x1C12, 2)):
+            lo, hi = (0x1600, 0x17FF) if assign == 0x1C12 else (0x1A00, 0x1BFF)
+            for pdo in sorted(catalog.maps, key=lambda p: (p not in catalog.assign[assign], p)):
+                if not lo <= pdo <= hi or not (catalog.maps[pdo] or pdo in catalog.assign[assign]):
+                    continue
+                entries = []
+                for e in catalog.maps[pdo]:
+                    i, s, b = e >> 16, (e >> 8) & 0xFF, e & 0xFF
+                    entries.append((i, s, b, type_code(self.model.objects.get((i, s)))))
+                out.append((pdo, sm if pdo in catalog.assign[assign] else 0xFF, entries))
         return out
 
     # -- reset ----------------------------------------------------------------------------
     def power_on(self) -> None:
         """Registers to power-on values (INIT, station address 0, SMs/FMMUs off)."""
-        self.mem[:] = bytes(MEM_SIZE)
+        self.mem[:] = bytes(self.mem_size)
         self.ro[:] = bytes(REG_END)
         self._set8(Reg.TYPE, 0x11)
         self._set8(Reg.FMMU_COUNT, 3)
@@ -195,9 +210,10 @@ class Esc:
         self.last_step = 0.0  # when the segment last stepped this slave's drive model
         self.outputs_fresh = False
         # (struct, field map) of a remapped PDO; None for the default mapping
-        self.rx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
-        self.tx_codec: tuple[struct.Struct, list[tuple[int, int]]] | None = None
+        self.rx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
+        self.tx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
         self._tx_values: Callable[[], tuple] = tuple
+        self._last_tx: tuple | None = None  # the inputs last packed (a bit image only when they change)
         self.out_size = 0
         self.in_size = 0
         self.last_out = bytearray()
@@ -228,16 +244,16 @@ class Esc:
         end = ado + n
         if self.dc is not None and ado < REG_SYS_TIME + 8 and end > REG_SYS_TIME:
             self.dc.render()
-        if end > MEM_SIZE:
-            if ado >= MEM_SIZE:
+        if end > self.mem_size:
+            if ado >= self.mem_size:
                 return True
-            dst[: MEM_SIZE - ado] = self.mv[ado:MEM_SIZE]
+            dst[: self.mem_size - ado] = self.mv[ado:self.mem_size]
             return True
-        if end > MBX_IN_START and ado < MBX_IN_START + MBX_IN_SIZE and self.sm_enabled[1]:
+        if end > self.mbx_in_start and ado < self.mbx_in_start + self.mbx_in_size and self.sm_enabled[1]:
             if not self.mbx_in_full:
                 return False
             dst[:] = self.mv[ado:end]
-            if end >= MBX_IN_START + MBX_IN_SIZE:  # last byte read: SM1 empties
+            if end >= self.mbx_in_start + self.mbx_in_size:  # last byte read: SM1 empties
                 self.mbx_in_full = False
                 self._render_sm_status()
                 self.offer_mailbox()
@@ -250,15 +266,15 @@ class Esc:
         if ado == REG_SYS_TIME and len(src) == 8 and self.dc is not None:
             self.dc.time_control(src)  # every frame's FRMW: the hot path
             return True
-        end = min(ado + len(src), MEM_SIZE)
-        if ado >= MEM_SIZE:
+        end = min(ado + len(src), self.mem_size)
+        if ado >= self.mem_size:
             return True
         if ado >= REG_END:
-            if end > MBX_OUT_START and ado < MBX_OUT_START + MBX_OUT_SIZE and self.sm_enabled[0]:
+            if end > self.mbx_out_start and ado < self.mbx_out_start + self.mbx_out_size and self.sm_enabled[0]:
                 if self.mbx_out_full or self.al_state == ALState.INIT:
                     return False
                 self.mv[ado:end] = src[: end - ado]
-                if end >= MBX_OUT_START + MBX_OUT_SIZE:
+                if end >= self.mbx_out_start + self.mbx_out_size:
                     self._mailbox_written()
                 return True
             self.mv[ado:end] = src[: end - ado]
@@ -358,7 +374,7 @@ class Esc:
         self.mbx_out_full = True
         self._render_sm_status()
         try:
-            self.mailbox.request(self.mv[MBX_OUT_START:MBX_OUT_START + MBX_OUT_SIZE])
+            self.mailbox.request(self.mv[self.mbx_out_start:self.mbx_out_start + self.mbx_out_size])
         except Exception:  # a broken request must never stop the segment
             log.exception("slave %d: mailbox request failed", self.position)
         self.mbx_out_full = False  # the application consumed it at once
@@ -374,7 +390,7 @@ class Esc:
 
     def _put_sm1(self, frame: bytes) -> None:
         self.mailbox.last_sent = frame
-        self.mem[MBX_IN_START:MBX_IN_START + MBX_IN_SIZE] = frame.ljust(MBX_IN_SIZE, b"\0")
+        self.mem[self.mbx_in_start:self.mbx_in_start + self.mbx_in_size] = frame.ljust(self.mbx_in_size, b"\0")
         self.mbx_in_full = True
         self._render_sm_status()
 
@@ -467,7 +483,10 @@ class Esc:
         """dc-required: cyclic synchronous modes (8/9/10) need SYNC0 running."""
         if self.dc is None or not self.ecat_profile.dc_required:
             return False
-        return int(self.model.read(0x6061, 0)) in (8, 9, 10) and not self.dc.sync0_running()
+        return (self.ecat_profile.sync0_always or self._mode_display() in (8, 9, 10)) and not self.dc.sync0_running()
+
+    def _mode_display(self) -> int:
+        return int(self.model.value(0x6061, 0))  # also when the dictionary lacks 0x6061
 
     def check_sync(self, now: float) -> None:
         """In OP: a dc-required drive in mode 8/9/10 without SYNC0 -> SAFE-OP + 0x0030; the sync
@@ -477,7 +496,7 @@ class Esc:
         if dc is None or not self.ecat_profile.dc_required or self.al_state != ALState.OP:
             return
         events = dc.sync0_events()  # 0 while SYNC0 does not run
-        if not events and int(self.model.read(0x6061, 0)) in (8, 9, 10):  # as _needs_sync0
+        if not events and (self.ecat_profile.sync0_always or self._mode_display() in (8, 9, 10)):  # as _needs_sync0
             self._fail(ALState.SAFEOP, AlStatusCode.INVALID_DC_SYNC)
             return
         # lag = SYNC0 periods - outputs since OP: in step it stays within one of its lowest
@@ -516,7 +535,7 @@ class Esc:
             return True  # nothing to check: SM0/SM1 are unused
         for k in (0, 1):
             start, length, control, _st, act, _pdi = self.sm(k)
-            d = SM_DEFAULTS[k]
+            d = self.sms[k]
             if not (act & 0x01) or start != d.start or length != d.length or control & 0x0F != d.control & 0x0F:
                 return False
         return True
@@ -527,7 +546,7 @@ class Esc:
         for k, size, code in ((2, self.out_size, AlStatusCode.INVALID_OUTPUT_CONFIG),
                               (3, self.in_size, AlStatusCode.INVALID_INPUT_CONFIG)):
             start, length, control, _st, act, _pdi = self.sm(k)
-            d = SM_DEFAULTS[k]
+            d = self.sms[k]
             if size == 0:
                 if act & 0x01 and length:
                     return code
@@ -548,7 +567,8 @@ class Esc:
         self.tx_codec = None if tx_layout == default_tx else pdo.struct_for(0x1C13)
         if self.tx_codec is not None:
             self._tx_values = self.model.reader(self.tx_codec[1])
-        self.out_view = self.mv[PD_OUT_START:PD_OUT_START + self.out_size]
+        self._last_tx = None
+        self.out_view = self.mv[self.pd_out_start:self.pd_out_start + self.out_size]
         self.last_out = bytearray(self.out_size)
 
     def apply_outputs(self) -> None:
@@ -558,16 +578,16 @@ class Esc:
             return
         self.last_out[:] = view
         if self.rx_codec is None:
-            self.model.apply_outputs(DriveOutputs(*RX_STRUCT.unpack_from(self.mem, PD_OUT_START)))
+            self.model.apply_outputs(DriveOutputs(*RX_STRUCT.unpack_from(self.mem, self.pd_out_start)))
             return
         st, keys = self.rx_codec
-        values = dict(zip(keys, st.unpack_from(self.mem, PD_OUT_START)))
+        values = dict(zip(keys, st.unpack_from(self.mem, self.pd_out_start)))
         current = []
         for index, sub, _bits, _code, _name in RXPDO_DEFAULT:
-            current.append(values.pop((index, sub)) if (index, sub) in values else int(self.model.read(index, sub)))
+            current.append(values.pop((index, sub)) if (index, sub) in values else int(self.model.value(index, sub)))
         for (index, sub), value in values.items():
             try:
-                self.model.write(index, sub, value)
+                self.model.write_mapped(index, sub, value)
             except SdoAbort as exc:
                 log.debug("slave %d: RxPDO 0x%04X:%d refused: %s", self.position, index, sub, exc)
         self.model.apply_outputs(DriveOutputs(*current))
@@ -578,7 +598,10 @@ class Esc:
             return
         if self.tx_codec is None:
             i = self.model.inputs()
-            TX_STRUCT.pack_into(self.mem, PD_IN_START, i.statusword, i.position_actual, i.velocity_actual,
+            TX_STRUCT.pack_into(self.mem, self.pd_in_start, i.statusword, i.position_actual, i.velocity_actual,
                                 i.torque_actual, i.modes_of_operation_display, i.error_code)
             return
-        self.tx_codec[0].pack_into(self.mem, PD_IN_START, *self._tx_values())
+        values = self._tx_values()
+        if values != self._last_tx:  # a drive at rest: nothing to pack (bit images cost a few us)
+            self._last_tx = values
+            self.tx_codec[0].pack_into(self.mem, self.pd_in_start, *values)

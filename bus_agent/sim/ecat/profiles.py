@@ -27,7 +27,8 @@ from typing import Mapping, Sequence
 
 from bus_agent.bus.pdo import RXPDO_DEFAULT, RXPDO_INDEX, TXPDO_DEFAULT, TXPDO_INDEX, mapping_entry
 from bus_agent.sim.drive_model import PROFILES as DRIVE_PROFILES
-from bus_agent.sim.drive_model import DriveProfile
+from bus_agent.sim.drive_model import DriveProfile, ObjectEntry
+from bus_agent.sim.ecat.sii import COE_DETAILS, MBX_PROTO_COE, SM_DEFAULTS, SmDefault
 
 ABORT_READ_ONLY = 0x06010002
 ABORT_SUB0_FIRST = 0x06010003
@@ -49,6 +50,8 @@ class PdoCatalog:
     sub0_first_abort: int = ABORT_WRONG_STATE    # an entry written while sub 0 != 0
     max_entries: int = 8
     max_pdos: int = 4
+    #: PDO -> the PDOs it may not be assigned with (ESI <Exclude>): abort 0x06040043
+    excludes: Mapping[int, frozenset[int]] = field(default_factory=dict)
 
 
 def _flexible(ro_rx: bool = False) -> PdoCatalog:
@@ -86,6 +89,14 @@ class EcatProfile:
     dc: bool = False           # DC capable (0x0008 bit 2; the registers SOEM uses; SYNC0)
     dc_required: bool = False  # refuses OP in modes 8/9/10 without SYNC0 (AL 0x0030); sync error 0x001A
     mailbox: str = "coe"       # MAILBOX_KINDS: "coe", "no-coe" (a mailbox without CoE), "none" (no mailbox)
+    #: From an ESI (bus_agent.sim.ecat.esi_profile); the defaults are the built-in drives'.
+    sync0_always: bool = False  # dc_required in every mode (an ESI offering only DC op modes)
+    dictionary: Mapping[tuple[int, int], ObjectEntry] | None = None  # SDO-visible objects (None: built-in)
+    hidden: Mapping[tuple[int, int], int] = field(default_factory=dict)  # mapped objects not in it
+    sms: tuple[SmDefault, ...] = SM_DEFAULTS   # SM0..SM3: mailbox out/in, outputs, inputs
+    coe_details: int = COE_DETAILS             # SII General byte 5 (SDO info 0x02, complete access 0x20)
+    sii_order: str = ""                        # SII order string (the ESI <Type>)
+    mailbox_protocols: int = MBX_PROTO_COE     # SII word 0x1C (CoE 0x04, FoE 0x08, ...): without CoE no SDO
 
 
 _OMRON_DRIVE = DriveProfile(

@@ -17,7 +17,7 @@ from typing import Sequence
 from bus_agent.bus.base import ALState
 
 from bus_agent.sim.drive_model import DriveProfile
-from bus_agent.sim.ecat.esc import MEM_SIZE, Esc
+from bus_agent.sim.ecat.esc import Esc
 from bus_agent.sim.ecat.profiles import EcatProfile, parse_profiles
 
 log = logging.getLogger(__name__)
@@ -191,7 +191,7 @@ class Segment:
                 if a >= b:
                     continue
                 p = phys + (a - log_start)
-                if p + (b - a) > MEM_SIZE:
+                if p + (b - a) > esc.mem_size:
                     continue
                 frame_part = buf[data_off + a - laddr: data_off + b - laddr]
                 mem_part = esc.mv[p: p + (b - a)]
@@ -332,6 +332,6 @@ class Segment:
         return [{"slave": e.position, "profile": e.ecat_profile.name, "present": e.present, "al_state": e.al_state.wire_name,
                  "al_error": e.al_error, "al_status_code": e.al_code, "station_address": e.station_address,
                  "drive_state": e.model.state.value, "statusword": e.model.statusword,
-                 "controlword": e.model.read(0x6040, 0), "mode_display": e.model.read(0x6061, 0),
+                 "controlword": e.model.value(0x6040, 0), "mode_display": e.model.value(0x6061, 0),
                  "error_code": e.model.error_code, "wkc_fault": e.wkc_fault,
                  "dc": None if e.dc is None else {**e.dc.status(), "sync_error_counter": e.sync_error_counter}} for e in self.escs]

@@ -29,6 +29,8 @@ SM_CTRL_PD_IN = 0x20  # buffered, ECAT reads, ECAT irq
 PDI_CONTROL = 0x0005  # word 0x00 (register 0x0140)
 MBX_PROTO_COE = 0x0004
 MBX_PROTO_FOE = 0x0008
+#: SII word 0x1C bits of the ESI's <Mailbox> children (ETG.1000.6 Table 18)
+MAILBOX_PROTOCOL_BITS = {"AoE": 0x01, "EoE": 0x02, "CoE": 0x04, "FoE": 0x08, "SoE": 0x10, "VoE": 0x20}
 # GENERAL byte 5, CoE details: 0x01 SDO, 0x04 PDO assign, 0x08 PDO configuration (no SDO info,
 # no complete access: SOEM then reads the mapping one subindex at a time).
 COE_DETAILS = 0x0D
@@ -73,7 +75,21 @@ SM_DEFAULTS: tuple[SmDefault, ...] = (
 )
 
 # CoE data type codes used in the SII PDO entries (ETG.1000.6 Table 64).
-DATATYPE_CODES = {"i8": 0x02, "i16": 0x03, "i32": 0x04, "u8": 0x05, "u16": 0x06, "u32": 0x07}
+DATATYPE_CODES = {"i8": 0x02, "i16": 0x03, "i32": 0x04, "u8": 0x05, "u16": 0x06, "u32": 0x07, "i64": 0x15,
+                  "u64": 0x1B, "str": 0x09, "bytes": 0x0A}
+COE_SDO_INFO = 0x02
+COE_COMPLETE_ACCESS = 0x20
+
+
+def type_code(entry) -> int:
+    """The CoE data type code of an object entry (BOOL 0x01, BITn 0x30+n-1); 0 for None."""
+    if entry is None:
+        return 0
+    if entry.datatype == "u8" and entry.bitsize == 1:
+        return 0x01
+    if entry.datatype == "u8" and 1 < entry.bitsize < 8:
+        return 0x30 + entry.bitsize - 1
+    return DATATYPE_CODES.get(entry.datatype, 0)
 
 
 def _crc8(data: bytes) -> int:
@@ -92,23 +108,31 @@ def _category(cat: SiiCategory, payload: bytes) -> bytes:
     return struct.pack("<HH", cat, len(payload) // 2) + payload
 
 
-def _pdo_category(pdo_index: int, sm: int, entries: Sequence[tuple[int, int, int, str]]) -> bytes:
+def _pdo_category(pdo_index: int, sm: int, entries: Sequence[tuple[int, int, int, "str | int"]]) -> bytes:
     """One PDO: index, entry count, SM, sync, name, flags; then 8 bytes per entry."""
     out = struct.pack("<HBBBBH", pdo_index, len(entries), sm, 0, 0, 0)
     for index, sub, bits, dtype in entries:
-        out += struct.pack("<HBBBBH", index, sub, 0, DATATYPE_CODES.get(dtype, 0), bits, 0)
+        code = dtype if isinstance(dtype, int) else DATATYPE_CODES.get(dtype, 0)
+        out += struct.pack("<HBBBBH", index, sub, 0, code, bits, 0)
     return out
 
 
 def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, name: str,
               rx_entries: Sequence[tuple[int, int, int, str]] = (),
               tx_entries: Sequence[tuple[int, int, int, str]] = (),
-              alias: int = 0) -> bytes:
-    """The EEPROM byte image (little-endian words) of one drive.
+              alias: int = 0, order: str = "", sms: Sequence[SmDefault] = SM_DEFAULTS,
+              pdos: Sequence[tuple[int, int, Sequence[tuple[int, int, int, "str | int"]]]] | None = None,
+              coe_details: int = COE_DETAILS, mailbox_protocols: int = MBX_PROTO_COE) -> bytes:
+    """The EEPROM byte image (little-endian words) of one drive (ETG.2010 layout).
 
-    ``rx_entries``/``tx_entries``: (index, subindex, bits, datatype) of the default 0x1600/0x1A00
-    mapping, published in the RXPDO/TXPDO categories (SOEM uses them only without CoE mapping).
+    ``pdos``: (PDO index, SM or 0xFF, entries) for the TXPDO/RXPDO categories, entries as
+    (index, subindex, bits, datatype name or code); SOEM uses them only without CoE mapping.
+    Without ``pdos``, ``rx_entries``/``tx_entries`` are published as 0x1600/0x1A00.
+    ``sms``: SM0..SM3 (the mailbox words 0x18..0x1B follow SM0/SM1).
     """
+    if pdos is None:
+        pdos = [(0x1A00, 3, tx_entries)] if tx_entries else []
+        pdos += [(0x1600, 2, rx_entries)] if rx_entries else []
     words = [0] * 0x40
     words[0x00] = PDI_CONTROL
     words[0x04] = alias & 0xFFFF
@@ -118,14 +142,14 @@ def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, 
     words[0x0A], words[0x0B] = product_code & 0xFFFF, product_code >> 16
     words[0x0C], words[0x0D] = revision & 0xFFFF, revision >> 16
     words[0x0E], words[0x0F] = serial & 0xFFFF, (serial >> 16) & 0xFFFF
-    words[0x18], words[0x19] = MBX_OUT_START, MBX_OUT_SIZE
-    words[0x1A], words[0x1B] = MBX_IN_START, MBX_IN_SIZE
-    words[0x1C] = MBX_PROTO_COE
+    words[0x18], words[0x19] = sms[0].start, sms[0].length
+    words[0x1A], words[0x1B] = sms[1].start, sms[1].length
+    words[0x1C] = mailbox_protocols
     words[0x3E] = 0x000F  # EEPROM size: (15 + 1) KiBit
     words[0x3F] = 0x0001  # SII version
     image = struct.pack("<64H", *words)
 
-    strings = [name.encode("ascii", "replace")[:255], b"Drives", name.encode("ascii", "replace")[:255]]
+    strings = [name.encode("latin-1", "replace")[:255], b"Drives", (order or name).encode("latin-1", "replace")[:255]]
     payload = bytes([len(strings)]) + b"".join(bytes([len(s)]) + s for s in strings)
     image += _category(SiiCategory.STRINGS, payload)
     general = bytearray(32)
@@ -133,21 +157,20 @@ def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, 
     general[1] = 0  # image
     general[2] = 3  # order
     general[3] = 1  # name
-    general[5] = COE_DETAILS
+    general[5] = coe_details
     general[9] = 1  # DS402 channels
     general[11] = 0  # flags: LRW allowed
     image += _category(SiiCategory.GENERAL, bytes(general))
     image += _category(SiiCategory.FMMU, bytes([1, 2, 3, 0xFF]))
     sm = b"".join(struct.pack("<HHBBBB", d.start, d.length, d.control, 0, d.enable, d.type)
-                  for d in SM_DEFAULTS)
+                  for d in sms)
     image += _category(SiiCategory.SM, sm)
-    if tx_entries:
-        image += _category(SiiCategory.TXPDO, _pdo_category(0x1A00, 3, tx_entries))
-    if rx_entries:
-        image += _category(SiiCategory.RXPDO, _pdo_category(0x1600, 2, rx_entries))
+    for pdo_index, pdo_sm, entries in pdos:
+        kind = SiiCategory.RXPDO if pdo_index < 0x1A00 else SiiCategory.TXPDO
+        image += _category(kind, _pdo_category(pdo_index, pdo_sm, entries))
     image += struct.pack("<H", SiiCategory.END)
     # pad to the declared size with 0xFF (erased EEPROM)
-    return image + b"\xff" * (2048 - len(image))
+    return image + b"\xff" * max(0, 2048 - len(image))
 
 
 #: Where ``looping_sii`` puts its loop: before the category a master looks for in that step

@@ -1,0 +1,1 @@
+"""Vendors' device-description files (ESI for EtherCAT, EDS for CANopen): pure parsers."""
