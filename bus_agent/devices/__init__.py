@@ -1,0 +1,1 @@
+"""Vendors' device-description files: ESI (EtherCAT) and EDS (CANopen)."""
