@@ -314,6 +314,7 @@ def test_can_table_and_flags(caplog: pytest.LogCaptureFixture) -> None:
     ({"channel": "c", "nodes": [1], "interface": "vcan"}, "is not one of"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "mine"}]}, "pdo"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "explicit"}]}, "explicit"),
+    ({"channel": "c", "nodes": [{"id": 1, "pdo": "eds"}]}, "'eds' uses the default mapping of the node's EDS: give eds"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "predefined"}]}, "a CANopen node has no PDO assignment; use 'drive'"),
     ({"channel": "c", "nodes": [1], "sync_counter": 1}, "can.sync_counter: 1 must be 0 .* or 2..240"),
     ({"channel": "c", "nodes": [1], "sync_counter": 241}, "can.sync_counter: 241"),

@@ -16,6 +16,8 @@ from canopen.sdo import SdoAbortedError
 from bus_agent.bus.canopen import pdo
 from bus_agent.bus.canopen.nmt import NmtCommand as C, nmt_frame
 from bus_agent.bus.canopen.sdo import SdoError
+from bus_agent.bus.mapping import MappingError
+from bus_agent.bus.pdo import DriveInputs
 from bus_agent.bus.pdo import mapping_entry as me
 from bus_agent.devices import eds
 from bus_agent.sim.canopen import cli as sim_cli
@@ -178,3 +180,35 @@ def test_node_applies_rpdos_with_vendor_objects_and_refuses_unmappable_ones() ->
     assert n.model.read(0x6040, 0) == 0x0006
     assert n.get_data(0x6060, 0) == b"\x07"                          # power-on mode from the EDS
     assert n.get_data(0x1008, 0) == b"Interp402"                     # empty default: the product name
+
+
+# ---- the agent's side: names, types and the eds policy --------------------------------------------
+
+def test_agent_names_and_types_vendor_objects_from_the_eds() -> None:
+    d = eds.load(VENDOR, 2)
+    m = pdo.eds_mapping(d)
+    assert m.rx_pdos == () and m.tx_pdos == (0x1A00,) and dict(m.cob_ids) == {0x1A00: 0x182}
+    with pytest.raises(MappingError, match=r"node 2: PDO policy 'eds': 0x6040 \(controlword\) is not in the outputs"):
+        pdo.mapping_for("eds", 2, _read(_node(VENDOR, 2)), lambda *a: None, m)   # every RPDO disabled
+    usable = pdo.pdos_mapping(2, [[me(0x6040, 0, 16)]], [list(d.pdos(True)[0].entries)])
+    frames = pdo.PdoFrames(usable, pdo.eds_dictionary(d))
+    assert frames.codec.extra_names == ("Temperature (°C)",)         # the EDS's name for a vendor object
+    inputs = DriveInputs()
+    assert frames.store_tpdo(0x182, struct.pack("<Hh", 0x0237, -5))
+    frames.decode_into(inputs)
+    assert inputs.statusword == 0x0237 and inputs.extra == (-5,)     # INTEGER16 in the EDS: signed
+    plain = pdo.PdoFrames(usable)
+    plain.store_tpdo(0x182, struct.pack("<Hh", 0x0237, -5))
+    plain.decode_into(inputs)
+    assert plain.codec.extra_names == ("0x2101:00",) and inputs.extra == (0xFFFB,)   # without the EDS
+
+
+def test_eds_policy_writes_the_default_mapping_and_refuses_what_the_cycle_cannot_run() -> None:
+    n = _node(CLASSIC, 3)
+    read = _read(n)
+    m = pdo.eds_mapping(eds.load(CLASSIC, 3))
+    assert pdo.mapping_for("eds", 3, read, lambda i, s, d: n.set_data(i, s, d), m) == m
+    assert pdo.read_mapping(read) == m and read(0x1400, 2) == b"\x01"  # written synchronous (EDS: 255)
+    interp = eds.load(INTERP, 3)
+    with pytest.raises(MappingError, match="0x6040:00 is mapped twice in the RPDOs"):
+        pdo.mapping_for("eds", 3, read, lambda *a: None, pdo.eds_mapping(interp))

@@ -31,7 +31,7 @@ from typing import Sequence
 from bus_agent.bus.canopen.cob import (COB_ID_INVALID, COB_ID_MASK, MAX_PDO_BITS, MAX_PDOS, RPDO_COMM, RPDO_MAP,
                                        TPDO_COMM, TPDO_MAP, TRANSMISSION_SYNC, default_cob_id)
 from bus_agent.bus.canopen.sdo import SdoError, SdoRead, SdoWrite, read_uint, write_uint
-from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.codec import Dictionary, DriveCodec
 from bus_agent.bus.mapping import MappingError, SlaveMapping, check_mapping, describe, mapping_of, pdo_spans
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs, mapping_entry
 from bus_agent.devices.eds import EdsDevice
@@ -79,6 +79,11 @@ def eds_mapping(device: EdsDevice) -> SlaveMapping:
     tx = [(TPDO_MAP + p.number - 1, list(p.entries)) for p in sides[1]]
     cobs = [((TPDO_MAP if p.tx else RPDO_MAP) + p.number - 1, p.cob_id & COB_ID_MASK) for p in sides[0] + sides[1]]
     return mapping_of(rx, tx, cobs)
+
+
+def eds_dictionary(device: EdsDevice) -> Dictionary:
+    """Names and integer types of a node's objects from its EDS (for the codec)."""
+    return {k: (o.name, o.integer[0]) for k, o in device.objects.items() if o.integer is not None}
 
 
 def pdo_entries(m: SlaveMapping, pdo: int) -> list[int]:
@@ -182,12 +187,12 @@ class PdoFrames:
     refuses). Cycle-safe: :meth:`rpdo_frames` is one encode and one slice per RPDO;
     :meth:`store_tpdo` copies a frame into the image, :meth:`decode_into` decodes it once."""
 
-    def __init__(self, mapping: SlaveMapping) -> None:
+    def __init__(self, mapping: SlaveMapping, dictionary: Dictionary | None = None) -> None:
         problems = check_frames(mapping)
         if problems:
             raise MappingError("; ".join(problems))
         self.mapping = mapping
-        self.codec = DriveCodec(mapping)
+        self.codec = DriveCodec(mapping, dictionary)
         cobs = dict(mapping.cob_ids)
         self._rx = tuple((cobs[pdo], slice(start, start + size)) for pdo, start, size in pdo_spans(mapping.rx))
         self._tx = {cobs[pdo]: (slice(start, start + size), size) for pdo, start, size in pdo_spans(mapping.tx)}
