@@ -98,14 +98,11 @@ class DriveModel:
 
     objects: Mapping[tuple[int, int], ObjectEntry] = OBJECTS
 
-    def __init__(self, profile: DriveProfile = PROFILES["generic"], serial: int = 0,
-                 defaults: Mapping[tuple[int, int], int | str] | None = None) -> None:
+    def __init__(self, profile: DriveProfile = PROFILES["generic"], serial: int = 0) -> None:
         if isinstance(profile, str):  # tolerated convenience
             profile = PROFILES[profile]
         self.profile = profile
         self.serial = serial
-        #: Power-on values that replace the table's (a device file's defaults; canopen-sim --eds).
-        self.defaults: Mapping[tuple[int, int], int | str] = dict(defaults or {})
         self.pdo_config_locked = False
         self._emcy: list[Emcy] = []
         #: Counts every change from outside a step (object writes, outputs that differ, faults,
@@ -120,7 +117,6 @@ class DriveModel:
     def _reset_power_on(self) -> None:
         p = self.profile
         self._values: dict[tuple[int, int], int | str] = {k: e.default for k, e in OBJECTS.items()}
-        self._values.update(self.defaults)
         self._values[(0x1008, 0)] = p.device_name
         self._values[(0x1018, 1)] = p.vendor_id
         self._values[(0x1018, 2)] = p.product_code

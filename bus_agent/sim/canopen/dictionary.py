@@ -38,8 +38,10 @@ Key = tuple[int, int]
 COMM_INDEXES = frozenset({0x1005, 0x1014, 0x1017, 0x1019} | {
     base + n for base in (c.RPDO_COMM, c.RPDO_MAP, c.TPDO_COMM, c.TPDO_MAP) for n in range(c.MAX_PDOS)})
 #: Objects whose value the drive model computes (an EDS default does not replace it).
+#: Nor do the identity, name, mode and supported modes: the drive's profile (built from the EDS) holds them.
 COMPUTED = frozenset({(0x1001, 0), (0x1018, 4), (0x603F, 0), (0x6041, 0), (0x6061, 0), (0x6064, 0), (0x606C, 0),
                       (0x6077, 0), (0x60F4, 0), (0x60FD, 0), (0x60B9, 0), (0x60BA, 0), (0x60BC, 0)})
+_PROFILE_OBJECTS = frozenset({(0x1008, 0), (0x1018, 1), (0x1018, 2), (0x1018, 3), (0x6060, 0), (0x6502, 0)})
 _SHORT = {8: "u8", 16: "u16", 32: "u32"}
 
 
@@ -127,14 +129,15 @@ def from_eds(device: EdsDevice) -> NodeDictionary:
                     defaults[key] = value
         else:
             plain[key] = o
+    profile_values = {k: defaults.pop(k) for k in _PROFILE_OBJECTS if k in defaults}
     comm_defaults = _internal_comm(device.node_id)
     comm_defaults.update({k: e.default for k, e in comm.items()})  # type: ignore[misc]
-    modes = defaults.get((0x6502, 0)) or PROFILES["generic"].supported_modes
-    mode = defaults.get((0x6060, 0), 0)
+    modes = profile_values.get((0x6502, 0)) or PROFILES["generic"].supported_modes  # 0 or none: the model's
+    mode = profile_values.get((0x6060, 0), 0)
     profile = dataclasses.replace(
         PROFILES["generic"], name=f"eds:{device.product_name or device.path}", vendor_id=device.vendor_id,
         product_code=device.product_code, revision=device.revision,
-        device_name=str(defaults.get((0x1008, 0)) or device.product_name or "EDS drive"), supported_modes=int(modes),
+        device_name=str(profile_values.get((0x1008, 0)) or device.product_name or "EDS drive"), supported_modes=int(modes),
         power_on_mode=int(mode) if isinstance(mode, int) else 0)
     return NodeDictionary(where, profile, comm, comm_defaults, drive, plain, defaults, device.od)
 

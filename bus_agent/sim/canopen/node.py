@@ -70,6 +70,18 @@ class _Outbox:
         self.frames.append((can_id, bytes(data)))
 
 
+class _DeviceDriveModel(DriveModel):
+    """The drive model powering on with a device file's defaults (its EDS's) over the table's."""
+
+    def __init__(self, profile: DriveProfile, serial: int, defaults: dict[tuple[int, int], int | str]) -> None:
+        self._device_defaults = defaults
+        super().__init__(profile, serial=serial)
+
+    def _reset_power_on(self) -> None:
+        super()._reset_power_on()
+        self._values.update(self._device_defaults)
+
+
 class SimNode:
     """A CANopen drive node. Not thread-safe: the segment serialises calls.
 
@@ -86,7 +98,8 @@ class SimNode:
             dictionary = nd.builtin(node_id, profile)
         self.node_id = node_id
         self.dictionary = dictionary
-        self.model = DriveModel(dictionary.profile, serial=serial, defaults=dictionary.model_defaults)
+        self.model = (_DeviceDriveModel(dictionary.profile, serial, dictionary.model_defaults)
+                      if dictionary.model_defaults else DriveModel(dictionary.profile, serial=serial))
         self.watchdog_s = watchdog_s
         self.object_dictionary = dictionary.od  # python-canopen's SdoServer holds one
         self.plain: dict[tuple[int, int], bytes] = {}
