@@ -428,8 +428,8 @@ class CanopenBus:
         state = self.heartbeats.state(nid, now)
         if state is NmtState.OPERATIONAL:
             return True
-        if not self.heartbeats.heard(nid, now):
-            return False
+        if not self.heartbeats.heard(nid, now) and not self.heartbeats.booted(nid):
+            return False  # silent; a node that booted may stay so (0x1017 defaults to 0): configure it
         with self._lock:
             if self.heartbeats.booted(nid):
                 try:
