@@ -1,1 +1,1 @@
-"""Vendors' device-description files: ESI (EtherCAT) and EDS (CANopen)."""
+"""Vendors' device-description files (ESI for EtherCAT, EDS for CANopen): pure parsers."""
