@@ -341,7 +341,7 @@ def test_the_can_example_configuration_loads() -> None:
     from bus_agent.config import load_config
 
     cfg = load_config(Path(__file__).resolve().parents[2] / "deploy" / "agent.can.example.toml")
-    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "drive", "explicit"]
+    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "eds", "explicit"]
 
 
 def test_the_bus_reports_which_nodes_inputs_changed() -> None:

@@ -120,13 +120,13 @@ def from_eds(device: EdsDevice) -> NodeDictionary:
         elif model is not None and _same_type(o, model):
             drive[key] = o
             if key not in COMPUTED and o.default is not None:
-                value = o.default if model.datatype == "str" else o.default_int()
-                lo, hi = model.value_range() if model.datatype != "str" else (None, None)
-                if lo is not None and not lo <= int(value) <= hi:
-                    log.info("%s: 0x%04X:%d default %s outside the model's %s..%s: the model's kept", where,
-                             *key, value, lo, hi)
+                if model.datatype == "str":
+                    defaults[key] = str(o.default)
+                elif model.value_range()[0] <= o.default_int() <= model.value_range()[1]:
+                    defaults[key] = o.default_int()
                 else:
-                    defaults[key] = value
+                    log.info("%s: 0x%04X:%d default %s outside the model's range %s: the model's kept", where,
+                             *key, o.default, model.value_range())
         else:
             plain[key] = o
     profile_values = {k: defaults.pop(k) for k in _PROFILE_OBJECTS if k in defaults}

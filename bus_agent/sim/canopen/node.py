@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import struct
-from typing import Any
+from typing import Any, Mapping
 
 from canopen.sdo import SdoAbortedError, SdoServer
 
@@ -73,7 +73,7 @@ class _Outbox:
 class _DeviceDriveModel(DriveModel):
     """The drive model powering on with a device file's defaults (its EDS's) over the table's."""
 
-    def __init__(self, profile: DriveProfile, serial: int, defaults: dict[tuple[int, int], int | str]) -> None:
+    def __init__(self, profile: DriveProfile, serial: int, defaults: Mapping[tuple[int, int], int | str]) -> None:
         self._device_defaults = defaults
         super().__init__(profile, serial=serial)
 

@@ -98,7 +98,7 @@ def build(node_id: int, profile: DriveProfile) -> canopen.ObjectDictionary:
         var.default = default  # type: ignore[assignment]  # str for VISIBLE_STRING
         relative = _node_relative((e.index, e.subindex), int(default), node_id) if isinstance(default, int) else None
         if relative is not None:
-            var.default_raw = relative
+            var.default_raw = relative  # type: ignore[attr-defined]  # python-canopen's EDS exporter reads it
         var.pdo_mappable = e.pdo_mappable
         if e.index in multi:
             rec = records.get(e.index)
