@@ -258,7 +258,10 @@ class SimNode:
             if key in plain:
                 value = int.from_bytes(plain[key], "little")
             elif key in drive:
-                value = int(self.model.read(index, sub))
+                try:
+                    value = int(self.model.read(index, sub))
+                except (SdoAbort, ValueError):  # an EDS default mapping may name a write-only or string object
+                    value = 0
             else:
                 value = 0  # a default mapping naming an object the dictionary lacks
             acc |= (value & ((1 << bits) - 1)) << offset
@@ -305,7 +308,8 @@ class SimNode:
         for key, value in self._pending.items():
             plain = self.dictionary.plain.get(key)
             if plain is not None:
-                self.plain[key] = value.to_bytes(max(1, (plain.bits + 7) // 8), "little")
+                size = max(1, (plain.bits + 7) // 8)
+                self.plain[key] = (value & ((1 << 8 * size) - 1)).to_bytes(size, "little")
                 continue
             if key in RX_FIELDS:
                 values[key] = value
