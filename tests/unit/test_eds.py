@@ -212,3 +212,17 @@ def test_eds_policy_writes_the_default_mapping_and_refuses_what_the_cycle_cannot
     interp = eds.load(INTERP, 3)
     with pytest.raises(MappingError, match="0x6040:00 is mapped twice in the RPDOs"):
         pdo.mapping_for("eds", 3, read, lambda *a: None, pdo.eds_mapping(interp))
+
+
+def test_canopen_sim_refuses_bad_eds_arguments_naming_why(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    for argv, needle in ((["--eds", str(CLASSIC), "--nodes", "2"], "--nodes and --eds exclude each other"),
+                         (["--eds", f"{CLASSIC}*x"], "COUNT 'x' is not a number"),
+                         (["--eds", f"{CLASSIC}*100", "--eds", f"{VENDOR}*30"], "node ids 1..130 outside 1..127"),
+                         (["--eds", str(tmp_path / "none.eds")], "none.eds: cannot read"),
+                         (["--eds", str(_write_nodrive(tmp_path))], "not a CiA 402 drive the simulator can run")):
+        assert sim_cli.main(["--channel", "ff11::7a64:99", *argv]) == 2
+        assert needle in capsys.readouterr().err, argv
+    specs = [(str(CLASSIC), 2), (str(VENDOR), 1)]
+    dicts = sim_cli.eds_dictionaries(specs, [4, 5, 6])
+    assert [d.profile.product_code for d in dicts] == [0x402, 0x402, 7]
+    assert [d.comm_defaults[(0x1400, 1)] for d in dicts] == [0x204, 0x205, 0x80000206]   # $NODEID per node
