@@ -17,7 +17,7 @@ import pytest
 
 from bus_agent.sim.child import wait_for
 from tests.conftest import require_root
-from twin import Twin
+from twin import Twin, TwinError
 
 pytestmark = [pytest.mark.timeout(240)]
 
@@ -49,6 +49,13 @@ def test_twin_runs_eds_drives_next_to_builtin_ones(tmp_path: Path) -> None:
         assert wait_for(lambda: (st := f.status("can1/a")) is not None and not st.lost, 20, "can1/a back")
         assert twin.wait_state("can1/a", "switch_on_disabled", 10)     # back, never re-enabled
         assert exits == []
+
+
+def test_twin_names_why_an_eds_drive_cannot_run() -> None:
+    vendor = CLASSIC.parent / "vendor.eds"   # every RPDO disabled, no 0x607A: the project's layout cannot be mapped
+    with pytest.raises(TwinError, match=r"bus-agent v did not become ready \(exit 3\):\n.*PDO policy 'default': "
+                                        r"node 1: SDO write 0x1600:2 aborted with 0x06040041"):
+        Twin({"hosts": {"v": {"axes": ["a"], "device": str(vendor)}}}, ready_timeout_s=30).start()
 
 
 def test_ecat_twin_runs_esi_drives(tmp_path: Path) -> None:

@@ -265,6 +265,8 @@ class CanopenBus:
             frames = pdo_mod.PdoFrames(mapping, node.dictionary)
         except MappingError as e:
             raise BusError(f"CAN {self.channel}: {e}") from None
+        except sdo_mod.SdoError as e:  # the node refused the mapping (an object it cannot map, ...)
+            raise BusError(f"CAN {self.channel}: PDO policy {node.cfg.pdo!r}: {e}") from None
         if node.frames is not None and node.frames.mapping != mapping:
             raise BusError(f"CAN {self.channel}: node {nid}: its PDO mapping is not the one of start-up "
                            f"({describe(mapping)}, was {describe(node.frames.mapping)}): not brought back")
