@@ -8,8 +8,8 @@ no per-object Python loop, no intermediate tuple and no index lookup runs per cy
 default layout they are the very statements the fixed 13/15-byte structs needed. Cycle-safe.
 
 Objects at byte offsets with a size of 8/16/32/64 bits are decoded; their type comes from the
-CiA 402 table (:data:`bus_agent.bus.mapping.OBJECTS`), else from the drive's device file (an
-EDS: ``dictionary``, which also names them), else unsigned. Padding (index 0) and
+CiA 402 table (:data:`bus_agent.bus.mapping.OBJECTS`), else from the slave's ESI (vendor objects,
+named by the ESI too), else unsigned. Padding (index 0) and
 bit-sized entries become pad bytes (``x``); a required object that is not byte-aligned is a
 :class:`~bus_agent.bus.mapping.MappingError`. Objects of the cycle's records that are not
 mapped decode as 0 and are listed in :attr:`DriveCodec.absent_inputs`.
@@ -22,7 +22,7 @@ import struct
 from typing import Any, Callable, Mapping, Sequence
 
 from bus_agent.bus.mapping import (OBJECTS, RX_FIELDS, STATUS_FIELD_OF, TX_FIELDS, MappedEntry, MappingError,
-                                   SlaveMapping)
+                                   ObjectInfo, SlaveMapping)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 
 log = logging.getLogger(__name__)
@@ -35,13 +35,8 @@ OUT_FIELDS = ("controlword", "target_position", "target_velocity", "target_torqu
 _TX_KEY_OF = {name: key for key, name in TX_FIELDS.items()}
 
 
-#: A device file's view of objects the table does not know: (index, subindex) -> (name, type),
-#: the type a short name ("u16", "i32", ...).
-Dictionary = Mapping[tuple[int, int], tuple[str, str]]
-
-
 def _format(entries: Sequence[MappedEntry], total_bytes: int, side: str,
-            dictionary: Dictionary | None = None) -> tuple[str, list[MappedEntry]]:
+            objects: Mapping[tuple[int, int], ObjectInfo] = {}) -> tuple[str, list[MappedEntry]]:
     """Struct format over the whole image and the decoded entries in struct order."""
     fmt = ["<"]
     decoded: list[MappedEntry] = []
@@ -51,9 +46,8 @@ def _format(entries: Sequence[MappedEntry], total_bytes: int, side: str,
             continue
         code = None
         if e.bit_offset % 8 == 0 and e.bits in _UNSIGNED:
-            info = OBJECTS.get(e.key)
-            datatype = info.datatype if info else (dictionary or {}).get(e.key, ("", ""))[1]
-            code = _CODE[datatype] if datatype in _CODE and int(datatype[1:]) == e.bits else _UNSIGNED[e.bits]
+            info = OBJECTS.get(e.key) or objects.get(e.key)
+            code = _CODE[info.datatype] if info and int(info.datatype[1:]) == e.bits else _UNSIGNED[e.bits]
         if code is None:
             if e.key in RX_FIELDS or e.key in TX_FIELDS:
                 raise MappingError(f"{side} 0x{e.index:04X}:{e.subindex:02X} is {e.bits} bits at bit offset "
@@ -148,19 +142,21 @@ class DriveCodec:
     decode_into: Callable[[DriveInputs, Any], None]
     encode: Callable[[DriveOutputs], bytes]
 
-    def __init__(self, mapping: SlaveMapping, dictionary: Dictionary | None = None) -> None:
+    def __init__(self, mapping: SlaveMapping, objects: Mapping[tuple[int, int], ObjectInfo] | None = None) -> None:
+        """``objects``: names and types of objects the CiA 402 table lacks (the slave's ESI)."""
         self.mapping = mapping
-        in_fmt, tx = _format(mapping.tx, mapping.in_bytes, "TxPDO", dictionary)
-        out_fmt, rx = _format(mapping.rx, mapping.out_bytes, "RxPDO", dictionary)
+        objects = objects or {}
+        in_fmt, tx = _format(mapping.tx, mapping.in_bytes, "TxPDO", objects)
+        out_fmt, rx = _format(mapping.rx, mapping.out_bytes, "RxPDO", objects)
         self.in_struct = struct.Struct(in_fmt)
         self.out_struct = struct.Struct(out_fmt)
         tx_keys = [e.key for e in tx]
         rx_keys = [e.key for e in rx]
         #: The decoded input objects in image order (the struct's fields).
         self.tx_keys: tuple[tuple[int, int], ...] = tuple(tx_keys)
-        named = dictionary or {}
         self.extra_names: tuple[str, ...] = tuple(
-            e.name if e.key in OBJECTS or e.key not in named else named[e.key][0] for e in tx if e.key not in TX_FIELDS)
+            objects[e.key].name if e.key in objects and e.key not in OBJECTS else e.name
+            for e in tx if e.key not in TX_FIELDS)
         #: DriveStatus fields whose objects the drive does not map (reported absent, not 0).
         self.absent_inputs: tuple[str, ...] = tuple(
             name for key, name in STATUS_FIELD_OF.items() if key not in tx_keys)

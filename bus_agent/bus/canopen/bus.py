@@ -80,11 +80,11 @@ class _Node:
     tpdo_data: dict[int, bytes] = field(default_factory=dict)
     missed_tpdos: int = 0
     last_emcy: emcy_mod.Emergency | None = None
-    dictionary: Any = None  # names and types from the node's EDS (bus_agent.bus.codec.Dictionary)
+    objects: Any = None  # names and types of its objects from the node's EDS (codec, ``objects``)
 
     def __post_init__(self) -> None:
         if self.cfg.device is not None:
-            self.dictionary = pdo_mod.eds_dictionary(self.cfg.device)
+            self.objects = pdo_mod.eds_dictionary(self.cfg.device)
 
 
 def open_can(channel: str, interface: str) -> Any:
@@ -262,7 +262,7 @@ class CanopenBus:
             sdo_mod.write_uint(write, 0x1019, 0, self.sync_counter, 8)
         try:
             mapping = pdo_mod.mapping_for(node.cfg.pdo, nid, self._reader(node), write, node.cfg.mapping)
-            frames = pdo_mod.PdoFrames(mapping, node.dictionary)
+            frames = pdo_mod.PdoFrames(mapping, node.objects)
         except MappingError as e:
             raise BusError(f"CAN {self.channel}: {e}") from None
         except sdo_mod.SdoError as e:  # the node refused the mapping (an object it cannot map, ...)

@@ -26,13 +26,14 @@ drive it against a simulated node.
 from __future__ import annotations
 
 from collections import Counter
-from typing import Sequence
+from typing import Mapping, Sequence
 
 from bus_agent.bus.canopen.cob import (COB_ID_INVALID, COB_ID_MASK, MAX_PDO_BITS, MAX_PDOS, RPDO_COMM, RPDO_MAP,
                                        TPDO_COMM, TPDO_MAP, TRANSMISSION_SYNC, default_cob_id)
 from bus_agent.bus.canopen.sdo import SdoError, SdoRead, SdoWrite, read_uint, write_uint
-from bus_agent.bus.codec import Dictionary, DriveCodec
-from bus_agent.bus.mapping import MappingError, SlaveMapping, check_mapping, describe, mapping_of, pdo_spans
+from bus_agent.bus.codec import DriveCodec
+from bus_agent.bus.mapping import (MappingError, ObjectInfo, SlaveMapping, check_mapping, describe, mapping_of,
+                                   pdo_spans)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs, mapping_entry
 from bus_agent.devices.eds import EdsDevice
 
@@ -81,9 +82,18 @@ def eds_mapping(device: EdsDevice) -> SlaveMapping:
     return mapping_of(rx, tx, cobs)
 
 
-def eds_dictionary(device: EdsDevice) -> Dictionary:
-    """Names and integer types of a node's objects from its EDS (for the codec)."""
-    return {k: (o.name, o.integer[0]) for k, o in device.objects.items() if o.integer is not None}
+#: The integer types the codec decodes by name (others go unsigned, by their size).
+_CODEC_TYPES = frozenset({"u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64"})
+
+
+def eds_dictionary(device: EdsDevice) -> dict[tuple[int, int], ObjectInfo]:
+    """Names and integer types of a node's objects from its EDS (for the codec and ``objects``)."""
+    out = {}
+    for key, o in device.objects.items():
+        if o.integer is not None:
+            short, bits, _signed = o.integer
+            out[key] = ObjectInfo(o.name, short if short in _CODEC_TYPES else f"u{bits}")
+    return out
 
 
 def pdo_entries(m: SlaveMapping, pdo: int) -> list[int]:
@@ -187,12 +197,12 @@ class PdoFrames:
     refuses). Cycle-safe: :meth:`rpdo_frames` is one encode and one slice per RPDO;
     :meth:`store_tpdo` copies a frame into the image, :meth:`decode_into` decodes it once."""
 
-    def __init__(self, mapping: SlaveMapping, dictionary: Dictionary | None = None) -> None:
+    def __init__(self, mapping: SlaveMapping, objects: Mapping[tuple[int, int], ObjectInfo] | None = None) -> None:
         problems = check_frames(mapping)
         if problems:
             raise MappingError("; ".join(problems))
         self.mapping = mapping
-        self.codec = DriveCodec(mapping, dictionary)
+        self.codec = DriveCodec(mapping, objects)
         cobs = dict(mapping.cob_ids)
         self._rx = tuple((cobs[pdo], slice(start, start + size)) for pdo, start, size in pdo_spans(mapping.rx))
         self._tx = {cobs[pdo]: (slice(start, start + size), size) for pdo, start, size in pdo_spans(mapping.tx)}
