@@ -6,7 +6,8 @@ ones of tests/data/eds/ (each exercising quirks of vendors' files). A plain pyth
 (its own ``RemoteNode`` per node, the object dictionary imported from the same file, nothing of
 this project) reads every object the EDS lists and compares it with the EDS default, reads each
 node's PDO configuration by SDO and compares it with the EDS default mapping, receives TPDOs on a
-SYNC and decodes them with the EDS's mapping, sends an RPDO with a vendor object. Then the agent:
+SYNC and decodes them with the EDS's mapping, sends an RPDO with a vendor object; ``bus-agent scan
+--eds`` then names each node's EDS and the one PDO that no longer is its default. Then the agent:
 ``[[can.nodes]] eds`` with PDO policy ``eds`` and a vendor object named in ``objects``, and a
 node whose identity is not its EDS's refused at start-up.
 """
@@ -157,6 +158,14 @@ def test_python_canopen_probe_sees_each_node_as_its_eds_says(bed: CanBed, sim_ed
     # RPDO1 enabled by the probe: the vendor object stored, the controlword applied (ready to switch on)
     assert bytes.fromhex(report["rpdo"]["delay"]) == (700).to_bytes(2, "little")
     assert int.from_bytes(bytes.fromhex(report["rpdo"]["statusword"]), "little") & 0x6F == 0x21
+    # bus-agent scan --eds DIR: each node's EDS by identity, node 4's RPDO1 (enabled above) not its default
+    r = bed.run(sys.executable, "-m", "bus_agent.cli", "scan", "--can", CHANNEL, "--can-interface", "udp_multicast",
+                "--eds", str(DATA), "--json", timeout_s=60)
+    assert r.returncode == 0, r.stderr[-2000:]
+    nodes = {n["node_id"]: n for n in json.loads(r.stdout)["nodes"]}
+    assert [(nodes[i]["eds"], nodes[i]["device"]) for i in (1, 2, 3, 4)] == [
+        (str(CLASSIC), "Classic402"), (str(CLASSIC), "Classic402"), ("", ""), (str(VENDOR), "Vendor402")]
+    assert nodes[1]["differences"] == [] and nodes[4]["differences"] == ["RPDO1: node 0x204 [6040 2100], EDS not valid"]
 
 
 def _agent_toml(listen: str, nodes: str) -> str:

@@ -7,6 +7,7 @@ hand-written ones in tests/data/eds/, each exercising quirks of vendors' files
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from pathlib import Path
 
@@ -226,3 +227,22 @@ def test_canopen_sim_refuses_bad_eds_arguments_naming_why(tmp_path: Path, capsys
     dicts = sim_cli.eds_dictionaries(specs, [4, 5, 6])
     assert [d.profile.product_code for d in dicts] == [0x402, 0x402, 7]
     assert [d.comm_defaults[(0x1400, 1)] for d in dicts] == [0x204, 0x205, 0x80000206]   # $NODEID per node
+
+
+def test_scan_matches_each_node_to_its_eds_and_lists_where_its_mapping_differs(tmp_path: Path) -> None:
+    from bus_agent.bus.canopen import scan
+
+    assert scan.eds_files(str(DATA)) == [str(CLASSIC), str(INTERP), str(VENDOR)]
+    with pytest.raises(eds.EdsError, match="no \\*.eds file"):
+        scan.eds_files(str(tmp_path))
+    n = _node(VENDOR, 4)
+    report = scan.NodeReport(4, 305419896, 7, 65536, 0, 0x60192, "Vendor402", 0, mapping=pdo.read_mapping(_read(n)))
+    matched = scan.match_eds(report, scan.eds_files(str(DATA)))
+    assert (matched.eds, matched.device, matched.differences) == (str(VENDOR), "Vendor402", ())
+    n.set_data(0x1400, 1, struct.pack("<I", 0x204))                 # RPDO1 enabled: not the EDS default
+    changed = scan.match_eds(dataclasses.replace(report, mapping=pdo.read_mapping(_read(n))), [str(CLASSIC), str(VENDOR)])
+    assert changed.differences == ("RPDO1: node 0x204 [6040 2100], EDS not valid",)
+    text = scan.format_table([changed])
+    assert f"  EDS: {VENDOR} (Vendor402): mapping differs from its default\n    RPDO1: node 0x204" in text
+    unknown = scan.match_eds(dataclasses.replace(report, vendor_id=1), [str(CLASSIC), str(VENDOR)])
+    assert unknown.eds == "" and "EDS: none of 2 file(s) has its identity" in scan.format_table([unknown])

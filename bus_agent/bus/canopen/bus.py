@@ -50,7 +50,6 @@ HEARTBEAT_TIMEOUT_FACTOR = 3.0
 BOOT_TIMEOUT_S = 5.0
 START_TIMEOUT_S = 5.0
 SDO_TIMEOUT_S = 0.5
-ABORT_NO_SUBINDEX = 0x06090011
 
 
 @dataclass(frozen=True)
@@ -217,7 +216,7 @@ class CanopenBus:
         deadline = time.monotonic() + self.boot_timeout_s
         while True:
             try:
-                ident = [self._identity_entry(node, s) for s in (1, 2, 3, 4)]
+                ident = sdo_mod.read_identity(self._reader(node))
                 break
             except sdo_mod.SdoError as e:
                 if e.abort_code or time.monotonic() >= deadline:
@@ -236,16 +235,6 @@ class CanopenBus:
                 raise BusError(f"CAN {self.channel}: node {nid} (position {pos}, {name!r}) is not the device of its "
                                f"EDS {device.path} ({device.product_name or 'no ProductName'}): {wrong}")
         return SlaveInfo(pos, name, SlaveIdentity(*ident))
-
-    def _identity_entry(self, node: _Node, sub: int) -> int:
-        """0x1018:sub; 0 for product code, revision and serial when the node has none (CiA 301:
-        only the vendor id is mandatory)."""
-        try:
-            return sdo_mod.read_uint(self._reader(node), 0x1018, sub)
-        except sdo_mod.SdoError as e:
-            if sub > 1 and e.abort_code in (ABORT_NO_SUBINDEX, pdo_mod.ABORT_NO_OBJECT):
-                return 0
-            raise
 
     def _reader(self, node: _Node) -> sdo_mod.SdoRead:
         return lambda index, sub: sdo_mod.read(node.remote.sdo, node.cfg.node_id, index, sub)
