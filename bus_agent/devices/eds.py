@@ -167,7 +167,7 @@ class EdsDevice:
         return "; ".join(wrong) or None
 
 
-_LEADING_ZEROS = re.compile(r"^(\s*[A-Za-z0-9_]+\s*=\s*)0+(\d)", re.MULTILINE)
+_LEADING_ZEROS = re.compile(r"^(\s*[A-Za-z0-9_]+\s*=\s*)0+(\d+)[ \t]*$", re.MULTILINE)
 
 
 def _text(path: str) -> str:
@@ -177,6 +177,7 @@ def _text(path: str) -> str:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         text = raw.decode("latin-1")  # vendors' tools write their locale's code page
+    text = text.replace("\r\n", "\n").replace("\r", "\n")  # CRLF (most vendors' files), or CR
     # "VendorNumber=0123": decimal, not an octal Python refuses (a lone 0 stays 0)
     return _LEADING_ZEROS.sub(r"\1\2", text)
 

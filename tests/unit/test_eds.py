@@ -246,3 +246,11 @@ def test_scan_matches_each_node_to_its_eds_and_lists_where_its_mapping_differs(t
     assert f"  EDS: {VENDOR} (Vendor402): mapping differs from its default\n    RPDO1: node 0x204" in text
     unknown = scan.match_eds(dataclasses.replace(report, vendor_id=1), [str(CLASSIC), str(VENDOR)])
     assert unknown.eds == "" and "EDS: none of 2 file(s) has its identity" in scan.format_table([unknown])
+
+
+def test_decimal_with_leading_zeros_and_bare_cr_lines(tmp_path: Path) -> None:
+    p = tmp_path / "zeros.eds"
+    p.write_bytes(b"[DeviceInfo]\rVendorNumber=0123\rProductName=007 Drive\r[1000]\rParameterName=007 type\r"
+                  b"ObjectType=0x7\rDataType=0007\rAccessType=ro\rDefaultValue=0x00000192\r")
+    d = eds.load(p, 1)
+    assert (d.vendor_id, d.product_name, d.name_of(0x1000, 0), d.device_type) == (123, "007 Drive", "007 type", 0x192)
