@@ -132,10 +132,6 @@ class EdsDevice:
         """CiA 402 by the low 16 bits of 0x1000 (the byte above varies by vendor)."""
         return self.device_type & 0xFFFF == CIA402_PROFILE
 
-    @property
-    def indexes(self) -> frozenset[int]:
-        return frozenset(i for i, _s in self.objects)
-
     def name_of(self, index: int, subindex: int) -> str | None:
         obj = self.objects.get((index, subindex))
         return obj.name if obj else None

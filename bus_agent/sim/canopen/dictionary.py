@@ -27,7 +27,7 @@ from typing import Any, Mapping
 from bus_agent.bus.canopen import cob as c
 from bus_agent.devices.eds import EdsDevice, EdsError, EdsObject
 from bus_agent.sim.canopen import od
-from bus_agent.sim.drive_model import _INT_FORMATS, DriveProfile, ObjectEntry
+from bus_agent.sim.drive_model import DriveProfile, ObjectEntry
 from bus_agent.sim.drive_profiles import PROFILES
 
 log = logging.getLogger(__name__)
@@ -57,9 +57,6 @@ class NodeDictionary:
     plain: Mapping[Key, EdsObject] = field(default_factory=dict)
     model_defaults: Mapping[Key, int | str] = field(default_factory=dict)
     od: Any = None  # python-canopen's ObjectDictionary (its SdoServer holds one)
-
-    def entry(self, key: Key) -> ObjectEntry | EdsObject | None:
-        return self.comm.get(key) or self.drive.get(key) or self.plain.get(key)
 
     @functools.cached_property
     def indexes(self) -> frozenset[int]:
@@ -148,7 +145,3 @@ def signed(entry: ObjectEntry | EdsObject) -> bool:
         return entry.datatype.startswith("i")
     integer = entry.integer
     return bool(integer and integer[2])
-
-
-def int_format(entry: ObjectEntry) -> str:
-    return _INT_FORMATS[entry.datatype]
