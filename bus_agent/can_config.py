@@ -12,9 +12,10 @@ from bus_agent.toml_table import ConfigError, Table
 log = logging.getLogger("bus_agent.config")
 
 #: CAN backend: python-can interfaces and PDO policies (bus_agent/bus/canopen, docs/canopen.md):
-#: the EtherCAT backend's policy names (bus_agent.bus.mapping.POLICIES) but ``predefined``.
+#: the EtherCAT backend's policy names (bus_agent.bus.mapping.POLICIES) but ``predefined``, and
+#: ``eds`` (the default mapping of the node's EDS).
 CAN_INTERFACES = ("socketcan", "udp_multicast")
-CAN_PDO_POLICIES = tuple(p for p in POLICIES if p != "predefined")
+CAN_PDO_POLICIES = tuple(p for p in POLICIES if p not in ("predefined", "eds")) + ("eds",)
 #: Earlier words for a policy, still read with a deprecation warning.
 CAN_PDO_ALIASES = {"node": "drive"}
 
@@ -25,7 +26,7 @@ class CanNode:
 
     node_id: int
     pdo: str = "default"                       # CAN_PDO_POLICIES ("node": alias of "drive")
-    eds: str | None = None                     # EDS file of the drive (names objects; optional)
+    eds: str | None = None                     # EDS file: object names and types, identity check, pdo "eds"
     rpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per RPDO 1..4
     tpdo: tuple[tuple[int, ...], ...] = ()      # explicit: mapping u32 entries per TPDO 1..4
     startup_sdos: tuple[tuple[int, int, int, int], ...] = ()  # (index, subindex, value, bytes)
@@ -67,6 +68,8 @@ def validate_can(c: CanConfig) -> None:
             why = (": 'predefined' assigns fixed EtherCAT PDOs, a CANopen node has no PDO assignment; use 'drive' "
                    "(its own mapping)" if n.pdo == "predefined" else "")
             raise ConfigError(f"{key}.pdo: {n.pdo!r} is not one of {', '.join(CAN_PDO_POLICIES)}{why}")
+        if n.pdo == "eds" and not n.eds:
+            raise ConfigError(f"{key}.pdo: 'eds' uses the default mapping of the node's EDS: give eds = \"FILE\"")
         if (n.pdo == "explicit") != bool(n.rpdo or n.tpdo):
             raise ConfigError(f"{key}: rpdo/tpdo are given exactly when pdo = \"explicit\"")
         for side, pdos in (("rpdo", n.rpdo), ("tpdo", n.tpdo)):

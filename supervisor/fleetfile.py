@@ -10,6 +10,9 @@ One file describes a fleet for every tool that needs to know what *should* be th
     # profile = "generic"      drive profile of a simulated host
     # cycle_us = 1000          cycle period
     # agent = { reflex = "disable" }   extra top-level keys of that host's agent TOML
+    # device = "drive.eds"     every axis's device file: an EDS (CANopen) or ESI (EtherCAT,
+    #                          "drive.xml[@PRODUCT[:REVISION]]"); relative to this file
+    # devices = ["a.eds", "b.eds"]     or one per axis, in order (one kind per host)
 
     [hosts.h2]
     axes = ["x"]
@@ -31,7 +34,9 @@ from typing import Any, Mapping
 
 #: Host and axis names, as the key space allows them (schemas/keys.py: one verbatim-free chunk).
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
-_HOST_KEYS = frozenset({"axes", "profile", "cycle_us", "agent"})
+_HOST_KEYS = frozenset({"axes", "profile", "cycle_us", "agent", "device", "devices"})
+#: Device-description files by suffix: EDS (CiA 306, CANopen) and ESI (ETG.2000, EtherCAT).
+DEVICE_KINDS = {".eds": "eds", ".xml": "esi"}
 _TOP_KEYS = frozenset({"hosts", "groups"})
 
 #: Environment variable naming a fleet file for drivectl (the ``--fleet`` option wins).
@@ -51,6 +56,22 @@ class HostSpec:
     profile: str | None = None
     cycle_us: int | None = None
     agent: Mapping[str, Any] = field(default_factory=dict)
+    #: One device file per axis (absolute paths; an ESI may carry "@PRODUCT[:REVISION]"), or none.
+    devices: tuple[str, ...] = ()
+
+    @property
+    def device_kind(self) -> str | None:
+        """``"eds"``, ``"esi"`` or None (the simulator's built-in drives)."""
+        return device_kind(self.devices[0]) if self.devices else None
+
+
+def device_kind(spec: str) -> str:
+    """The kind of a device file (``FILE`` or ``FILE@PRODUCT[:REVISION]``) by its suffix; ValueError."""
+    esi = spec.split("@", 1)[0]  # an ESI names its device after "@"
+    kind = "esi" if esi.lower().endswith(".xml") else DEVICE_KINDS.get(os.path.splitext(spec)[1].lower())
+    if kind is None:
+        raise ValueError(f"{spec!r} is neither an EDS (.eds) nor an ESI (.xml)")
+    return kind
 
 
 @dataclass(frozen=True)
@@ -79,6 +100,31 @@ def _name(source: str, where: str, value: Any) -> str:
     if not isinstance(value, str) or not _NAME.match(value):
         raise _err(source, where, f"{value!r} is not a name (1-64 of [A-Za-z0-9_.-])")
     return value
+
+
+def _devices(source: str, where: str, spec: Mapping[str, Any], axes: int) -> tuple[str, ...]:
+    """``device`` (every axis) or ``devices`` (one per axis) as absolute paths, one kind per host."""
+    if "device" in spec and "devices" in spec:
+        raise _err(source, where, "give device (every axis) or devices (one per axis), not both")
+    if "device" in spec:
+        raw, key = [spec["device"]] * axes, "device"
+    else:
+        raw, key = spec.get("devices", []), "devices"
+        if not isinstance(raw, list) or (raw and len(raw) != axes):
+            raise _err(source, f"{where}.devices", f"a list of one device file per axis ({axes})")
+    base = os.path.dirname(os.path.abspath(source)) if source != "<dict>" else os.getcwd()
+    out = []
+    for d in raw:
+        if not isinstance(d, str) or not d:
+            raise _err(source, f"{where}.{key}", f"{d!r} is not a file name")
+        try:
+            device_kind(d)
+        except ValueError as e:
+            raise _err(source, f"{where}.{key}", str(e)) from None
+        out.append(os.path.join(base, d))
+    if len({device_kind(d) for d in out}) > 1:
+        raise _err(source, f"{where}.{key}", "EDS and ESI files mixed: a host's drives are on one bus")
+    return tuple(out)
 
 
 def parse(data: Mapping[str, Any], source: str = "<dict>") -> ExpectedFleet:
@@ -116,7 +162,10 @@ def parse(data: Mapping[str, Any], source: str = "<dict>") -> ExpectedFleet:
         agent = spec.get("agent", {})
         if not isinstance(agent, Mapping):
             raise _err(source, f"{where}.agent", "must be a table of agent TOML keys")
-        hosts[hname] = HostSpec(hname, names, profile, cycle_us, dict(agent))
+        devices = _devices(source, where, spec, len(names))
+        if devices and profile is not None:
+            raise _err(source, f"{where}.profile", "a host with device files has no built-in profile")
+        hosts[hname] = HostSpec(hname, names, profile, cycle_us, dict(agent), devices)
     groups: dict[str, tuple[str, ...]] = {}
     raw_groups = data.get("groups", {})
     if not isinstance(raw_groups, Mapping):

@@ -7,6 +7,11 @@ its ``agent = {...}`` overrides merged on top. Keys the twin owns (the host name
 the drives and the Zenoh endpoints) cannot be overridden: an override of them is an error that
 names the host and the key, raised before anything starts.
 
+A host whose fleet entry names device files runs those drives: EDS files make it a CANopen
+host (``canopen-sim --eds`` per axis and the agent's ``[can]`` with each node's ``eds``, on an
+interface-local IPv6 multicast group of its own: :func:`can_channel`), ESI files an EtherCAT host
+of the ``ecat`` backend (``ecat-sim --esi`` per axis: :func:`sim_device_args`).
+
 Every agent configuration built here is validated by ``bus_agent.config.config_from_dict``, so a
 bad override fails with the agent's own message (``hosts.h1.agent: reflex: 'x' is not one of ...``).
 """
@@ -14,15 +19,18 @@ bad override fails with the agent's own message (``hosts.h1.agent: reflex: 'x' i
 from __future__ import annotations
 
 import copy
+import itertools
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from bus_agent.bus.canopen.pdo import check_frames, eds_mapping
 from bus_agent.config import AgentConfig, ConfigError, config_from_dict
+from bus_agent.devices.eds import EdsError, load as load_eds
 from supervisor.fleetfile import ExpectedFleet, HostSpec
 
 BACKENDS = ("sim", "ecat")
 #: Top-level agent TOML keys the twin sets itself; a fleet file's ``agent`` table may not touch them.
-TWIN_OWNED_KEYS = frozenset({"host", "ifname", "sim_drives", "drives", "zenoh", "gateway"})
+TWIN_OWNED_KEYS = frozenset({"host", "ifname", "sim_drives", "drives", "zenoh", "gateway", "can"})
 
 
 class PlanError(ValueError):
@@ -53,13 +61,48 @@ def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def can_channel(twin_id: int, host_index: int) -> str:
+    """A CAN host's udp_multicast group: IPv6 interface-local scope (ff11::, RFC 4291 §2.7), which
+    the kernel delivers through loopback only, distinct per twin and host."""
+    return f"ff11::7a64:{twin_id & 0xFFFF:x}:{host_index + 1:x}"
+
+
+def can_pdo_policy(path: str, node_id: int) -> str:
+    """``eds`` (the node's own default mapping) when the cycle can run it, else ``default`` (the
+    project's layout, written by SDO). PlanError when the EDS cannot be read."""
+    try:
+        return "default" if check_frames(eds_mapping(load_eds(path, node_id))) else "eds"
+    except EdsError as e:
+        raise PlanError(str(e)) from None
+
+
+def sim_device_args(spec: HostSpec) -> list[str]:
+    """The simulator arguments that make ``spec``'s drives: ``--esi``/``--eds FILE[*COUNT]`` for
+    each run of equal device files, in axis order; nothing for the built-in drives."""
+    if not spec.devices:
+        return []
+    flag = f"--{spec.device_kind}"
+    args: list[str] = []
+    for device, run in itertools.groupby(spec.devices):
+        n = len(list(run))
+        args += [flag, device if n == 1 else f"{device}*{n}"]
+    return args
+
+
 def agent_toml(fleet: ExpectedFleet, spec: HostSpec, backend: str, connect: str, ifname: str = "",
-               pki: str = "") -> dict[str, Any]:
+               pki: str = "", can: str = "") -> dict[str, Any]:
     """The agent TOML content (as a dict) for ``spec``: ``connect`` is its one Zenoh endpoint (the
     host's link to the router); ``ifname`` the EtherCAT master end for the ``ecat`` backend;
-    ``pki`` a drives-pki directory holding the host's certificate (its identity is its name)."""
+    ``pki`` a drives-pki directory holding the host's certificate (its identity is its name);
+    ``can`` the udp_multicast group of a host with EDS devices."""
     if backend not in BACKENDS:
         raise PlanError(f"backend {backend!r} is not one of {', '.join(BACKENDS)}")
+    where = f"fleet {fleet.source}: hosts.{spec.name}"
+    if spec.device_kind == "esi" and backend != "ecat":
+        raise PlanError(f"{where}: ESI devices run on ecat-sim: use the ecat backend (root)")
+    if spec.devices and pki:
+        raise PlanError(f"{where}: a secure twin (--pki) runs built-in drives only (device files: no TLS for the "
+                        "simulator's fault injection)")
     forbidden = sorted(set(spec.agent) & TWIN_OWNED_KEYS)
     if forbidden:
         raise PlanError(f"fleet {fleet.source}: hosts.{spec.name}.agent: key(s) {forbidden} are set by the twin "
@@ -69,7 +112,11 @@ def agent_toml(fleet: ExpectedFleet, spec: HostSpec, backend: str, connect: str,
         "zenoh": {"mode": "client", "connect": [connect], **({"pki": pki} if pki else {})},
         "drives": [{"slave": i, "axis": a} for i, a in enumerate(spec.axes)],
     }
-    if backend == "sim":
+    if spec.device_kind == "eds":
+        data["can"] = {"channel": can, "interface": "udp_multicast",
+                       "nodes": [{"id": i + 1, "eds": path, "pdo": can_pdo_policy(path, i + 1)}
+                                 for i, path in enumerate(spec.devices)]}
+    elif backend == "sim":
         data["sim_drives"] = len(spec.axes)
         if spec.profile is not None:
             data["sim_profile"] = spec.profile
@@ -94,13 +141,15 @@ def check_agent_toml(data: Mapping[str, Any], where: str) -> AgentConfig:
 
 
 def plan(fleet: ExpectedFleet, backend: str, connect_of: Mapping[str, str],
-         ifname_of: Mapping[str, str] | None = None, pki: str = "") -> list[HostPlan]:
+         ifname_of: Mapping[str, str] | None = None, pki: str = "",
+         can_of: Mapping[str, str] | None = None) -> list[HostPlan]:
     """One :class:`HostPlan` per host, in file order. ``connect_of[host]``: that host's Zenoh
     endpoint (its relay); ``ifname_of[host]``: its EtherCAT master end (``ecat`` backend);
-    ``pki``: the directory with every host's certificate (a secure twin)."""
+    ``pki``: the directory with every host's certificate (a secure twin); ``can_of[host]``: the
+    CAN group of a host with EDS devices."""
     return [HostPlan(spec.name, spec.axes,
                      agent_toml(fleet, spec, backend, connect_of[spec.name], (ifname_of or {}).get(spec.name, ""),
-                                pki))
+                                pki, (can_of or {}).get(spec.name, "")))
             for spec in fleet.hosts.values()]
 
 

@@ -8,7 +8,11 @@
   this process) and one ``bus-agent --config`` whose TOML (``twin.plan``) names exactly the fleet's
   host, axes and groups, connected through that relay;
 - with ``backend="ecat"`` (root) per host a network namespace with an EtherCAT veth pair
-  (``twin.ecat``), ``ecat-sim --name <host>`` on one end and the agent's pysoem on the other.
+  (``twin.ecat``), ``ecat-sim --name <host>`` on one end and the agent's pysoem on the other
+  (``--esi`` with the host's ESI files, when its fleet entry names them);
+- per host whose fleet entry names EDS files (either backend, no root) ``canopen-sim --eds``
+  with those files and the agent's ``[can]`` backend, on a udp_multicast group of its own that
+  never leaves the machine (``twin.plan.can_channel``).
 
 With ``pki=DIR`` (sim backend) every link is mutual TLS and the router enforces the ACL: the twin
 issues its router's, agents' and its own certificates into a copy of DIR (``twin.secure``), the
@@ -50,7 +54,7 @@ from supervisor.simctl import sim_targets
 from schemas.messages import DriveStatus
 
 from .ecat import EcatHost, ecat_down, ecat_plan, ecat_up, prerequisites
-from .plan import BACKENDS, HostPlan, PlanError, check_host, parse_ref, plan
+from .plan import BACKENDS, HostPlan, PlanError, can_channel, check_host, parse_ref, plan, sim_device_args
 from .relay import RelayHub
 from .secure import CONTROL, OPERATOR, ROUTER, prepare, tls_endpoint, twin_principals
 from .stale import WORKDIR_PREFIX, clean_stale, write_owner
@@ -104,6 +108,9 @@ class Twin:
         self.prefix = f"tw{os.getpid() % 100000}"
         self.plans: dict[str, HostPlan] = {}
         self.ecat_hosts: dict[str, EcatHost] = {}
+        #: Hosts with EDS devices -> their CAN group (canopen-sim and the agent's [can] backend).
+        self.can_hosts: dict[str, str] = {h: can_channel(os.getpid(), i) for i, (h, spec)
+                                          in enumerate(self.expected.hosts.items()) if spec.device_kind == "eds"}
         self.router: ChildProcess | None = None
         self.agents: dict[str, ChildProcess] = {}
         self.sims: dict[str, ChildProcess] = {}
@@ -132,13 +139,14 @@ class Twin:
     def start(self) -> "Twin":
         """Start everything and wait until every expected drive answers; TwinError otherwise
         (everything started so far is stopped again)."""
-        if self.backend == "ecat" and (why := prerequisites()):
+        if self.backend == "ecat" and set(self.expected.hosts) - set(self.can_hosts) and (why := prerequisites()):
             raise TwinError(why)
         self.started_monotonic = time.monotonic()
         clean_stale()  # what a SIGKILLed twin left (work directory, namespaces): it may block our names
         self.workdir = tempfile.mkdtemp(prefix=WORKDIR_PREFIX)
         if self.backend == "ecat":
-            self.ecat_hosts = {h: ecat_plan(self.prefix, i + 1) for i, h in enumerate(self.expected.hosts)}
+            self.ecat_hosts = {h: ecat_plan(self.prefix, i + 1) for i, h in enumerate(self.expected.hosts)
+                               if h not in self.can_hosts}
         try:
             write_owner(self.workdir, self.ecat_hosts)  # before any namespace exists
             self._start()
@@ -159,10 +167,13 @@ class Twin:
             links = {h: self._hub.add(h, os.path.join(self.workdir, f"{h}.link"), self.router_socket)
                      for h in self.expected.hosts}
         self.plans = {p.name: p for p in plan(self.expected, self.backend, {h: r.endpoint for h, r in links.items()},
-                                              {h: e.master for h, e in self.ecat_hosts.items()}, self.pki_copy)}
+                                              {h: e.master for h, e in self.ecat_hosts.items()}, self.pki_copy,
+                                              self.can_hosts)}
         self.router = self._spawn_router()
         for h, e in self.ecat_hosts.items():
             ecat_up(e)
+            self.sims[h] = self._spawn_sim(h)
+        for h in self.can_hosts:
             self.sims[h] = self._spawn_sim(h)
         for h in self.plans:
             Path(self.workdir, f"{h}.toml").write_text(tomli_w.dumps(dict(self.plans[h].agent_toml)))
@@ -244,15 +255,24 @@ class Twin:
         return ChildProcess("drives-router", [sys.executable, "-m", "bus_agent.router", "--listen", self.endpoint,
                                               *links, "--log-level", self.log_level], ready_marker="drives-router ready")
 
-    def _spawn_sim(self, host: str) -> ChildProcess:
-        e = self.ecat_hosts[host]
+    def sim_argv(self, host: str) -> list[str]:
+        """The command line of ``host``'s simulator: ``ecat-sim`` in its namespace (``--esi`` with
+        its ESI files), or ``canopen-sim --eds`` for a host with EDS files."""
         spec = self.expected.hosts[host]
-        argv = [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", e.sim, "--drives", str(len(spec.axes)),
-                "--name", host, "--zenoh-connect", f"unixsock-stream/{self.router_socket}",
-                "--rt-priority", str(SIM_RT_PRIORITY), "--log-level", self.log_level]
+        control = ["--name", host, "--zenoh-connect", f"unixsock-stream/{self.router_socket}",
+                   "--log-level", self.log_level]
+        if host in self.can_hosts:
+            return [sys.executable, "-m", "bus_agent.sim.canopen.cli", "--channel", self.can_hosts[host],
+                    "--interface", "udp_multicast", *sim_device_args(spec), *control]
+        argv = [sys.executable, "-m", "bus_agent.sim.cli", "--ifname", self.ecat_hosts[host].sim,
+                "--drives", str(len(spec.axes)), *control, "--rt-priority", str(SIM_RT_PRIORITY)]
         if spec.profile:
             argv += ["--profile", spec.profile]
-        return ChildProcess(f"ecat-sim {host}", self._argv(host, *argv), ready_marker="ecat-sim ready")
+        return self._argv(host, *argv, *sim_device_args(spec))
+
+    def _spawn_sim(self, host: str) -> ChildProcess:
+        kind = "canopen-sim" if host in self.can_hosts else "ecat-sim"
+        return ChildProcess(f"{kind} {host}", self.sim_argv(host), ready_marker=f"{kind} ready")
 
     def _spawn_agent(self, host: str) -> ChildProcess:
         argv = [sys.executable, "-m", "bus_agent.cli", "--config", os.path.join(self.workdir, f"{host}.toml"),

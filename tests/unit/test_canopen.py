@@ -314,6 +314,7 @@ def test_can_table_and_flags(caplog: pytest.LogCaptureFixture) -> None:
     ({"channel": "c", "nodes": [1], "interface": "vcan"}, "is not one of"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "mine"}]}, "pdo"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "explicit"}]}, "explicit"),
+    ({"channel": "c", "nodes": [{"id": 1, "pdo": "eds"}]}, "'eds' uses the default mapping of the node's EDS: give eds"),
     ({"channel": "c", "nodes": [{"id": 1, "pdo": "predefined"}]}, "a CANopen node has no PDO assignment; use 'drive'"),
     ({"channel": "c", "nodes": [1], "sync_counter": 1}, "can.sync_counter: 1 must be 0 .* or 2..240"),
     ({"channel": "c", "nodes": [1], "sync_counter": 241}, "can.sync_counter: 241"),
@@ -340,7 +341,7 @@ def test_the_can_example_configuration_loads() -> None:
     from bus_agent.config import load_config
 
     cfg = load_config(Path(__file__).resolve().parents[2] / "deploy" / "agent.can.example.toml")
-    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "drive", "explicit"]
+    assert cfg.can is not None and [n.pdo for n in cfg.can.nodes] == ["default", "eds", "explicit"]
 
 
 def test_the_bus_reports_which_nodes_inputs_changed() -> None:

@@ -79,3 +79,74 @@ def test_refs_are_checked_against_the_fleet(ref, needle):
     assert check_host(parse(FLEET), "conv") == "conv"
     with pytest.raises(PlanError, match="no host 'x'"):
         check_host(parse(FLEET), "x")
+
+
+# ---- device files: EDS hosts run canopen-sim and the agent's [can]; ESI hosts ecat-sim --esi ---------
+
+EDS_DATA = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "eds"
+
+
+def test_device_files_per_axis_relative_to_the_fleet_file(tmp_path):
+    from supervisor.fleetfile import FleetFileError, load
+
+    (tmp_path / "fleet.toml").write_text('[hosts.c]\naxes = ["a", "b"]\ndevices = ["x.eds", "sub/y.EDS"]\n'
+                                         '[hosts.e]\naxes = ["p", "q", "r"]\ndevice = "d.xml@0x1234:2"\n')
+    f = load(tmp_path / "fleet.toml")
+    assert f.hosts["c"].devices == (str(tmp_path / "x.eds"), str(tmp_path / "sub/y.EDS"))
+    assert f.hosts["c"].device_kind == "eds" and f.hosts["e"].device_kind == "esi"
+    assert f.hosts["e"].devices == (str(tmp_path / "d.xml@0x1234:2"),) * 3
+    for spec, needle in (({"devices": ["a.eds"]}, r"one device file per axis \(2\)"),
+                         ({"devices": ["a.eds", "b.xml"]}, "EDS and ESI files mixed"),
+                         ({"device": "a.txt"}, r"'a.txt' is neither an EDS \(.eds\) nor an ESI \(.xml\)"),
+                         ({"device": "a.eds", "devices": ["a.eds", "a.eds"]}, "not both"),
+                         ({"device": "a.eds", "profile": "indy7"}, "no built-in profile")):
+        with pytest.raises(FleetFileError, match=needle):
+            parse({"hosts": {"h": {"axes": ["a", "b"], **spec}}})
+
+
+def test_eds_host_gets_can_nodes_with_the_eds_policy_where_the_cycle_can_run_it():
+    from twin.plan import can_channel, sim_device_args
+
+    classic, interp = str(EDS_DATA / "classic.eds"), str(EDS_DATA / "interpolated.eds")
+    f = parse({"hosts": {"c": {"axes": ["a", "b", "c"], "devices": [classic, classic, interp]}}})
+    data = agent_toml(f, f.hosts["c"], "sim", "tcp/127.0.0.1:1", can=can_channel(4242, 0))
+    cfg = config_from_dict(data)
+    assert cfg.backend == "canopen" and cfg.can.channel == "ff11::7a64:1092:1" and cfg.sim_drives == 0
+    assert [(n.node_id, n.eds, n.pdo) for n in cfg.can.nodes] == [
+        (1, classic, "eds"), (2, classic, "eds"), (3, interp, "default")]   # interp: 0x6040 in two RPDOs
+    assert [d.axis for d in cfg.drives] == ["a", "b", "c"]
+    assert sim_device_args(f.hosts["c"]) == ["--eds", f"{classic}*2", "--eds", interp]
+    with pytest.raises(PlanError, match=r"\['can'\] are set by the twin"):
+        g = parse({"hosts": {"c": {"axes": ["a"], "device": classic, "agent": {"can": {}}}}})
+        agent_toml(g, g.hosts["c"], "sim", "tcp/127.0.0.1:1", can="ff11::1")
+    with pytest.raises(PlanError, match="a secure twin"):
+        agent_toml(f, f.hosts["c"], "sim", "tcp/127.0.0.1:1", pki="/p", can="ff11::1")
+
+
+def test_esi_host_needs_the_ecat_backend_and_passes_each_device_to_ecat_sim():
+    from twin.plan import sim_device_args
+
+    f = parse({"hosts": {"e": {"axes": ["p", "q", "r"], "devices": ["/d/a.xml", "/d/a.xml", "/d/b.xml@0x7:0x2"]}}})
+    assert sim_device_args(f.hosts["e"]) == ["--esi", "/d/a.xml*2", "--esi", "/d/b.xml@0x7:0x2"]
+    cfg = config_from_dict(agent_toml(f, f.hosts["e"], "ecat", "tcp/127.0.0.1:1", ifname="tw1m"))
+    assert cfg.ifname == "tw1m" and cfg.backend == "pysoem"
+    with pytest.raises(PlanError, match="ESI devices run on ecat-sim: use the ecat backend"):
+        agent_toml(f, f.hosts["e"], "sim", "tcp/127.0.0.1:1")
+
+
+def test_twin_builds_each_simulator_command_line_from_the_device_files():
+    from twin.ecat import ecat_plan
+    from twin.twin import Twin
+
+    classic = str(EDS_DATA / "classic.eds")
+    twin = Twin({"hosts": {"e": {"axes": ["p", "q"], "devices": ["/d/a.xml@0x7", "/d/b.xml"]},
+                           "c": {"axes": ["a", "b"], "device": classic}}}, backend="ecat")
+    twin.workdir = "/w"
+    twin.ecat_hosts = {"e": ecat_plan(twin.prefix, 1)}                 # what start() makes (no namespace here)
+    esi = twin.sim_argv("e")
+    assert esi[:4] == ["ip", "netns", "exec", twin.ecat_hosts["e"].netns]
+    assert esi[esi.index("--ifname") + 1] == twin.ecat_hosts["e"].sim and esi[esi.index("--drives") + 1] == "2"
+    assert esi[-4:] == ["--esi", "/d/a.xml@0x7", "--esi", "/d/b.xml"]
+    can = twin.sim_argv("c")
+    assert can[1:3] == ["-m", "bus_agent.sim.canopen.cli"] and "--eds" in can and f"{classic}*2" in can
+    assert can[can.index("--channel") + 1] == twin.can_hosts["c"].strip() and can[can.index("--name") + 1] == "c"

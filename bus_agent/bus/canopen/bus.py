@@ -40,6 +40,7 @@ from bus_agent.bus.mapping import MappingError, SlaveMapping, describe
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.startup_guard import StartupSteps
 from bus_agent.can_config import CanConfig
+from bus_agent.devices.eds import EdsDevice, EdsError, load as load_eds
 
 log = logging.getLogger(__name__)
 
@@ -56,14 +57,17 @@ CONFIGURE_NODE_S = 30.0
 
 @dataclass(frozen=True)
 class NodeConfig:
-    """One drive on the bus: node id, PDO policy (``default``/``drive``/``explicit``) and the
-    explicit mapping, start-up SDOs ((index, subindex, bytes) written before NMT start), EDS."""
+    """One drive on the bus: node id, PDO policy (``default``/``drive``/``explicit``/``eds``) and
+    the mapping of ``explicit``/``eds``, start-up SDOs ((index, subindex, bytes) written before NMT
+    start), its EDS (``device``: read for this node id; names and types its objects, and its
+    identity must match the node's)."""
 
     node_id: int
     pdo: str = "default"
     mapping: SlaveMapping | None = None
     startup_sdos: tuple[tuple[int, int, bytes], ...] = ()
     eds: str | None = None
+    device: EdsDevice | None = None
 
 
 @dataclass
@@ -78,6 +82,11 @@ class _Node:
     tpdo_data: dict[int, bytes] = field(default_factory=dict)
     missed_tpdos: int = 0
     last_emcy: emcy_mod.Emergency | None = None
+    objects: Any = None  # names and types of its objects from the node's EDS (codec, ``objects``)
+
+    def __post_init__(self) -> None:
+        if self.cfg.device is not None:
+            self.objects = pdo_mod.eds_dictionary(self.cfg.device)
 
 
 def open_can(channel: str, interface: str) -> Any:
@@ -191,7 +200,8 @@ class CanopenBus:
         try:
             for pos, node in enumerate(self._nodes):
                 nid = node.cfg.node_id
-                od = canopen.import_od(node.cfg.eds, nid) if node.cfg.eds else canopen.ObjectDictionary()
+                device = node.cfg.device
+                od = device.od if device is not None else canopen.ObjectDictionary()
                 node.remote = canopen.RemoteNode(nid, od)
                 node.remote.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
                 net.add_node(node.remote)
@@ -213,7 +223,7 @@ class CanopenBus:
         deadline = time.monotonic() + self.boot_timeout_s
         while True:
             try:
-                ident = [sdo_mod.read_uint(self._reader(node), 0x1018, s) for s in (1, 2, 3, 4)]
+                ident = sdo_mod.read_identity(self._reader(node))
                 break
             except sdo_mod.SdoError as e:
                 if e.abort_code or time.monotonic() >= deadline:
@@ -225,6 +235,12 @@ class CanopenBus:
             name = f"node{nid}"
         log.info("CAN %s: node %d %r vendor 0x%08X product 0x%08X revision 0x%08X serial 0x%08X",
                  self.channel, nid, name, *ident)
+        device = node.cfg.device
+        if device is not None:
+            wrong = device.identity_mismatch(*ident[:3])
+            if wrong:
+                raise BusError(f"CAN {self.channel}: node {nid} (position {pos}, {name!r}) is not the device of its "
+                               f"EDS {device.path} ({device.product_name or 'no ProductName'}): {wrong}")
         return SlaveInfo(pos, name, SlaveIdentity(*ident))
 
     def _reader(self, node: _Node) -> sdo_mod.SdoRead:
@@ -248,9 +264,11 @@ class CanopenBus:
             sdo_mod.write_uint(write, 0x1019, 0, self.sync_counter, 8)
         try:
             mapping = pdo_mod.mapping_for(node.cfg.pdo, nid, self._reader(node), write, node.cfg.mapping)
-            frames = pdo_mod.PdoFrames(mapping)
+            frames = pdo_mod.PdoFrames(mapping, node.objects)
         except MappingError as e:
             raise BusError(f"CAN {self.channel}: {e}") from None
+        except sdo_mod.SdoError as e:  # the node refused the mapping (an object it cannot map, ...)
+            raise BusError(f"CAN {self.channel}: PDO policy {node.cfg.pdo!r}: {e}") from None
         if node.frames is not None and node.frames.mapping != mapping:
             raise BusError(f"CAN {self.channel}: node {nid}: its PDO mapping is not the one of start-up "
                            f"({describe(mapping)}, was {describe(node.frames.mapping)}): not brought back")
@@ -421,8 +439,8 @@ class CanopenBus:
         state = self.heartbeats.state(nid, now)
         if state is NmtState.OPERATIONAL:
             return True
-        if not self.heartbeats.heard(nid, now):
-            return False
+        if not self.heartbeats.heard(nid, now) and not self.heartbeats.booted(nid):
+            return False  # silent; a node that booted may stay so (0x1017 defaults to 0): configure it
         with self._lock:
             if self.heartbeats.booted(nid):
                 try:
@@ -476,9 +494,17 @@ def canopen_bus(cfg: CanConfig) -> CanopenBus:
     """The backend of a ``[can]`` configuration (an explicit mapping gets the pre-defined COB-IDs)."""
     nodes = []
     for n in cfg.nodes:
+        device = None
+        if n.eds:
+            try:
+                device = load_eds(n.eds, n.node_id)
+            except EdsError as e:
+                raise BusError(f"CAN {cfg.channel}: node {n.node_id}: {e}") from None
         mapping = pdo_mod.pdos_mapping(n.node_id, n.rpdo, n.tpdo) if n.pdo == "explicit" else None
+        if n.pdo == "eds" and device is not None:
+            mapping = pdo_mod.eds_mapping(device)
         sdos = tuple((index, sub, value.to_bytes(size, "little", signed=value < 0))
                      for index, sub, value, size in n.startup_sdos)
-        nodes.append(NodeConfig(n.node_id, pdo=n.pdo, mapping=mapping, startup_sdos=sdos, eds=n.eds))
+        nodes.append(NodeConfig(n.node_id, pdo=n.pdo, mapping=mapping, startup_sdos=sdos, eds=n.eds, device=device))
     return CanopenBus(cfg.channel, nodes, interface=cfg.interface, heartbeat_ms=cfg.heartbeat_ms,
                       sync_counter=cfg.sync_counter)

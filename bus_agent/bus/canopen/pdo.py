@@ -11,11 +11,13 @@ Policies, with the EtherCAT backend's names (``[[can.nodes]] pdo = ...``):
 
 - ``default`` (the default on CAN): write :data:`DEFAULT_RPDOS` / :data:`DEFAULT_TPDOS`;
 - ``drive``: read and use the node's own mapping (0x1400.., 0x1600.., 0x1800.., 0x1A00..);
-- ``explicit``: write the configured entries (PDO n of the list = RPDO/TPDO n).
+- ``explicit``: write the configured entries (PDO n of the list = RPDO/TPDO n);
+- ``eds``: write the default mapping of the node's EDS (:func:`eds_mapping`).
 
 (``predefined`` assigns fixed EtherCAT PDOs to sync managers; CAN has no assignment object.)
 Writing follows CiA 301's order: COB-ID not valid (bit 31), mapping count 0, entries, count,
-transmission type (synchronous), COB-ID valid. Whatever the policy, the mapping is checked
+transmission type (synchronous: the cycle's SYNC drives every PDO), COB-ID valid. A PDO the
+node does not have (abort 0x06020000 on its communication object) is neither read nor invalidated. Whatever the policy, the mapping is checked
 before use (:func:`check_frames` and the EtherCAT backend's :func:`~bus_agent.bus.mapping.check_mapping`).
 Runs before the loop (start-up, a rebooted node); takes SDO functions bound to one node, so tests
 drive it against a simulated node.
@@ -24,17 +26,22 @@ drive it against a simulated node.
 from __future__ import annotations
 
 from collections import Counter
-from typing import Sequence
+from typing import Mapping, Sequence
 
 from bus_agent.bus.canopen.cob import (COB_ID_INVALID, COB_ID_MASK, MAX_PDO_BITS, MAX_PDOS, RPDO_COMM, RPDO_MAP,
                                        TPDO_COMM, TPDO_MAP, TRANSMISSION_SYNC, default_cob_id)
-from bus_agent.bus.canopen.sdo import SdoRead, SdoWrite, read_uint, write_uint
+from bus_agent.bus.canopen.sdo import SdoError, SdoRead, SdoWrite, read_uint, write_uint
 from bus_agent.bus.codec import DriveCodec
-from bus_agent.bus.mapping import MappingError, SlaveMapping, check_mapping, describe, mapping_of, pdo_spans
+from bus_agent.bus.mapping import (MappingError, ObjectInfo, SlaveMapping, check_mapping, describe, mapping_of,
+                                   pdo_spans)
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs, mapping_entry
+from bus_agent.devices.eds import EdsDevice
 
-#: The policies a CAN node takes (bus_agent.bus.mapping.POLICIES without ``predefined``).
-POLICIES = ("drive", "default", "explicit")
+#: The policies a CAN node takes (bus_agent.bus.mapping.POLICIES without ``predefined``, plus
+#: ``eds``: the default mapping of the node's EDS).
+POLICIES = ("drive", "default", "explicit", "eds")
+#: SDO abort: object does not exist (a node with fewer than 4 PDOs has no 0x1403, ...).
+ABORT_NO_OBJECT = 0x06020000
 
 #: The project's layout on CAN, per PDO (u32 mapping entries): 7+6 bytes out, 7+8 bytes in.
 DEFAULT_RPDOS: tuple[tuple[int, ...], ...] = (
@@ -63,6 +70,30 @@ def pdos_mapping(node_id: int, rpdos: Sequence[Sequence[int]], tpdos: Sequence[S
 def default_mapping(node_id: int) -> SlaveMapping:
     """:data:`DEFAULT_RPDOS` / :data:`DEFAULT_TPDOS` on PDO 1 and 2 of ``node_id``."""
     return pdos_mapping(node_id, DEFAULT_RPDOS, DEFAULT_TPDOS)
+
+
+def eds_mapping(device: EdsDevice) -> SlaveMapping:
+    """The default mapping of a node's EDS: its valid PDOs (COB-ID without bit 31, entries), with
+    their COB-IDs (``$NODEID`` resolved; bit 30, no RTR, dropped)."""
+    sides = [[p for p in device.pdos(tx) if p.valid] for tx in (False, True)]
+    rx = [(RPDO_MAP + p.number - 1, list(p.entries)) for p in sides[0]]
+    tx = [(TPDO_MAP + p.number - 1, list(p.entries)) for p in sides[1]]
+    cobs = [((TPDO_MAP if p.tx else RPDO_MAP) + p.number - 1, p.cob_id & COB_ID_MASK) for p in sides[0] + sides[1]]
+    return mapping_of(rx, tx, cobs)
+
+
+#: The integer types the codec decodes by name (others go unsigned, by their size).
+_CODEC_TYPES = frozenset({"u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64"})
+
+
+def eds_dictionary(device: EdsDevice) -> dict[tuple[int, int], ObjectInfo]:
+    """Names and integer types of a node's objects from its EDS (for the codec and ``objects``)."""
+    out = {}
+    for key, o in device.objects.items():
+        if o.integer is not None:
+            short, bits, _signed = o.integer
+            out[key] = ObjectInfo(o.name, short if short in _CODEC_TYPES else f"u{bits}")
+    return out
 
 
 def pdo_entries(m: SlaveMapping, pdo: int) -> list[int]:
@@ -97,7 +128,12 @@ def read_mapping(sdo_read: SdoRead) -> SlaveMapping:
     for comm, mp in ((RPDO_COMM, RPDO_MAP), (TPDO_COMM, TPDO_MAP)):
         pdos = []
         for n in range(MAX_PDOS):
-            cob = read_uint(sdo_read, comm + n, 1)
+            try:
+                cob = read_uint(sdo_read, comm + n, 1)
+            except SdoError as e:
+                if e.abort_code == ABORT_NO_OBJECT:
+                    continue  # the node has fewer PDOs
+                raise
             if cob & COB_ID_INVALID:
                 continue
             entries = [read_uint(sdo_read, mp + n, i) for i in range(1, read_uint(sdo_read, mp + n, 0) + 1)]
@@ -115,7 +151,11 @@ def write_mapping(sdo_write: SdoWrite, m: SlaveMapping) -> None:
         for n in range(MAX_PDOS):
             used = mp + n in pdos
             cob = cobs[mp + n] if used else 0
-            write_uint(sdo_write, comm + n, 1, cob | COB_ID_INVALID, 32)
+            try:
+                write_uint(sdo_write, comm + n, 1, cob | COB_ID_INVALID, 32)
+            except SdoError as e:
+                if used or e.abort_code != ABORT_NO_OBJECT:
+                    raise
             if not used:
                 continue
             entries = pdo_entries(m, mp + n)
@@ -135,9 +175,10 @@ def mapping_for(policy: str, node_id: int, sdo_read: SdoRead, sdo_write: SdoWrit
         m = read_mapping(sdo_read)
     elif policy == "default":
         m = default_mapping(node_id)
-    elif policy == "explicit":
+    elif policy in ("explicit", "eds"):
         if explicit is None:
-            raise MappingError(f"node {node_id}: PDO policy 'explicit' without rpdo/tpdo")
+            raise MappingError(f"node {node_id}: PDO policy {policy!r} without " +
+                               ("rpdo/tpdo" if policy == "explicit" else "an EDS"))
         m = explicit
     else:
         raise MappingError(f"node {node_id}: PDO policy {policy!r} is not one of {', '.join(POLICIES)}")
@@ -156,12 +197,12 @@ class PdoFrames:
     refuses). Cycle-safe: :meth:`rpdo_frames` is one encode and one slice per RPDO;
     :meth:`store_tpdo` copies a frame into the image, :meth:`decode_into` decodes it once."""
 
-    def __init__(self, mapping: SlaveMapping) -> None:
+    def __init__(self, mapping: SlaveMapping, objects: Mapping[tuple[int, int], ObjectInfo] | None = None) -> None:
         problems = check_frames(mapping)
         if problems:
             raise MappingError("; ".join(problems))
         self.mapping = mapping
-        self.codec = DriveCodec(mapping)
+        self.codec = DriveCodec(mapping, objects)
         cobs = dict(mapping.cob_ids)
         self._rx = tuple((cobs[pdo], slice(start, start + size)) for pdo, start, size in pdo_spans(mapping.rx))
         self._tx = {cobs[pdo]: (slice(start, start + size), size) for pdo, start, size in pdo_spans(mapping.tx)}

@@ -65,5 +65,23 @@ def read_uint(sdo_read: SdoRead, index: int, subindex: int) -> int:
     return int.from_bytes(raw[:4], "little")
 
 
+#: Aborts saying an object or subindex does not exist.
+ABSENT = frozenset({0x06020000, 0x06090011})
+
+
+def read_identity(sdo_read: SdoRead) -> tuple[int, int, int, int]:
+    """0x1018 (vendor id, product code, revision, serial). Only the vendor id is mandatory (CiA
+    301): an absent product code, revision or serial reads 0. Raises SdoError."""
+    values = []
+    for sub in (1, 2, 3, 4):
+        try:
+            values.append(read_uint(sdo_read, 0x1018, sub))
+        except SdoError as e:
+            if sub == 1 or e.abort_code not in ABSENT:
+                raise
+            values.append(0)
+    return values[0], values[1], values[2], values[3]
+
+
 def write_uint(sdo_write: SdoWrite, index: int, subindex: int, value: int, bits: int) -> None:
     sdo_write(index, subindex, struct.pack(_FORMATS[bits], value))

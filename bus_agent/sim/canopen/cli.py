@@ -2,6 +2,12 @@
 
     canopen-sim --channel CH [--interface udp_multicast|socketcan] --nodes N [--first-id 1]
                 [--profile generic|indy7] [--name can0] [--zenoh-connect EP]... [--write-eds PATH]
+    canopen-sim --channel CH --eds FILE[*COUNT] [--eds FILE[*COUNT]]... [--first-id 1] ...
+
+With ``--eds`` (repeatable, in node order) each node's object dictionary is its EDS's (through
+python-canopen's import): defaults, access, ``$NODEID`` expressions, the default PDO mappings,
+the drive model on its CiA 402 objects; objects the EDS lacks abort 0x06020000. Nodes are
+numbered from ``--first-id`` (1) in order. ``--write-eds PATH`` writes the built-in profile's EDS.
 
 Each node answers SDO, NMT and SYNC, produces heartbeats, TPDOs and EMCY (docs/canopen.md).
 With ``--zenoh-connect``/``--zenoh-listen`` it serves fault injection on
@@ -14,8 +20,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
+from bus_agent.devices.eds import EdsError, load, parse_spec
+from bus_agent.sim.canopen.dictionary import NodeDictionary, from_eds
 from bus_agent.sim.drive_model import PROFILES
 from bus_agent.sim.process import add_options, enter_rt, start_logging
 from bus_agent.stop_signals import StopSignals
@@ -27,7 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="canopen-sim", description=__doc__.split("\n\n")[0])
     p.add_argument("--channel", default=DEFAULT_CHANNEL, help="CAN channel (udp_multicast: a multicast group)")
     p.add_argument("--interface", default="udp_multicast", choices=("udp_multicast", "socketcan"))
-    p.add_argument("--nodes", type=int, default=1, help="number of nodes (1..127)")
+    p.add_argument("--nodes", type=int, default=None, help="number of nodes of --profile (1..127; default 1)")
+    p.add_argument("--eds", action="append", default=[], metavar="FILE[*COUNT]",
+                   help="COUNT nodes (default 1) whose object dictionary is FILE's (repeatable, in node order)")
     p.add_argument("--first-id", type=int, default=1, help="node id of the first node")
     p.add_argument("--profile", choices=sorted(PROFILES), default="generic")
     p.add_argument("--name", default="can0", help="segment name (the Zenoh control key chunk)")
@@ -38,19 +49,41 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def eds_dictionaries(specs: list[tuple[str, int]], ids: list[int]) -> list[NodeDictionary]:
+    """One dictionary per node id, ``specs`` ((file, count), in order) read for each. Raises EdsError."""
+    files = [path for path, n in specs for _ in range(n)]
+    return [from_eds(load(path, nid)) for path, nid in zip(files, ids)]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start_logging(args)
     if args.write_eds:
         from bus_agent.sim.canopen.od import write_eds
 
-        write_eds(args.write_eds, args.first_id, PROFILES[args.profile].device_name)
+        write_eds(args.write_eds, PROFILES[args.profile])
         print(f"canopen-sim: EDS written to {args.write_eds}")
         return 0
-    ids = list(range(args.first_id, args.first_id + args.nodes))
-    if args.nodes < 1 or ids[0] < 1 or ids[-1] > 127:
-        print(f"canopen-sim: node ids {ids[0]}..{ids[-1]} outside 1..127", file=sys.stderr)
+    if args.eds and args.nodes is not None:
+        print("canopen-sim: --nodes and --eds exclude each other (--eds FILE*COUNT gives the count)", file=sys.stderr)
         return 2
+    try:
+        specs = [parse_spec(s) for s in args.eds]
+    except EdsError as exc:
+        print(f"canopen-sim: {exc}", file=sys.stderr)
+        return 2
+    count = sum(n for _p, n in specs) if specs else (1 if args.nodes is None else args.nodes)
+    ids = list(range(args.first_id, args.first_id + count))
+    if count < 1 or ids[0] < 1 or ids[-1] > 127:
+        print(f"canopen-sim: node ids {args.first_id}..{args.first_id + count - 1} outside 1..127", file=sys.stderr)
+        return 2
+    dictionaries = None
+    if specs:
+        try:
+            dictionaries = eds_dictionaries(specs, ids)
+        except EdsError as exc:
+            print(f"canopen-sim: {exc}", file=sys.stderr)
+            return 2
     from bus_agent.bus.base import BusError
     from bus_agent.bus.canopen.bus import open_can
     from bus_agent.sim.canopen.segment import Segment
@@ -60,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     except BusError as exc:
         print(f"canopen-sim: {exc}", file=sys.stderr)
         return 2
-    segment = Segment(bus, ids, args.profile)
+    segment = Segment(bus, ids, args.profile, dictionaries=dictionaries)
     session = control = None
     if args.zenoh_connect or args.zenoh_listen:
         import zenoh
@@ -81,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     segment.stop_signals = stop
     enter_rt(args, "canopen-sim node loop")
     segment.boot()
+    what = (f"eds={','.join(f'{os.path.basename(p)}*{n}' for p, n in specs)}" if specs
+            else f"profile={args.profile}")
     print(f"canopen-sim ready channel={args.channel} interface={args.interface} nodes={','.join(map(str, ids))} "
-          f"profile={args.profile} name={args.name}", flush=True)
+          f"{what} name={args.name}", flush=True)
     try:
         segment.run()
     finally:

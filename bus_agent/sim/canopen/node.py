@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import struct
-from typing import Any
+from typing import Any, Mapping
 
 from canopen.sdo import SdoAbortedError, SdoServer
 
@@ -36,13 +36,23 @@ from bus_agent.bus.canopen.nmt import (HEARTBEAT_COB_BASE, NMT_COB_ID, NmtComman
                                        decode_command)
 from bus_agent.bus.mapping import RX_FIELDS, split_entry
 from bus_agent.bus.pdo import DriveOutputs
-from bus_agent.sim.canopen import od
-from bus_agent.sim.drive_model import DriveModel, DriveProfile, SdoAbort, _INT_FORMATS
+from bus_agent.devices.eds import EdsObject
+from bus_agent.sim.canopen import dictionary as nd
+from bus_agent.sim.canopen.dictionary import NodeDictionary
+from bus_agent.sim.drive_model import DriveModel, DriveProfile, ObjectEntry, SdoAbort, _INT_FORMATS
 
 log = logging.getLogger(__name__)
 
 Frame = tuple[int, bytes]
 Entry = tuple[int, int, int]  # (index, subindex, bits) of a mapping entry
+ABORT_WRITE_ONLY = 0x06010001
+ABORT_READ_ONLY = 0x06010002
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_LENGTH = 0x06070010
+ABORT_RANGE = 0x06090030
+#: Transmission types sent at a SYNC only when their data changed (acyclic synchronous; event-driven)
+ON_CHANGE = frozenset({0, 0xFE, 0xFF})
 ABORT_UNSUPPORTED_ACCESS = 0x06010000
 ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
@@ -60,17 +70,39 @@ class _Outbox:
         self.frames.append((can_id, bytes(data)))
 
 
-class SimNode:
-    """A CANopen drive node. Not thread-safe: the segment serialises calls."""
+class _DeviceDriveModel(DriveModel):
+    """The drive model powering on with a device file's defaults (its EDS's) over the table's."""
 
-    def __init__(self, node_id: int, profile: DriveProfile, serial: int = 0,
-                 watchdog_s: float | None = DEFAULT_WATCHDOG_S) -> None:
+    def __init__(self, profile: DriveProfile, serial: int, defaults: Mapping[tuple[int, int], int | str]) -> None:
+        self._device_defaults = defaults
+        super().__init__(profile, serial=serial)
+
+    def _reset_power_on(self) -> None:
+        super()._reset_power_on()
+        self._values.update(self._device_defaults)
+
+
+class SimNode:
+    """A CANopen drive node. Not thread-safe: the segment serialises calls.
+
+    Its objects are ``dictionary``'s (:mod:`bus_agent.sim.canopen.dictionary`: an EDS's), else the
+    built-in drive's of ``profile``."""
+
+    def __init__(self, node_id: int, profile: DriveProfile | None = None, serial: int = 0,
+                 watchdog_s: float | None = DEFAULT_WATCHDOG_S, dictionary: NodeDictionary | None = None) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id} outside 1..127")
+        if dictionary is None:
+            if profile is None:
+                raise ValueError("a node needs a drive profile or a dictionary")
+            dictionary = nd.builtin(node_id, profile)
         self.node_id = node_id
-        self.model = DriveModel(profile, serial=serial)
+        self.dictionary = dictionary
+        self.model = (_DeviceDriveModel(dictionary.profile, serial, dictionary.model_defaults)
+                      if dictionary.model_defaults else DriveModel(dictionary.profile, serial=serial))
         self.watchdog_s = watchdog_s
-        self.object_dictionary = od.build(node_id, profile.device_name)  # python-canopen SdoServer reads it
+        self.object_dictionary = dictionary.od  # python-canopen's SdoServer holds one
+        self.plain: dict[tuple[int, int], bytes] = {}
         self._outbox = _Outbox()
         self.sdo = SdoServer(c.SDO_RX_BASE + node_id, c.SDO_TX_BASE + node_id, self)
         self.sdo.network = self._outbox  # type: ignore[assignment]
@@ -86,7 +118,13 @@ class SimNode:
         self.last_sync_counter: int | None = None
         self._sync_length_bad = False
         self._rx: dict[int, tuple[tuple[Entry, ...], int]] = {}
+        self._tx: list[tuple[int, int, tuple[Entry, ...], int]] = []  # (COB-ID, type, entries, n)
+        self._tx_sent: dict[int, bytes] = {}
+        self._power_on_plain()
         self._boot(0.0, power=False)
+
+    def _power_on_plain(self) -> None:
+        self.plain = {k: o.default_bytes() for k, o in self.dictionary.plain.items()}
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -95,12 +133,13 @@ class SimNode:
         boot-up message, pre-operational (CiA 301 Figure 48)."""
         if power:
             self.model.power_cycle()
-        self.comm = od.comm_defaults(self.node_id)
+            self._power_on_plain()
+        self.comm = dict(self.dictionary.comm_defaults)
         self._pending.clear()
         self._last_sync_s = None
         self.last_sync_counter = None
         self._sync_length_bad = False
-        self._rebuild_rx()
+        self._rebuild_pdos()
         self.state = NmtState.PRE_OPERATIONAL
         self._next_heartbeat_s = now_s + self.heartbeat_s
         self.counters["heartbeat"] += 1
@@ -110,16 +149,22 @@ class SimNode:
     def heartbeat_s(self) -> float:
         return self.comm[(0x1017, 0)] / 1000.0
 
-    def _rebuild_rx(self) -> None:
-        """COB-ID -> (entries, comm index) of every valid RPDO."""
+    def _rebuild_pdos(self) -> None:
+        """COB-ID -> (entries, n) of every valid RPDO; (COB-ID, type, entries, n) of every valid TPDO."""
         self._rx = {}
+        self._tx = []
+        self._tx_sent = {}
         for n in range(c.MAX_PDOS):
             cob = self.comm[(c.RPDO_COMM + n, 1)]
             if not cob & c.COB_ID_INVALID:
                 self._rx[cob & c.COB_ID_MASK] = (self._entries(c.RPDO_MAP + n), n)
+            cob = self.comm[(c.TPDO_COMM + n, 1)]
+            if not cob & c.COB_ID_INVALID:
+                self._tx.append((cob & c.COB_ID_MASK, self.comm[(c.TPDO_COMM + n, 2)], self._entries(c.TPDO_MAP + n), n))
 
     def _entries(self, map_index: int) -> tuple[Entry, ...]:
-        return tuple(split_entry(self.comm[(map_index, i)]) for i in range(1, self.comm[(map_index, 0)] + 1))
+        values = (self.comm.get((map_index, i), 0) for i in range(1, self.comm[(map_index, 0)] + 1))
+        return tuple(split_entry(v) for v in values if v)
 
     def _set_state(self, state: NmtState) -> None:
         if self.state is NmtState.OPERATIONAL and state is not NmtState.OPERATIONAL:
@@ -153,12 +198,15 @@ class SimNode:
             out += self._outbox.frames
             self._outbox.frames = []
         elif cob_id in self._rx and self.state is NmtState.OPERATIONAL:
-            entries, _n = self._rx[cob_id]
+            entries, n = self._rx[cob_id]
             try:
-                self._pending.update(_unpack(entries, data))
+                self._pending.update(self._typed(_unpack(entries, data)))
                 self.counters["rpdo"] += 1
-            except struct.error:
+            except ValueError:
                 out += self._emcy(0x8210)  # PDO not processed due to length error
+            else:
+                if self.comm[(c.RPDO_COMM + n, 2)] in ON_CHANGE - {0}:
+                    self._apply_pending()  # event-driven: applied now, not at the next SYNC
         return out
 
     def _on_nmt(self, data: bytes, now_s: float) -> list[Frame]:
@@ -186,16 +234,39 @@ class SimNode:
         if self._pending:
             self._apply_pending()
         out += self._take_emcy()
-        for n in range(c.MAX_PDOS):
-            cob = self.comm[(c.TPDO_COMM + n, 1)]
-            if cob & c.COB_ID_INVALID or self.comm[(c.TPDO_COMM + n, 2)] != c.TRANSMISSION_SYNC:
-                continue
-            entries = self._entries(c.TPDO_MAP + n)
-            data = b"".join(struct.pack(_INT_FORMATS[od.DRIVE_OBJECTS[e[:2]].datatype],
-                                        int(self.model.read(e[0], e[1]))) for e in entries)
-            out.append((cob & c.COB_ID_MASK, data))
+        count = self.counters["sync"]
+        for cob, kind, entries, _n in self._tx:
+            if kind in ON_CHANGE:
+                data = self._tpdo_data(entries)
+                if self._tx_sent.get(cob) == data:
+                    continue
+                self._tx_sent[cob] = data
+            elif kind <= 240 and count % kind == 0:  # synchronous, every kind-th SYNC
+                data = self._tpdo_data(entries)
+            else:
+                continue  # RTR-only types (0xFC, 0xFD) and reserved ones: not sent on SYNC
+            out.append((cob, data))
             self.counters["tpdo"] += 1
         return out
+
+    def _tpdo_data(self, entries: tuple[Entry, ...]) -> bytes:
+        """The frame of one TPDO: its entries' values packed LSB first, each to its bit length."""
+        acc = offset = 0
+        plain, drive = self.plain, self.dictionary.drive
+        for index, sub, bits in entries:
+            key = (index, sub)
+            if key in plain:
+                value = int.from_bytes(plain[key], "little")
+            elif key in drive:
+                try:
+                    value = int(self.model.read(index, sub))
+                except (SdoAbort, ValueError):  # an EDS default mapping may name a write-only or string object
+                    value = 0
+            else:
+                value = 0  # a default mapping naming an object the dictionary lacks
+            acc |= (value & ((1 << bits) - 1)) << offset
+            offset += bits
+        return acc.to_bytes((offset + 7) // 8, "little")
 
     def _check_sync_counter(self, data: bytes) -> list[Frame]:
         """0x1019 (CiA 301 §7.5.2.22): 0 = SYNC without data; 2..240 = one byte counting 1..value
@@ -218,11 +289,28 @@ class SimNode:
         self.last_sync_counter = counter
         return []
 
+    def _typed(self, raw: dict[tuple[int, int], tuple[int, int]]) -> dict[tuple[int, int], int]:
+        """RPDO values as the objects hold them: the drive model's signed where their type is; a
+        stored object's as unsigned; an object the dictionary lacks dropped."""
+        out = {}
+        for key, (value, bits) in raw.items():
+            entry = self.dictionary.drive.get(key)
+            if entry is not None:
+                out[key] = value - (1 << bits) if nd.signed(entry) and value >> (bits - 1) else value
+            elif key in self.dictionary.plain:
+                out[key] = value
+        return out
+
     def _apply_pending(self) -> None:
         """The RPDO objects received since the last SYNC: the cycle's through the drive's
         outputs (as the EtherCAT simulator applies them), any other mapped object written."""
         values = {k: int(self.model.read(*k)) for k in RX_FIELDS}
         for key, value in self._pending.items():
+            plain = self.dictionary.plain.get(key)
+            if plain is not None:
+                size = max(1, (plain.bits + 7) // 8)
+                self.plain[key] = (value & ((1 << 8 * size) - 1)).to_bytes(size, "little")
+                continue
             if key in RX_FIELDS:
                 values[key] = value
             else:
@@ -283,13 +371,22 @@ class SimNode:
 
     # ---------------------------------------------------------------- SDO server callbacks
 
+    def _absent(self, index: int) -> SdoAbortedError:
+        return SdoAbortedError(ABORT_NO_SUBINDEX if self.dictionary.has_index(index) else ABORT_NO_OBJECT)
+
     def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
         """python-canopen SdoServer hook: the value of an object as bytes, or SdoAbortedError."""
         key = (index, subindex)
-        if key in od.COMM_OBJECTS:
-            return struct.pack(_INT_FORMATS[od.COMM_OBJECTS[key].datatype], self.comm[key])
-        if key not in od.DRIVE_OBJECTS:
-            raise SdoAbortedError(0x06090011 if (index, 0) in od.DRIVE_OBJECTS else 0x06020000)
+        d = self.dictionary
+        if key in d.comm:
+            return struct.pack(_INT_FORMATS[d.comm[key].datatype], self.comm[key])
+        entry = d.plain.get(key) or d.drive.get(key)
+        if entry is None:
+            raise self._absent(index)
+        if entry.access == "wo":
+            raise SdoAbortedError(ABORT_WRITE_ONLY)
+        if key in d.plain:
+            return self.plain[key]
         try:
             return self.model.read_bytes(index, subindex)
         except SdoAbort as e:
@@ -298,17 +395,25 @@ class SimNode:
     def set_data(self, index: int, subindex: int, data: bytes, check_writable: bool = False) -> None:
         """python-canopen SdoServer hook: write an object, or SdoAbortedError (nothing changes)."""
         key = (index, subindex)
-        if key in od.COMM_OBJECTS:
-            self._write_comm(od.COMM_OBJECTS[key], bytes(data))
+        d = self.dictionary
+        if key in d.comm:
+            self._write_comm(d.comm[key], bytes(data))
             return
-        if key not in od.DRIVE_OBJECTS:
-            raise SdoAbortedError(0x06090011 if (index, 0) in od.DRIVE_OBJECTS else 0x06020000)
+        entry = d.plain.get(key) or d.drive.get(key)
+        if entry is None:
+            raise self._absent(index)
+        if entry.access == "ro":
+            raise SdoAbortedError(ABORT_READ_ONLY)
+        plain = d.plain.get(key)
+        if plain is not None:
+            self.plain[key] = _checked(plain, bytes(data))
+            return
         try:
             self.model.write_bytes(index, subindex, bytes(data))
         except SdoAbort as e:
             raise SdoAbortedError(e.code) from None
 
-    def _write_comm(self, entry: od.ObjectEntry, data: bytes) -> None:
+    def _write_comm(self, entry: ObjectEntry, data: bytes) -> None:
         if entry.access == "ro":
             raise SdoAbortedError(0x06010002)
         if len(data) != entry.size:
@@ -330,28 +435,43 @@ class SimNode:
                 if self.comm[(index, 0)] != 0:
                     raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)  # disable the mapping (sub 0 = 0) first
                 if value != 0:
-                    obj = od.DRIVE_OBJECTS.get(split_entry(value)[:2])
+                    mapped = split_entry(value)[:2]
+                    obj = self.dictionary.drive.get(mapped) or self.dictionary.plain.get(mapped)
                     wrong_way = obj is not None and (obj.access == "ro" if not tx else obj.access == "wo")
                     if obj is None or not obj.pdo_mappable or obj.bits != value & 0xFF or wrong_way:
                         raise SdoAbortedError(ABORT_NOT_MAPPABLE)
             elif value > 0:
-                bits = sum(self.comm[(index, i)] & 0xFF for i in range(1, value + 1))
-                if bits > c.MAX_PDO_BITS or any(self.comm[(index, i)] == 0 for i in range(1, value + 1)):
+                bits = sum(self.comm.get((index, i), 0) & 0xFF for i in range(1, value + 1))
+                if bits > c.MAX_PDO_BITS or any(self.comm.get((index, i), 0) == 0 for i in range(1, value + 1)):
                     raise SdoAbortedError(ABORT_PDO_LENGTH)
         self.comm[(index, sub)] = value
-        self._rebuild_rx()
+        self._rebuild_pdos()
         if index == 0x1017:
             self._next_heartbeat_s = 0.0
 
 
-def _unpack(entries: tuple[Entry, ...], data: bytes) -> dict[tuple[int, int], int]:
-    """Object values of one RPDO frame, by the drive's own object types (device side; the
-    entries were checked mappable with their size when written). Raises struct.error when
-    the frame is shorter than its mapping."""
+def _unpack(entries: tuple[Entry, ...], data: bytes) -> dict[tuple[int, int], tuple[int, int]]:
+    """(raw unsigned value, bits) of every object of one RPDO frame, LSB first. Raises
+    ValueError when the frame is shorter than its mapping."""
+    total = sum(bits for _i, _s, bits in entries)
+    if len(data) * 8 < total:
+        raise ValueError(f"RPDO of {len(data)} bytes, its mapping has {total} bits")
+    acc = int.from_bytes(data, "little")
     values = {}
     offset = 0
     for index, sub, bits in entries:
-        fmt = _INT_FORMATS[od.DRIVE_OBJECTS[(index, sub)].datatype]
-        values[(index, sub)] = struct.unpack_from(fmt, data, offset)[0]
-        offset += bits // 8
+        values[(index, sub)] = ((acc >> offset) & ((1 << bits) - 1), bits)
+        offset += bits
     return values
+
+
+def _checked(entry: EdsObject, data: bytes) -> bytes:
+    """An SDO download to a stored object: its size (numbers) and LowLimit/HighLimit, else an abort."""
+    size = (entry.bits + 7) // 8
+    if size and len(data) != size:
+        raise SdoAbortedError(ABORT_LENGTH)
+    if entry.integer is not None and (entry.low is not None or entry.high is not None):
+        value = int.from_bytes(data, "little", signed=entry.integer[2])
+        if (entry.low is not None and value < entry.low) or (entry.high is not None and value > entry.high):
+            raise SdoAbortedError(ABORT_RANGE)
+    return data

@@ -14,7 +14,7 @@ from canopen import objectdictionary as odm
 
 from bus_agent.bus.canopen import cob as c
 from bus_agent.bus.canopen.pdo import DEFAULT_RPDOS, DEFAULT_TPDOS
-from bus_agent.sim.drive_model import OBJECT_TABLE, ObjectEntry, _e
+from bus_agent.sim.drive_model import OBJECT_TABLE, DriveProfile, ObjectEntry, _e
 
 _DATATYPES = {"u8": odm.UNSIGNED8, "i8": odm.INTEGER8, "u16": odm.UNSIGNED16, "i16": odm.INTEGER16,
               "u32": odm.UNSIGNED32, "i32": odm.INTEGER32, "str": odm.VISIBLE_STRING}
@@ -63,22 +63,42 @@ def comm_defaults(node_id: int) -> dict[tuple[int, int], int]:
     return values
 
 
-def build(node_id: int, device_name: str = "SimDrive402") -> canopen.ObjectDictionary:
+def _node_relative(key: tuple[int, int], value: int, node_id: int) -> str | None:
+    """``$NODEID+0x...`` for the COB-IDs of the pre-defined connection set (so the EDS fits any
+    node id), else None."""
+    index, sub = key
+    if key == (0x1014, 0) or (sub == 1 and (c.RPDO_COMM <= index < c.RPDO_COMM + c.MAX_PDOS
+                                            or c.TPDO_COMM <= index < c.TPDO_COMM + c.MAX_PDOS)):
+        return f"$NODEID+0x{value - node_id:X}"
+    return None
+
+
+def build(node_id: int, profile: DriveProfile) -> canopen.ObjectDictionary:
     """python-canopen's object dictionary of one simulated node (no values: the node's read
-    and write callbacks serve them)."""
+    and write callbacks serve them), with the defaults the node powers on with: identity from
+    the profile, node-id-relative COB-IDs as ``$NODEID`` expressions."""
     od = canopen.ObjectDictionary()
     od.node_id = node_id
-    od.device_information.product_name = device_name
+    info = od.device_information
+    info.product_name = profile.device_name
+    info.vendor_number, info.product_number, info.revision_number = (profile.vendor_id, profile.product_code,
+                                                                     profile.revision)
     records: dict[int, odm.ODRecord] = {}
     entries = sorted({**DRIVE_OBJECTS, **COMM_OBJECTS}.values(), key=lambda e: (e.index, e.subindex))
     multi = {e.index for e in entries if e.subindex > 0}
-    defaults = comm_defaults(node_id)
+    defaults: dict[tuple[int, int], int | str] = {
+        **comm_defaults(node_id), (0x1008, 0): profile.device_name, (0x1018, 1): profile.vendor_id,
+        (0x1018, 2): profile.product_code, (0x1018, 3): profile.revision, (0x6502, 0): profile.supported_modes,
+        (0x6060, 0): profile.power_on_mode, (0x6061, 0): profile.power_on_mode}
     for e in entries:
         var = odm.ODVariable(e.name, e.index, e.subindex)
         var.data_type = _DATATYPES[e.datatype]
         var.access_type = e.access
         default = defaults.get((e.index, e.subindex), e.default)
         var.default = default  # type: ignore[assignment]  # str for VISIBLE_STRING
+        relative = _node_relative((e.index, e.subindex), int(default), node_id) if isinstance(default, int) else None
+        if relative is not None:
+            var.default_raw = relative  # type: ignore[attr-defined]  # python-canopen's EDS exporter reads it
         var.pdo_mappable = e.pdo_mappable
         if e.index in multi:
             rec = records.get(e.index)
@@ -91,7 +111,7 @@ def build(node_id: int, device_name: str = "SimDrive402") -> canopen.ObjectDicti
     return od
 
 
-def write_eds(path: str, node_id: int = 1, device_name: str = "SimDrive402") -> None:
-    """Write the simulated drive's EDS (what ``bus-agent`` may load per drive)."""
-    odm.export_od(build(node_id, device_name), path, doc_type="eds")
-
+def write_eds(path: str, profile: DriveProfile) -> None:
+    """Write the simulated drive's EDS (what ``canopen-sim --eds`` runs and ``bus-agent`` may
+    load per node): every object with its type, access, PDO mappability and default."""
+    odm.export_od(build(1, profile), path, doc_type="eds")

@@ -15,6 +15,7 @@ from typing import Callable
 
 import can
 
+from bus_agent.sim.canopen.dictionary import NodeDictionary
 from bus_agent.sim.canopen.node import Frame, SimNode
 from bus_agent.sim.drive_model import PROFILES
 from bus_agent.stop_signals import StopSignals
@@ -25,17 +26,22 @@ TICK_S = 0.002
 
 
 class Segment:
-    """``node_ids`` nodes of one drive profile on ``bus`` (index i = node_ids[i])."""
+    """``node_ids`` nodes on ``bus`` (index i = node_ids[i]): of one drive profile, or each with
+    its own dictionary (``dictionaries[i]``, from its EDS)."""
 
     def __init__(self, bus: can.BusABC, node_ids: list[int], profile: str = "generic",
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 dictionaries: list[NodeDictionary] | None = None) -> None:
         if profile not in PROFILES:
             raise ValueError(f"unknown drive profile {profile!r}; known: {', '.join(sorted(PROFILES))}")
         if len(set(node_ids)) != len(node_ids):
             raise ValueError(f"node ids repeat: {node_ids}")
         self.bus = bus
         self.clock = clock
-        self.nodes = [SimNode(n, PROFILES[profile], serial=n) for n in node_ids]
+        if dictionaries is not None and len(dictionaries) != len(node_ids):
+            raise ValueError(f"{len(dictionaries)} dictionaries for {len(node_ids)} nodes")
+        self.nodes = [SimNode(n, PROFILES[profile], serial=n, dictionary=dictionaries[i] if dictionaries else None)
+                      for i, n in enumerate(node_ids)]
         self.lock = threading.Lock()
         self.frames_in = 0
         self.frames_out = 0
