@@ -20,7 +20,7 @@ from typing import Any
 
 import zenoh
 
-from bench.common import fleet_bench_main, loadavg, percentile, proc_cpu_s, run_stamp, stats_ms
+from bench.common import fleet_bench_main, loadavg, p50_ratio, proc_cpu_s, run_stamp, stats_ms
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from schemas.messages import DriveStatus
@@ -82,9 +82,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                 "dashboard_cpu_changes_pct": round(busy_cpu, 1),
                 "change_to_page_ms": stats_ms(page_lag), "change_to_subscriber_ms": stats_ms(zenoh_lag),
                 "subscriber_missed": missed,
-                "page_over_subscriber_p50": (round(percentile(sorted(page_lag), 0.5) /
-                                                   max(percentile(sorted(zenoh_lag), 0.5), 1e-3), 1)
-                                             if zenoh_lag else None)}
+                "page_over_subscriber_p50": p50_ratio(page_lag, zenoh_lag)}
     finally:
         for p in (dash, agents, router):
             if p is not None:

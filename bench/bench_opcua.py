@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any
 
-from bench.common import fleet_bench_main, free_port, loadavg, percentile, proc_cpu_s, run_stamp, stats_ms
+from bench.common import fleet_bench_main, free_port, loadavg, p50_ratio, proc_cpu_s, run_stamp, stats_ms
 from bus_agent.sim.child import wait_for
 from bus_agent.sim.control import sim_inject
 from drives_opcua.model import HOST_VARIABLES
@@ -117,9 +117,7 @@ def run(hosts: int, drives: int, rounds: int, idle_s: float) -> dict[str, Any]:
                 "server_cpu_changes_pct": round(busy_cpu, 1),
                 "fault_to_client_ms": stats_ms(client_lag), "fault_to_subscriber_ms": stats_ms(zenoh_lag),
                 "missed": missed,
-                "client_over_subscriber_p50": (round(percentile(sorted(client_lag), 0.5) /
-                                                     max(percentile(sorted(zenoh_lag), 0.5), 1e-3), 1)
-                                               if zenoh_lag and client_lag else None)}
+                "client_over_subscriber_p50": p50_ratio(client_lag, zenoh_lag)}
     finally:
         for p in (server, agents, router):
             if p is not None:

@@ -370,6 +370,14 @@ def stats_ms(values_ms: Sequence[float]) -> dict:
     return {"n": len(values_ms), **quantiles(sorted(values_ms))} if values_ms else {"n": 0}
 
 
+def p50_ratio(values: Sequence[float], baseline: Sequence[float]) -> float | None:
+    """Median of ``values`` over the median of ``baseline`` (at least 1 us), to 0.1; None when
+    either is empty (bench_dashboard, bench_opcua: a client next to a plain subscriber)."""
+    if not values or not baseline:
+        return None
+    return round(percentile(sorted(values), 0.5) / max(percentile(sorted(baseline), 0.5), 1e-3), 1)
+
+
 def fleet_bench_main(name: str, doc: str | None, run: Callable[[int, int, int, float], dict],
                      argv: list[str] | None) -> int:
     """``main`` of a benchmark over a fleet of simulated agents that idles, then faults a drive
