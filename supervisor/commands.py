@@ -54,11 +54,11 @@ def acting_for(user: str) -> Iterator[None]:
         ACTING_FOR.reset(token)
 
 
-@dataclass(eq=False)  # identity: a set member of the Fleet while it waits
+@dataclass(eq=False)  # identity: a set member of FleetCommands while it waits
 class _Collector:
     """Replies of one command, filled from Zenoh reply callbacks under its own condition ``cv``.
 
-    Not under the Fleet's lock: that one is notified for every status sample (about 200 per
+    Not under the view's lock: that one is notified for every status sample (about 200 per
     phase of a 64-drive enable), and each notification woke the waiting caller to walk every
     addressed drive, competing for the GIL with the reply callbacks it waited for."""
 
@@ -69,7 +69,7 @@ class _Collector:
     #: Addressed drives per host still without a reply.
     left: dict[str, int] = field(default_factory=dict)
     #: Guards the fields above; notified on progress (a host complete, an error, a query's end)
-    #: and by the Fleet when an agent departs.
+    #: and by :meth:`FleetCommands.departed` when an agent departs.
     cv: threading.Condition = field(default_factory=threading.Condition)
 
     def __post_init__(self) -> None:
@@ -79,8 +79,8 @@ class _Collector:
     def add(self, ref: DriveRef, reply: CommandReply) -> bool:
         """Keep the first reply per drive; True when it was the last one its host owed. The
         waiting caller is woken then (once per host), not for every one of 64 replies: each
-        wake-up walks every addressed drive under the Fleet's lock, which the status callbacks
-        need too."""
+        wake-up walks every addressed drive and asks the view for the live hosts, under the
+        lock the status callbacks need too."""
         if ref in self.replies:
             return False
         self.replies[ref] = reply
