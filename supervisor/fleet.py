@@ -300,7 +300,7 @@ class Fleet:
 
     # ---- commands (supervisor.commands) --------------------------------------------------
 
-    def acting_for(self, user: str) -> "contextlib.AbstractContextManager[None]":
+    def acting_for(self, user: str) -> contextlib.AbstractContextManager[None]:
         """Commands sent from this thread (and threads it starts through ``contextvars``) inside
         the block carry ``user`` as ``on_behalf_of``: a gateway's way to have the agents' audit
         name the person (an OPC UA user) behind its own principal. ``user`` must be a legal name."""
