@@ -1,102 +1,63 @@
 """The supervisor's Python API: discover agents and drives, select, command, lease, watch.
 
-``Fleet`` is the imperative shell around the pure parts (``selectors``, ``results``): one Zenoh
-session (multicast scouting off), agent discovery through liveliness tokens
-(``drives/@v1/<host>/alive``, history replayed), a fleet snapshot kept current by subscribing to
-every drive and agent status (plus one get at start), commands as fan-out queries
-(target ALL, consolidation NONE) collected until every addressed drive answered, its agent is
-gone, or the deadline passed, and leases held by a background renewal thread while the
-supervisor's own liveliness token (``drives/@v1/@sup/<name>``) is alive.
+``Fleet`` is the facade of the supervisor: it holds the settings and delegates to its parts,
+each owning its state (docs/supervisor.md, "Parts of the Fleet"):
 
-Threading: Zenoh callbacks only decode, update state under one lock and enqueue; user callbacks
-(arrival, departure, status, lease lost) run on the Fleet's own dispatcher thread, so they may
-call back into the Fleet (never on a Zenoh thread, where that could deadlock).
+- :class:`~supervisor.link.FleetLink`: one Zenoh session (multicast scouting off), the
+  supervisor's liveliness token (``drives/@v1/@sup/<name>``), the subscriptions and gets;
+- :class:`~supervisor.view.FleetView`: agents by liveliness token (``drives/@v1/<host>/alive``,
+  history replayed), the latest status per drive and agent, host-name conflicts;
+- :class:`~supervisor.commands.FleetCommands`: fan-out queries (target ALL, consolidation NONE)
+  collected until every addressed drive answered, its agent is gone, or the deadline passed;
+- :class:`~supervisor.leases.FleetLeases`: leases and their renewal thread;
+- :class:`~supervisor.events.FleetEvents`: listeners and the dispatcher thread they run on;
+- the coordination across drives as functions over the Fleet: :mod:`supervisor.orchestration`
+  (two-phase enable, ordered shutdown) and :mod:`supervisor.motion` (group moves).
+
+Threading: Zenoh callbacks only decode, update the view under its lock and enqueue; user
+callbacks (arrival, departure, status, lease lost) run on the events' dispatcher thread, so they
+may call back into the Fleet (never on a Zenoh thread, where that could deadlock).
 """
 
 from __future__ import annotations
 
-import itertools
+import contextlib
 import logging
 import os
-import queue
-import threading
-import time
-from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Mapping, Sequence, TypeVar
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import zenoh
 
-from bus_agent.gateway.zenoh_config import zenoh_error_text
 from schemas import keys
-from schemas.messages import (
-    AgentStatus,
-    DriveStatus,
-    SchemaError,
-    decode,
-)
+from schemas.messages import DriveStatus, MODES
 
+from .commands import DEFAULT_TIMEOUT_S, FleetCommands, acting_for
+from .events import FleetEvents, Listener
 from .fleetfile import ExpectedFleet, load as load_fleet
-from .session import DEFAULT_CONNECT, default_name, zenoh_config  # the session settings (re-exported)
-from .commands import FleetCommands
-from .results import CommandResult, DriveResult
+from .leases import FleetLeases
+from .link import FleetError, FleetLink, NoAgentError
+from .motion import group_move, move_args, sync_move
+from .orchestration import ordered_shutdown, two_phase_enable
+from .results import CommandResult, DriveResult, Report, single
 from .selectors import (
     DriveRef,
-    QueryPlan,
-    Selector,
+    Selection,
     SelectorError,
+    exact_selection,
     parse_selector,
     plan_queries,
     resolve,
     unknown_selector_problems,
 )
+from .session import DEFAULT_CONNECT, default_name, zenoh_config  # the session settings (re-exported)
+from .view import CONFLICT_HOLD_S, AgentInfo, FleetView
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
-
 DEFAULT_LEASE_TTL_S = 3.0
-#: Two agent instances seen under one host name within this window are a conflict (agents
-#: publish their status every second).
-CONFLICT_HOLD_S = 3.5
-#: Depth of the status subscriber's FIFO (samples): a few status bursts of a 1024-drive fleet.
-STATUS_FIFO = 65536
 
 
-class FleetError(RuntimeError):
-    """The fleet could not be reached or a command could not be sent."""
-
-
-class NoAgentError(FleetError):
-    """No router/agent answered: nothing to supervise."""
-
-
-@dataclass
-class AgentInfo:
-    """What the supervisor knows about one agent (host)."""
-
-    host: str
-    alive: bool
-    status: AgentStatus | None = None
-    seen_monotonic: float = 0.0
-    gone_monotonic: float | None = None
-
-
-@dataclass(frozen=True)
-class Selection:
-    """Drives chosen by selectors at one moment, and the queries that address exactly them."""
-
-    selectors: tuple[str, ...]
-    drives: tuple[DriveRef, ...]
-    plan: QueryPlan
-
-    def __len__(self) -> int:
-        return len(self.drives)
-
-
-Listener = Callable[..., None]
-
-
-class Fleet(FleetCommands):
+class Fleet:
     """A supervisor's view of and handle on every agent and drive reachable through Zenoh.
 
     Use as a context manager::
@@ -146,27 +107,20 @@ class Fleet(FleetCommands):
         self.connect_timeout_s = connect_timeout_s
         self.discovery_timeout_s = discovery_timeout_s
         self.lease_ttl_s = lease_ttl_s
-        self._lock = threading.Condition()
-        self._collectors: set[Any] = set()   # commands waiting for replies (FleetCommands._query)
-        self._agents: dict[str, AgentInfo] = {}
-        self._drives: dict[DriveRef, DriveStatus] = {}
-        self._missed: dict[DriveRef, int] = {}
-        # host -> agent instance id -> (last seen monotonic, the agent's own conflict text)
-        self._instances: dict[str, dict[str, tuple[float, str]]] = {}
-        self._status_count = 0
-        self._supervisors: set[str] = set()
-        self._listeners: dict[str, list[Listener]] = {}
-        self._events: queue.SimpleQueue[tuple[str, tuple[Any, ...]] | None] = queue.SimpleQueue()
-        self._session: zenoh.Session | None = None
-        self._decls: list[Any] = []
-        self._token: Any = None
-        self._dispatcher: threading.Thread | None = None
-        self._drainer: threading.Thread | None = None
-        self._renewer: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._leases: dict[DriveRef, float] = {}  # drive -> ttl_s, leases this supervisor holds
-        self._lease_selectors: list[tuple[str, ...]] = []
-        self._rid = itertools.count(1)
+        # The parts (module docstring), each given what it needs.
+        self._events = FleetEvents(self.name)
+        self._view = FleetView(self.name, self._events.emit, self._departed)
+        self._link = FleetLink(self.name, self._view)
+        self._commands = FleetCommands(self.name, self.identity, lambda: self.session, self._view,
+                                       self.selection_of)
+        self._leases = FleetLeases(self.name, lease_ttl_s, self._lease_command, self.selection_of,
+                                   self._events.emit)
+
+    def _departed(self, host: str) -> None:
+        self._commands.departed(host)  # a command waiting for this agent stops waiting
+
+    def _lease_command(self, op: str, sel: Selection, args: Mapping[str, Any], timeout_s: float) -> CommandResult:
+        return self.command(op, sel, args, timeout_s=timeout_s)
 
     # ---- lifecycle -----------------------------------------------------------------------
 
@@ -182,83 +136,35 @@ class Fleet(FleetCommands):
 
         Raise :class:`NoAgentError` when no endpoint answers within ``connect_timeout_s``.
         """
-        try:
-            self._session = zenoh.open(zenoh_config(self.mode, self.connect, self.listen,
-                                                    int(self.connect_timeout_s * 1000), pki=self.pki,
-                                                    identity=self.identity))
-        except zenoh.ZError as exc:
-            raise NoAgentError(f"cannot reach {', '.join(self.connect)} ({zenoh_error_text(exc)}); check that "
-                               "a router or bus agent is running and listening there (bus-agent --sim listens "
-                               f"on {DEFAULT_CONNECT[0]}), or give --connect"
-                               + (f"; as {self.identity}: check that the router trusts the CA of {self.pki} and "
-                                  "that its certificate names the address dialled" if self.identity else
-                                  "; a secure router (tls/) needs --pki DIR --identity NAME")) from None
-        s = self._session
-        self._dispatcher = threading.Thread(target=self._dispatch, name=f"fleet-{self.name}-events", daemon=True)
-        self._dispatcher.start()
-        self._token = s.liveliness().declare_token(keys.supervisor_alive(self.name))
-        self._decls.append(s.liveliness().declare_subscriber(keys.ALL_ALIVE, self._on_alive, history=True))
-        self._decls.append(s.liveliness().declare_subscriber(keys.ALL_SUPERVISORS, self._on_supervisor, history=True))
-        # Status goes through a deep FIFO drained by our own thread: a burst (every drive of a
-        # large fleet changing at once) is absorbed here instead of backing up into the router,
-        # which drops samples published with congestion control DROP towards a slow subscriber.
-        status_sub = s.declare_subscriber(keys.ALL_DRIVE_STATUS, zenoh.handlers.FifoChannel(STATUS_FIFO))
-        self._decls.append(status_sub)
-        self._drainer = threading.Thread(target=self._drain, args=(status_sub,), name=f"fleet-{self.name}-status",
-                                         daemon=True)
-        self._drainer.start()
-        self._decls.append(s.declare_subscriber(keys.ALL_AGENT_STATUS, self._on_agent_sample))
+        self._link.open(dict(mode=self.mode, connect=self.connect, listen=self.listen,
+                             connect_timeout_ms=int(self.connect_timeout_s * 1000), pki=self.pki,
+                             identity=self.identity))
+        self._events.start()
+        self._link.declare()
         self.refresh(self.discovery_timeout_s)
         log.info("supervisor %s: %d agent(s), %d drive(s)", self.name, len(self.hosts()), len(self.roster()))
         return self
 
     def close(self) -> None:
         """Release held leases (a clean exit runs no lease reaction), then close everything."""
-        if self._session is None:
+        if not self._link.is_open:
             return
         try:
-            if self._leases:
+            if self.leases():
                 self.release()
         except Exception:  # closing must finish; the token's loss then triggers the reaction
             log.exception("supervisor %s: releasing leases on close failed", self.name)
-        self._stop.set()
-        if self._renewer is not None:
-            self._renewer.join(timeout=5)
-        for d in self._decls:
-            try:
-                d.undeclare()
-            except Exception:
-                pass
-        self._decls.clear()
-        if self._drainer is not None:
-            self._drainer.join(timeout=5)
-        if self._token is not None:
-            self._token.undeclare()
-            self._token = None
-        self._session.close()
-        self._session = None
-        self._events.put(None)
-        if self._dispatcher is not None:
-            self._dispatcher.join(timeout=5)
+        self._leases.stop()
+        self._link.close()
+        self._events.stop()
 
     @property
     def session(self) -> zenoh.Session:
-        if self._session is None:
-            raise FleetError("fleet is not open")
-        return self._session
+        return self._link.session
 
     def refresh(self, timeout_s: float = 1.0) -> None:
         """Query liveliness tokens, drive status and agent status once (a synchronous snapshot)."""
-        s = self.session
-        for reply in s.liveliness().get(keys.ALL_ALIVE, timeout=timeout_s):
-            if reply.ok is not None:
-                self._host_alive(str(reply.ok.key_expr), True)
-        for selector, handler in ((keys.ALL_DRIVE_STATUS, self._on_status_sample),
-                                  (keys.ALL_AGENT_STATUS, self._on_agent_sample)):
-            for reply in s.get(selector, target=zenoh.QueryTarget.ALL,
-                               consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s):
-                if reply.ok is not None:
-                    handler(reply.ok)
+        self._link.refresh(timeout_s)
 
     def fetch_status(self, target: "Selection | str | Sequence[str]", timeout_s: float = 2.0) -> dict[DriveRef, DriveStatus]:
         """Ask the agents for the current status of the selected drives (one get per planned key
@@ -267,224 +173,55 @@ class Fleet(FleetCommands):
         sel = self._as_selection(target)
         wanted = set(sel.drives)
         out: dict[DriveRef, DriveStatus] = {}
-        for host, axis in sel.plan.pairs:
-            for reply in self.session.get(keys.drive_status(host, axis), target=zenoh.QueryTarget.ALL,
-                                          consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s):
-                if reply.ok is None:
-                    continue
-                try:
-                    st = decode(reply.ok.payload.to_bytes(), DriveStatus)
-                except SchemaError as exc:
-                    log.warning("supervisor %s: bad status on %s: %s", self.name, reply.ok.key_expr, exc)
-                    continue
-                ref = DriveRef(st.host, st.axis)
-                if ref in wanted:
-                    out[ref] = st
-                self._apply_status(st)  # decoded once
+        for st in self._link.get_status(sel.plan.pairs, timeout_s):
+            ref = DriveRef(st.host, st.axis)
+            if ref in wanted:
+                out[ref] = st
         return out
-
-    # ---- events --------------------------------------------------------------------------
 
     def on(self, event: str, fn: Listener) -> None:
         """Register ``fn`` for ``arrival``, ``departure``, ``status``, ``agent`` or ``lease_lost``."""
-        if event not in ("arrival", "departure", "status", "agent", "lease_lost"):
-            raise ValueError(f"unknown event {event!r}")
-        with self._lock:
-            self._listeners.setdefault(event, []).append(fn)
+        self._events.on(event, fn)
 
-    def _emit(self, event: str, *args: Any) -> None:
-        if self._listeners.get(event):
-            self._events.put((event, args))
-
-    def _dispatch(self) -> None:
-        while True:
-            item = self._events.get()
-            if item is None:
-                return
-            event, args = item
-            for fn in list(self._listeners.get(event, ())):
-                try:
-                    fn(*args)
-                except Exception:
-                    log.exception("supervisor %s: %s listener failed", self.name, event)
-
-    # ---- zenoh callbacks (decode, update under the lock, enqueue; nothing blocking) ------
-
-    def _host_alive(self, key: str, alive: bool) -> None:
-        try:
-            parsed = keys.parse(key)
-        except keys.InvalidKey:
-            log.warning("supervisor %s: ignoring liveliness key %s", self.name, key)
-            return
-        if parsed.kind is not keys.KeyKind.ALIVE or parsed.host is None:
-            return
-        host = parsed.host
-        now = time.monotonic()
-        with self._lock:
-            info = self._agents.get(host)
-            was = info.alive if info else False
-            if info is None:
-                info = self._agents[host] = AgentInfo(host, alive, seen_monotonic=now)
-            info.alive = alive
-            if alive and not was:
-                info.seen_monotonic, info.gone_monotonic = now, None
-                # An agent that comes back starts its sequence numbers anew.
-                for ref in [r for r in self._drives if r.host == host]:
-                    self._missed.pop(ref, None)
-            elif not alive and was:
-                info.gone_monotonic = now
-                self._instances.pop(host, None)  # a restarted agent is not a second one
-                for col in self._collectors:  # a command waiting for this agent stops waiting
-                    with col.cv:
-                        col.cv.notify_all()
-            self._lock.notify_all()
-        if alive and not was:
-            log.info("agent %s arrived", host)
-            self._emit("arrival", host)
-        elif was and not alive:
-            log.warning("agent %s is gone", host)
-            self._emit("departure", host)
-
-    def _drain(self, sub: Any) -> None:
-        for sample in sub:  # ends when the subscriber is undeclared
-            try:
-                self._on_status_sample(sample)
-            except Exception:
-                log.exception("supervisor %s: status handling failed", self.name)
-
-    def _on_alive(self, sample: zenoh.Sample) -> None:
-        self._host_alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
-
-    def _on_supervisor(self, sample: zenoh.Sample) -> None:
-        try:
-            parsed = keys.parse(str(sample.key_expr))
-        except keys.InvalidKey:
-            return
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._supervisors.add(parsed.name or "")
-            else:
-                self._supervisors.discard(parsed.name or "")
-
-    def _decoded(self, sample: zenoh.Sample, cls: type[T], what: str) -> T | None:
-        """A put's message, or None (a delete, or a payload that is not a valid ``cls``: logged)."""
-        if sample.kind != zenoh.SampleKind.PUT:
-            return None
-        try:
-            return decode(sample.payload.to_bytes(), cls)
-        except SchemaError as exc:
-            log.warning("supervisor %s: bad %s on %s: %s", self.name, what, sample.key_expr, exc)
-            return None
-
-    def _on_status_sample(self, sample: zenoh.Sample) -> None:
-        st = self._decoded(sample, DriveStatus, "status")
-        if st is not None:
-            self._apply_status(st)
-
-    def _apply_status(self, st: DriveStatus) -> None:
-        """Take a drive's status into the view (unless older than what is there) and emit it."""
-        ref = DriveRef(st.host, st.axis)
-        with self._lock:
-            old = self._drives.get(ref)
-            restarted = ref not in self._missed
-            if old is not None and not restarted and st.seq <= old.seq:
-                return  # a get reply older than, or equal to, what the subscription brought
-            if old is not None and not restarted and st.seq > old.seq + 1:
-                self._missed[ref] = self._missed.get(ref, 0) + (st.seq - old.seq - 1)
-            else:
-                self._missed.setdefault(ref, 0)
-            self._drives[ref] = st
-            self._status_count += 1
-            self._lock.notify_all()
-        self._emit("status", st)
-
-    def _on_agent_sample(self, sample: zenoh.Sample) -> None:
-        st = self._decoded(sample, AgentStatus, "agent status")
-        if st is None:
-            return
-        with self._lock:
-            if st.instance:
-                self._instances.setdefault(st.host, {})[st.instance] = (time.monotonic(), st.conflict)
-            info = self._agents.get(st.host)
-            if info is None:
-                # Status before the liveliness token: known, not yet counted alive.
-                info = self._agents[st.host] = AgentInfo(st.host, False, seen_monotonic=time.monotonic())
-            if info.status is not None and 0 < st.seq <= info.status.seq and info.alive:
-                return
-            info.status = st
-            self._lock.notify_all()
-        self._emit("agent", st)
-
-    # ---- snapshot ------------------------------------------------------------------------
+    # ---- snapshot (the view) -------------------------------------------------------------
 
     def hosts(self) -> list[str]:
         """Hosts whose agent is alive now."""
-        with self._lock:
-            return sorted(h for h, a in self._agents.items() if a.alive)
+        return self._view.hosts()
 
     def agents(self) -> dict[str, AgentInfo]:
-        with self._lock:
-            return {h: AgentInfo(a.host, a.alive, a.status, a.seen_monotonic, a.gone_monotonic)
-                    for h, a in self._agents.items()}
+        return self._view.agents()
 
     def drives(self) -> dict[DriveRef, DriveStatus]:
         """Last status of every drive seen (including those of agents now gone)."""
-        with self._lock:
-            return dict(self._drives)
+        return self._view.drives()
 
     def status(self, ref: DriveRef | str) -> DriveStatus | None:
-        ref = ref if isinstance(ref, DriveRef) else DriveRef.parse(ref)
-        with self._lock:
-            return self._drives.get(ref)
+        return self._view.status(ref if isinstance(ref, DriveRef) else DriveRef.parse(ref))
 
     def missed(self) -> dict[DriveRef, int]:
         """Status publications lost per drive (gaps in sequence numbers)."""
-        with self._lock:
-            return dict(self._missed)
+        return self._view.missed()
 
     @property
     def status_count(self) -> int:
-        with self._lock:
-            return self._status_count
+        return self._view.status_count
 
     def supervisors(self) -> list[str]:
-        with self._lock:
-            return sorted(self._supervisors)
+        return self._view.supervisors()
 
     def host_axes(self) -> dict[str, list[str]]:
         """Each live agent's own complete axis list (AgentStatus.axes), where known."""
-        with self._lock:
-            return {h: list(a.status.axes) for h, a in self._agents.items()
-                    if a.alive and a.status is not None and a.status.axes}
+        return self._view.host_axes()
 
     def roster(self) -> list[DriveRef]:
         """Drives of live agents: from their status publications and their agent status."""
-        with self._lock:
-            alive = {h for h, a in self._agents.items() if a.alive}
-            refs = {r for r in self._drives if r.host in alive}
-            for h in alive:
-                st = self._agents[h].status
-                if st is not None:
-                    refs.update(DriveRef(h, ax) for ax in st.axes)
-            return sorted(refs)
+        return self._view.roster()
 
     def conflicts(self) -> dict[str, str]:
         """Hosts whose name two agents use (two instance ids within :data:`CONFLICT_HOLD_S`, or an
         agent saying so), with what is known. Commands to them are refused (``rejected``)."""
-        now = time.monotonic()
-        out: dict[str, str] = {}
-        with self._lock:
-            for host, seen in self._instances.items():
-                if not (host in self._agents and self._agents[host].alive):
-                    continue  # a departed host (its last status may still come in) commands nothing
-                recent = {i: c for i, (t, c) in seen.items() if now - t < CONFLICT_HOLD_S}
-                said = [c for c in recent.values() if c]
-                if len(recent) > 1:
-                    out[host] = (f"host name {host} is used by {len(recent)} agents (instances "
-                                 f"{', '.join(sorted(recent))}): not commanded until one stops")
-                elif said:
-                    out[host] = said[0]
-        return out
+        return self._view.conflicts()
 
     def expected_drives(self) -> list[DriveRef]:
         """Drives of the expected fleet ([] without one)."""
@@ -509,27 +246,16 @@ class Fleet(FleetCommands):
         """Named groups: the expected fleet's, the agents' (AgentStatus.groups) merged, then the
         local table on top."""
         out: dict[str, list[str]] = {g: list(ms) for g, ms in (self.expected.groups if self.expected else {}).items()}
-        with self._lock:
-            for a in self._agents.values():
-                if a.alive and a.status is not None:
-                    for g, members in a.status.groups.items():
-                        out.setdefault(g, [])
-                        out[g].extend(m for m in members if m not in out[g])
+        for groups in self._view.host_groups():
+            for g, members in groups.items():
+                out.setdefault(g, [])
+                out[g].extend(m for m in members if m not in out[g])
         out.update(self.local_groups)
         return out
 
     def wait_until(self, predicate: Callable[["Fleet"], bool], timeout_s: float) -> bool:
         """Wait until ``predicate(fleet)`` holds (re-checked on every update) or the deadline."""
-        deadline = time.monotonic() + timeout_s
-        with self._lock:
-            while True:
-                # Predicates call back into the Fleet, which takes the (reentrant) lock again.
-                if predicate(self):
-                    return True
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._lock.wait(min(left, 0.1))
+        return self._view.wait_until(lambda: predicate(self), timeout_s)
 
     def wait_for_agents(self, hosts: int | Iterable[str], timeout_s: float = 5.0, drives: int = 0) -> bool:
         """Wait until ``hosts`` (a count or names) are alive and at least ``drives`` are known."""
@@ -563,23 +289,7 @@ class Fleet(FleetCommands):
         """A selection of exactly these drives (one query per host where the host is whole).
         ``per_host``: one ``<host>/drive/*`` query per host whatever the axes (for a command the
         agent narrows itself, a group move's ``targets``)."""
-        refs = sorted(set(refs))
-        sels = [Selector(str(r), pattern=str(r)) for r in refs]
-        if per_host:
-            hosts = sorted({r.host for r in refs})
-            return Selection(tuple(s.text for s in sels), tuple(refs), QueryPlan(tuple((h, "*") for h in hosts)))
-        # Concrete names are each expressible; group them per host to save queries.
-        by_host: dict[str, list[str]] = {}
-        for r in refs:
-            by_host.setdefault(r.host, []).append(r.axis)
-        axes = self.host_axes()
-        pairs: list[tuple[str, str]] = []
-        for h, ax in sorted(by_host.items()):
-            if axes.get(h) and set(ax) >= set(axes[h]):
-                pairs.append((h, "*"))
-            else:
-                pairs.extend((h, a) for a in sorted(ax))
-        return Selection(tuple(s.text for s in sels), tuple(refs), QueryPlan(tuple(pairs)))
+        return exact_selection(refs, self.host_axes() if not per_host else {}, per_host=per_host)
 
     def _as_selection(self, target: "Selection | str | Sequence[str]") -> Selection:
         if isinstance(target, Selection):
@@ -588,6 +298,155 @@ class Fleet(FleetCommands):
             return self.select(target)
         return self.select(*target)
 
+    # ---- commands (supervisor.commands) --------------------------------------------------
+
+    def acting_for(self, user: str) -> contextlib.AbstractContextManager[None]:
+        """Commands sent from this thread (and threads it starts through ``contextvars``) inside
+        the block carry ``user`` as ``on_behalf_of``: a gateway's way to have the agents' audit
+        name the person (an OPC UA user) behind its own principal. ``user`` must be a legal name."""
+        return acting_for(user)
+
+    def _request(self, op: str, args: Mapping[str, Any] | None, timeout_s: float):
+        return self._commands.request(op, args, timeout_s)
+
+    def command(self, op: str, target: "Selection | str | Sequence[str]" = "**",
+                args: Mapping[str, Any] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Send drive command ``op`` (``schemas.messages.DRIVE_OPS``) to the selection: one
+        fan-out query per planned key expression, one result per selected drive. A ``move`` with
+        ``sync`` goes through the group move whatever the selectors
+        (:func:`supervisor.motion.sync_move`): one group, or refused as a whole."""
+        sel = self._as_selection(target)
+        if op == "move" and (args or {}).get("sync"):
+            return sync_move(self, sel.drives, dict(args or {}), timeout_s=timeout_s)
+        return self.send(op, sel, args, timeout_s)
+
+    def send(self, op: str, sel: Selection, args: Mapping[str, Any] | None = None,
+             timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Send ``op`` as ``sel`` plans it (its queries as they are). A synchronized move comes
+        here only from the group path, with the axes named per host (``targets`` or ``axes``):
+        planned otherwise it would start as several groups (ValueError)."""
+        return self._commands.send(op, sel, args, timeout_s)
+
+    def enable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S,
+               stages: Sequence[Sequence[str]] | None = None,
+               before_phase: Callable[[str], None] | None = None):
+        """Two-phase enable (see :func:`supervisor.orchestration.two_phase_enable`)."""
+        return two_phase_enable(self, selectors or ("**",), timeout_s=timeout_s, stages=stages,
+                                before_phase=before_phase)
+
+    def take_down(self, stages: Sequence[Sequence[str] | str], *, op: str = "disable",
+                  timeout_s: float = DEFAULT_TIMEOUT_S) -> Report:
+        """Ordered take-down, last stage first, each stage with ``op`` (default ``disable``: to
+        Switch on disabled). See :func:`supervisor.orchestration.ordered_shutdown`."""
+        return ordered_shutdown(self, stages, op=op, timeout_s=timeout_s)
+
+    def shutdown(self, *selectors: str, stages: Sequence[Sequence[str] | str] | None = None,
+                 timeout_s: float = DEFAULT_TIMEOUT_S) -> Report:
+        """The CiA 402 Shutdown command (transitions 2, 6, 8: to Ready to switch on), as ``drivectl
+        shutdown``: to the selected drives, or stage by stage, last stage first. For the take-down
+        to Switch on disabled use :meth:`disable` or :meth:`take_down`."""
+        if any(not isinstance(s, str) for s in selectors):
+            raise TypeError("Fleet.shutdown(*selectors, stages=...) sends the CiA 402 shutdown (to Ready to "
+                            "switch on); for the ordered take-down to Switch on disabled use "
+                            "Fleet.take_down(stages)")
+        if stages:
+            return ordered_shutdown(self, stages, op="shutdown", timeout_s=timeout_s)
+        return single("shutdown", self.command("shutdown", selectors or "**", timeout_s=timeout_s))
+
+    def switch_on(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        return self.command("switch_on", selectors or "**", timeout_s=timeout_s)
+
+    def disable(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        return self.command("disable", selectors or "**", timeout_s=timeout_s)
+
+    def quick_stop(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Quick stop (controlword bit 2 low, transition 11) on every selected drive, default all."""
+        return self.command("quick_stop", selectors or "**", timeout_s=timeout_s)
+
+    def halt(self, *selectors: str, on: bool = True, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Halt (controlword bit 8) on or off."""
+        return self.command("halt", selectors or "**", {"on": bool(on)}, timeout_s=timeout_s)
+
+    # -- motion (docs/motion.md; the agents generate the trajectories)
+
+    def move(self, *selectors: str, to: float | None = None, by: float | None = None,
+             velocity: float | None = None, accel: float | None = None, jerk: float | None = None,
+             sync: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Move to ``to`` (absolute) or ``by`` (relative), in each axis's unit; ``velocity``,
+        ``accel``, ``jerk`` default to the axis limits (above them: clamped or rejected by the
+        axis). ``sync``: every selected axis, on whatever hosts, starts together and arrives
+        together (one group move; a drive or host that cannot take part refuses the whole
+        move, nothing moves). Done when in the position window at rest; ``timeout_s`` must
+        cover the move."""
+        return self.command("move", selectors or "**", move_args(to, by, velocity, accel, jerk, sync),
+                            timeout_s=timeout_s)
+
+    def jog(self, *selectors: str, velocity: float, for_s: float | None = None,
+            timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Jog at ``velocity`` (signed, unit/s) for ``for_s`` (default: until ``timeout_s`` less
+        the time to stop), then stop; done at rest. A halt or stop ends it (aborted)."""
+        args: dict[str, Any] = {"velocity": float(velocity)}
+        if for_s is not None:
+            args["for_s"] = float(for_s)
+        return self.command("jog", selectors or "**", args, timeout_s=timeout_s)
+
+    def stop(self, *selectors: str, release: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """PLCopen MC_Stop: abort motion, decelerate, and refuse motion until ``release``."""
+        return self.command("stop", selectors or "**", {"release": True} if release else {}, timeout_s=timeout_s)
+
+    def home(self, *selectors: str, method: int | None = None, timeout_s: float = 30.0) -> CommandResult:
+        """Home (mode 6) with the axis's configured method, or ``method`` (0x6098)."""
+        return self.command("home", selectors or "**", {} if method is None else {"method": int(method)},
+                            timeout_s=timeout_s)
+
+    def group_move(self, targets: Mapping[DriveRef | str, float], *, velocity: float | None = None,
+                   accel: float | None = None, jerk: float | None = None, timeout_s: float = 30.0) -> CommandResult:
+        """Synchronized move of ``{ref: absolute target}`` across any hosts: all start together
+        and arrive together (see :func:`supervisor.motion.group_move`)."""
+        return group_move(self, targets, velocity=velocity, accel=accel, jerk=jerk, timeout_s=timeout_s)
+
+    def fault_reset(self, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Fault reset (controlword bit 7 rising edge, transition 15), made by the agent."""
+        return self.command("fault_reset", selectors or "**", timeout_s=timeout_s)
+
+    def set_mode(self, mode: int, *selectors: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Modes of operation 0x6060, done on the 0x6061 echo."""
+        if isinstance(mode, bool) or not isinstance(mode, int) or mode not in MODES:
+            raise ValueError(f"mode {mode!r} is not one of {', '.join(map(str, MODES))}")
+        return self.command("set_mode", selectors or "**", {"mode": mode}, timeout_s=timeout_s)
+
+    def nmt(self, command: str, hosts: Sequence[str] = ("*",), axis: str | int | None = None,
+            timeout_s: float = DEFAULT_TIMEOUT_S) -> CommandResult:
+        """Network management on agents (``.../agent/cmd/nmt``): start (-> OP), stop
+        (-> SAFE-OP), preop, reset_comm, reset_node (cia402.md section 5), for the slave of one
+        axis (a name, or a slave position looked up in the drive status) or the whole segment.
+        One result per agent (``axis`` '')."""
+        return self._commands.nmt(command, hosts, axis, timeout_s)
+
+    # ---- leases (supervisor.leases) ------------------------------------------------------
+
+    def lease(self, *selectors: str, ttl_s: float | None = None, takeover: bool = False,
+              timeout_s: float = 2.0) -> CommandResult:
+        """Take (or with ``takeover`` seize) exclusive control of the selected drives.
+
+        Leases are renewed every ttl/3 by a background thread while this Fleet is open; a drive
+        whose renewal answers ``busy`` was taken over and is reported through ``lease_lost``.
+        When this process dies, its liveliness token vanishes and the agents run the lease
+        reaction at once (or at the latest when the ttl runs out).
+        """
+        return self._leases.lease(self._as_selection(selectors or "**"), float(ttl_s or self.lease_ttl_s),
+                                  takeover, timeout_s)
+
+    def leases(self) -> list[DriveRef]:
+        """Drives whose lease this supervisor holds (as far as it knows)."""
+        return self._leases.held()
+
+    def release(self, *selectors: str, timeout_s: float = 2.0) -> CommandResult:
+        """Give leases back (no reaction runs); default every lease held."""
+        sel = self._as_selection(selectors) if selectors else self.selection_of(self.leases())
+        return self._leases.release(sel, timeout_s)
+
 
 __all__ = ["Fleet", "Selection", "AgentInfo", "FleetError", "NoAgentError", "SelectorError",
-           "DriveRef", "DriveResult", "CommandResult", "zenoh_config", "default_name"]
+           "DriveRef", "DriveResult", "CommandResult", "zenoh_config", "default_name", "CONFLICT_HOLD_S",
+           "DEFAULT_LEASE_TTL_S"]

@@ -22,7 +22,7 @@ from .selectors import DriveRef, SelectorError
 
 
 class Selection(Protocol):
-    """What orchestration needs of a selection (``supervisor.fleet.Selection``)."""
+    """What orchestration needs of a selection (``supervisor.selectors.Selection``)."""
 
     @property
     def drives(self) -> Sequence[DriveRef]: ...

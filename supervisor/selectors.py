@@ -204,6 +204,42 @@ def plan_queries(
     return QueryPlan(tuple(pairs))
 
 
+@dataclass(frozen=True)
+class Selection:
+    """Drives chosen by selectors at one moment, and the queries that address exactly them."""
+
+    selectors: tuple[str, ...]
+    drives: tuple[DriveRef, ...]
+    plan: QueryPlan
+
+    def __len__(self) -> int:
+        return len(self.drives)
+
+
+def exact_selection(refs: Iterable[DriveRef], host_axes: Mapping[str, Iterable[str]], *,
+                    per_host: bool = False) -> Selection:
+    """A selection of exactly ``refs``: one ``<host>/drive/*`` query per host where ``host_axes``
+    says the host is whole, else one per drive. ``per_host``: one ``<host>/drive/*`` query per
+    host whatever the axes (for a command the agent narrows itself)."""
+    refs = sorted(set(refs))
+    sels = [Selector(str(r), pattern=str(r)) for r in refs]
+    if per_host:
+        hosts = sorted({r.host for r in refs})
+        return Selection(tuple(s.text for s in sels), tuple(refs), QueryPlan(tuple((h, "*") for h in hosts)))
+    # Concrete names are each expressible; group them per host to save queries.
+    by_host: dict[str, list[str]] = {}
+    for r in refs:
+        by_host.setdefault(r.host, []).append(r.axis)
+    pairs: list[tuple[str, str]] = []
+    for h, ax in sorted(by_host.items()):
+        whole = set(host_axes.get(h) or ())
+        if whole and set(ax) >= whole:
+            pairs.append((h, "*"))
+        else:
+            pairs.extend((h, a) for a in sorted(ax))
+    return Selection(tuple(s.text for s in sels), tuple(refs), QueryPlan(tuple(pairs)))
+
+
 def _close(word: str, candidates: Iterable[str], n: int = 3) -> list[str]:
     return difflib.get_close_matches(word, sorted(set(candidates)), n=n, cutoff=0.6)
 

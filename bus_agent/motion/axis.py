@@ -23,9 +23,10 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
-from bus_agent.motion.config import MotionConfig
-from bus_agent.motion.drive_runs import DriveRunsMixin
-from bus_agent.motion.homing import Homing
+from bus_agent.motion.axis_limits import AxisLimits
+from bus_agent.motion.config import HOMING_METHODS, MotionConfig
+from bus_agent.motion.drive_runs import DriveRuns
+from bus_agent.motion.homing import CONTROLWORD_HOMING_START, Homing
 from bus_agent.motion.planner import (Kinematic, Limits, Plan, PlanError, plan_group, plan_position, plan_stop,
                                       plan_velocity)
 from bus_agent.motion.profile import MODE_PP, MODE_PV, ProfileRun
@@ -49,16 +50,18 @@ SYNC_SHARE = 0.9
 
 
 
-class AxisMotion(DriveRunsMixin):
-    """Motion state of one axis (see the module docstring). ``cfg`` in user units."""
+class AxisMotion:
+    """Motion state of one axis (see the module docstring). ``cfg`` in user units.
+
+    Its parts: :attr:`bounds` (:class:`~bus_agent.motion.axis_limits.AxisLimits`, what a command
+    may ask) and :attr:`runs` (:class:`~bus_agent.motion.drive_runs.DriveRuns`, homing and the
+    drive's own PP/PV profiles)."""
 
     def __init__(self, cfg: MotionConfig, period_s: float) -> None:
-        self.user = cfg
-        self.cfg = c = cfg.in_counts()
-        self.scale = cfg.counts_per_unit
-        self.limits = Limits(c.max_velocity, c.max_acceleration, c.max_jerk)
         #: Targets take effect at the next exchange: plans are sampled one period ahead.
-        self.lead_s = period_s
+        self.bounds = b = AxisLimits(cfg, period_s)
+        self.user, self.cfg, self.scale, self.limits, self.lead_s = b.user, b.cfg, b.scale, b.limits, b.lead_s
+        self.runs = DriveRuns(b.cfg, b.limits.acceleration)
         #: The last step's time while a plan runs (None when the last step ended without one),
         #: how many cycle stalls paused the profile, and how far the profile is behind the wall
         #: clock since the plan started (see step()).
@@ -92,15 +95,21 @@ class AxisMotion(DriveRunsMixin):
         self.halted = False
         self.commanded = 0       # the position target the cycle wrote last
         self.statusword = 0
-        # homing (mode 6, bus_agent.motion.homing): a run under way, and what it asks of the cycle
-        self.homing: Homing | None = None
+        # what homing and the drive's profiles (self.runs) ask of the cycle
         self.controlword_bits = 0            # OR-ed into 0x6040 (homing start, bit 4)
         self.mode_request: int | None = None  # modes of operation to request now (taken by the cycle)
         #: SDO downloads to make now (taken by the cycle; answered through :meth:`sdo_written`)
         self.sdo_request: tuple[tuple[int, int, bytes], ...] | None = None
-        # Profile Position / Profile Velocity (bus_agent.motion.profile): the drive's own profile
-        self.profile_run: ProfileRun | None = None
-        self._profile_params: tuple[int, int, int] | None = None  # 0x6081/0x6083/0x6084 written last
+
+    @property
+    def homing(self) -> Homing | None:
+        """The homing run under way (mode 6, :mod:`bus_agent.motion.homing`), or None."""
+        return self.runs.homing
+
+    @property
+    def profile_run(self) -> ProfileRun | None:
+        """The Profile Position / Profile Velocity run under way (the drive's own profile), or None."""
+        return self.runs.profile_run
 
     # ---- observation ----------------------------------------------------------------------
 
@@ -126,10 +135,11 @@ class AxisMotion(DriveRunsMixin):
             return AxisState.DISABLED
         if self.stop_latched:
             return AxisState.STOPPING
-        if self.homing is not None:
+        runs = self.runs
+        if runs.homing is not None:
             return AxisState.HOMING
         a = self.active
-        r = self.profile_run
+        r = runs.profile_run
         if r is not None:
             return AxisState.CONTINUOUS_MOTION if r.kind == "pv" and r.replies else AxisState.DISCRETE_MOTION
         if a is not None and a.op == "jog":
@@ -145,8 +155,8 @@ class AxisMotion(DriveRunsMixin):
         """No plan, command, homing run, profile run or request under way: a step with the same
         observation as the last one changes nothing and finishes nothing, so the cycle may skip
         it (docs/agent-cycle.md, "Fast paths"). Cycle-safe."""
-        return (self.plan is None and self.active is None and self.homing is None and self.profile_run is None
-                and self.mode_request is None and self.sdo_request is None)
+        return (self.plan is None and self.active is None and self.runs.homing is None
+                and self.runs.profile_run is None and self.mode_request is None and self.sdo_request is None)
 
     @property
     def request_id(self) -> str:
@@ -170,57 +180,6 @@ class AxisMotion(DriveRunsMixin):
             return Kinematic(float(self.position), float(self.velocity))
         return Kinematic(float(self.commanded))
 
-    def _limits(self, args: Mapping[str, Any], notes: list[str]) -> Limits:
-        """Requested velocity/accel/jerk (user units) within the axis limits: clamped or rejected."""
-        out = []
-        for arg, name, limit in (("velocity", "velocity", self.limits.velocity),
-                                 ("accel", "acceleration", self.limits.acceleration),
-                                 ("jerk", "jerk", self.limits.jerk)):
-            v = _num(args, arg)
-            if v is None:
-                out.append(limit)
-                continue
-            counts = abs(v * self.scale)
-            if not counts > 0:
-                raise Rejected(f"{arg} {v:g} must be > 0")
-            if counts > limit * (1 + 1e-9):
-                max_user = limit / abs(self.scale)
-                if self.cfg.limit_policy == "clamp":
-                    notes.append(f"{arg} {v:g} clamped to the axis {name} limit {max_user:g} {self.user.unit}")
-                    counts = limit
-                else:
-                    raise Rejected(f"{arg} {v:g} {self.user.unit} exceeds the axis {name} limit {max_user:g}")
-            out.append(counts)
-        return Limits(*out)
-
-    def _jog_velocity(self, args: Mapping[str, Any]) -> tuple[float, Limits, list[str]]:
-        """A jog's signed velocity in counts/s (within the axis limit: clamped or rejected), its
-        acceleration/jerk limits and the clamp notes. Raises Rejected."""
-        v = _num(args, "velocity")
-        if v is None:
-            raise Rejected("jog needs a velocity")
-        notes: list[str] = []
-        lim = self._limits({k: args[k] for k in ("accel", "jerk") if k in args}, notes)
-        speed = abs(v * self.scale)
-        if speed > self.limits.velocity * (1 + 1e-9):
-            if self.cfg.limit_policy != "clamp":
-                raise Rejected(f"velocity {v:g} {self.user.unit}/s exceeds the axis velocity limit "
-                               f"{self.limits.velocity / abs(self.scale):g}")
-            notes.append(f"velocity {v:g} clamped to the axis velocity limit {self.limits.velocity / abs(self.scale):g}")
-            speed = self.limits.velocity
-        return math.copysign(speed, v * self.scale), lim, notes
-
-    def _check_target(self, target: float) -> None:
-        c = self.cfg
-        if c.min_position is not None and target < c.min_position - 1e-9:
-            raise Rejected(f"target {target / self.scale:g} {self.user.unit} is below the software limit "
-                           f"min_position {c.min_position / self.scale:g}")
-        if c.max_position is not None and target > c.max_position + 1e-9:
-            raise Rejected(f"target {target / self.scale:g} {self.user.unit} is beyond the software limit "
-                           f"max_position {c.max_position / self.scale:g}")
-        if not -2**31 <= round(target) < 2**31:
-            raise Rejected(f"target {target:.0f} counts is outside the 32-bit range of 0x607A")
-
     def prepare_move(self, args: Mapping[str, Any], now_s: float,
                      drive_profile: bool = False) -> tuple[Kinematic, float, Limits, list[str]]:
         """Check a move (``to`` or ``by``, optional velocity/accel/jerk): start, target in counts,
@@ -235,10 +194,10 @@ class AxisMotion(DriveRunsMixin):
         if to is not None and self.cfg.require_homing and not self.homed:
             raise Rejected("not homed: this axis requires homing before absolute moves")
         notes: list[str] = []
-        limits = self._limits(args, notes)
+        limits = self.bounds.requested(args, notes)
         start = self._current(now_s)
         target = to * self.scale if to is not None else start.position + (by or 0.0) * self.scale
-        self._check_target(target)
+        self.bounds.check_target(target)
         return start, target, limits, notes
 
     def command(self, token: Any, request_id: str, op: str, args: Mapping[str, Any], now_s: float,
@@ -283,7 +242,7 @@ class AxisMotion(DriveRunsMixin):
         if self.mode not in (MODE_CSP, MODE_CSV):
             raise Rejected(f"jog needs cyclic synchronous position or velocity (0x6061 = 8 or 9); "
                            f"the drive is in mode {self.mode}")
-        velocity, lim, notes = self._jog_velocity(args)
+        velocity, lim, notes = self.bounds.jog_velocity(args)
         speed = abs(velocity)
         start = self._current(now_s)
         c = self.cfg
@@ -292,12 +251,7 @@ class AxisMotion(DriveRunsMixin):
             raise Rejected(f"at the software limit {'max' if velocity > 0 else 'min'}_position "
                            f"{limit / self.scale:g}: jog the other way")
         # Run for for_s (default: the command's deadline less the time to stop from that speed).
-        stop_s = plan_stop(Kinematic(0.0, velocity), lim).duration
-        for_s = _num(args, "for_s")
-        end_s = now_s + for_s if for_s is not None else deadline_s - stop_s - 0.05
-        if end_s + stop_s > deadline_s + 1e-9:
-            raise Rejected(f"jog for {for_s:g} s cannot stop within the command's timeout "
-                           f"({deadline_s - now_s:.3g} s; stopping takes {stop_s:.3g} s)")
+        end_s = self.bounds.jog_end(args, now_s, deadline_s, plan_stop(Kinematic(0.0, velocity), lim).duration)
         try:
             if limit is not None and self.mode == MODE_CSP:
                 # CSP with a software limit ahead: a position plan to the limit at the jog speed
@@ -320,7 +274,7 @@ class AxisMotion(DriveRunsMixin):
             return [Finished(token, request_id, "done", "stop released" if was else "no stop to release")]
         ended = self.abort(f"aborted by {request_id} (stop)", now_s, decelerate=True)
         self.stop_latched = True
-        if self.profile_run is not None and self.enabled:
+        if self.runs.profile_run is not None and self.enabled:
             self.active = _Active(token, request_id, "stop", math.inf)
             return ended
         if self.plan is None or not self.enabled:
@@ -333,15 +287,13 @@ class AxisMotion(DriveRunsMixin):
         """End the running command with ``outcome``; with ``decelerate`` (and still enabled) the
         axis comes to rest on its profile from the set-point being written, else the plan is dropped."""
         ended: list[Finished] = []
-        if self.homing is not None:
-            # homing ends with bit 4 low and the previous mode restored; its reply comes then
-            self.homing.abort(outcome, reason)
-            return ended
+        if self.runs.abort_homing(outcome, reason):
+            return ended  # homing ends with bit 4 low and the previous mode restored; its reply comes then
         a = self.active
         if a is not None:
             self.active = None
             ended.append(Finished(a.token, a.request_id, outcome, reason))
-        if self.profile_run is not None:
+        if self.runs.profile_run is not None:
             if decelerate:
                 self._profile_stop(now_s)
             return ended
@@ -356,19 +308,113 @@ class AxisMotion(DriveRunsMixin):
 
     def lose(self, reason: str, now_s: float) -> list[Finished]:
         """The drive is lost or leaves Operation enabled: abort and forget the plan."""
-        h = self.homing
-        if h is not None and self.active is not None:
+        if self.runs.homing is not None and self.active is not None:
             # lost: nothing reaches the drive; the previous mode is requested for its return
-            self.homing = None
             self.controlword_bits = 0
-            self.mode_request = h.previous_mode
+            self.mode_request = self.runs.lose_homing()
             a, self.active = self.active, None
             return [Finished(a.token, a.request_id, "aborted", reason)]
         ended = self.abort(reason, now_s, decelerate=False)
         self.plan = None
-        self.profile_run = None
+        self.runs.end_profile()
         self.controlword_bits = 0
         return ended
+
+    # ---- homing and the drive's own profiles (self.runs) -------------------------------------
+
+    def start_home(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float, deadline_s: float,
+                   previous_mode: int) -> list[Finished]:
+        """Start homing in mode 6 (``method``: default the axis's configured one). The cycle then
+        writes :attr:`sdo_request` by SDO and reports with :meth:`sdo_written`."""
+        try:
+            self.check("home")
+            if self.plan is not None or self.active is not None:
+                raise Rejected(f"home needs the axis at standstill (it is in {self.axis_state.value}): "
+                               "halt or wait for the running command first")
+            method = args.get("method", self.cfg.homing.method)
+            if method not in HOMING_METHODS:
+                raise Rejected(f"homing method {method!r} is not a supported 0x6098 method "
+                               "(1..14, 17..30, 33, 34, 35, 37)")
+        except Rejected as e:
+            return [Finished(token, request_id, "rejected", str(e))]
+        self.sdo_request = self.runs.start_home(int(method), previous_mode, now_s, deadline_s)
+        self.active = _Active(token, request_id, "home", deadline_s)
+        return []
+
+    def sdo_written(self, error: str) -> list[Finished]:
+        """The SDO downloads of :attr:`sdo_request` finished (``error``: why one was refused)."""
+        failed = self.runs.sdo_written(error)
+        if failed is None:
+            return []
+        failure, replies = failed
+        a, self.active = self.active, None
+        return [Finished(a.token, a.request_id, "failed", failure)] if a is not None and replies else []
+
+    def _start_profile(self, token: Any, request_id: str, op: str, run_kind: str, now_s: float, deadline_s: float,
+                       limits: Limits, **kw: Any) -> list[Finished]:
+        ended = self.abort(f"aborted by {request_id} ({op})", now_s, decelerate=False)
+        self.plan = None
+        writes = self.runs.start_profile(run_kind, now_s, deadline_s, limits, **kw)
+        if writes:
+            self.sdo_request = writes
+        self.active = _Active(token, request_id, op, deadline_s)
+        return ended
+
+    def _pp_move(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float,
+                 deadline_s: float) -> list[Finished]:
+        _start, target, limits, notes = self.prepare_move(args, now_s, drive_profile=True)
+        return self._start_profile(token, request_id, "move", "pp", now_s, deadline_s, limits,
+                                   target=float(round(target)), note="; ".join(notes))
+
+    def _pv_jog(self, token: Any, request_id: str, args: Mapping[str, Any], now_s: float,
+                deadline_s: float) -> list[Finished]:
+        self.check("jog")
+        velocity, lim, notes = self.bounds.jog_velocity(args)
+        if self.bounds.limit_ahead(self.position, velocity, lim):
+            raise Rejected(f"too close to the software limit {'max' if velocity > 0 else 'min'}_position to jog "
+                           "that way: jog the other way")
+        speed = abs(velocity)
+        end_s = self.bounds.jog_end(args, now_s, deadline_s, speed / lim.acceleration)
+        return self._start_profile(token, request_id, "jog", "pv", now_s, deadline_s,
+                                   Limits(speed, lim.acceleration, lim.jerk), velocity=velocity, end_s=end_s,
+                                   note="; ".join(notes))
+
+    def _profile_stop(self, now_s: float) -> None:
+        self.runs.stop_profile(now_s, enabled=self.enabled, position=self.position, velocity=self.velocity)
+
+    def _step_profile(self, r: ProfileRun, now_s: float) -> list[Finished]:
+        st = self.runs.step_profile(r, now_s, statusword=self.statusword, position=self.position,
+                                    velocity=self.velocity, bounds=self.bounds)
+        self.write = True
+        if r.kind == "pp":
+            self.target_position = int(round(r.target))
+        else:
+            self.target_position = self.position
+            self.target_velocity = r.target_velocity
+        self.controlword_bits = st.controlword_bits
+        a = self.active
+        if not st.outcome or a is None or not (r.replies or a.op == "stop"):
+            return []
+        self.active = None
+        if a.op == "stop":
+            return [Finished(a.token, a.request_id, "done", "at rest; motion refused until released")]
+        return [Finished(a.token, a.request_id, st.outcome, st.reason)]
+
+    def _step_homing(self, h: Homing, now_s: float) -> list[Finished]:
+        hs = self.runs.step_homing(h, now_s, statusword=self.statusword, mode=self.mode, enabled=self.enabled,
+                                   fault=self.fault, state=self.state, error_code=self.error_code)
+        # the targets follow the actual values throughout (no jump when the previous mode returns)
+        self.write = True
+        self.target_position = self.position
+        self.target_velocity = 0
+        self.controlword_bits = CONTROLWORD_HOMING_START if hs.start_bit else 0
+        if hs.request_mode is not None:
+            self.mode_request = hs.request_mode
+        if not hs.outcome:
+            return []
+        self.homed = h.homed
+        a, self.active = self.active, None
+        return [Finished(a.token, a.request_id, hs.outcome, hs.reason)] if a is not None else []
 
     # ---- the cycle step -------------------------------------------------------------------
 
@@ -409,14 +455,15 @@ class AxisMotion(DriveRunsMixin):
             self.stalls += 1
 
     def _step(self, now_s: float) -> list[Finished]:
-        if self.homing is not None:
-            return self._step_homing(self.homing, now_s)
+        runs = self.runs
+        if runs.homing is not None:
+            return self._step_homing(runs.homing, now_s)
         self.controlword_bits = 0
-        if self.profile_run is not None and self.enabled and not self.halted:
-            return self._step_profile(self.profile_run, now_s)
+        if runs.profile_run is not None and self.enabled and not self.halted:
+            return self._step_profile(runs.profile_run, now_s)
         if not self.enabled:
             self.write = False
-            self.profile_run = None
+            runs.end_profile()
             if self.active is None and self.plan is None:
                 return []
             if self.fault:
@@ -427,7 +474,7 @@ class AxisMotion(DriveRunsMixin):
         if self.halted:
             # controlword bit 8: the drive stops on its own ramp (0x605D); follow it, no jump on release
             halted = self.abort("halt (controlword bit 8)", now_s, decelerate=False) + self._drop()
-            self.profile_run = None
+            runs.end_profile()
             self.write = True
             self.target_position = self.position
             self.target_velocity = 0
@@ -450,7 +497,7 @@ class AxisMotion(DriveRunsMixin):
                 self.plan, self.plan_t0, self.plan_kind = plan_stop(self._current(now_s), self.limits), now_s, "jog_end"
                 return []
             if self.mode == MODE_CSV:
-                a.limit_stop = self._csv_limit_ahead(plan.final_velocity)
+                a.limit_stop = self.bounds.limit_ahead(self.position, plan.final_velocity)
                 if a.limit_stop:
                     self.plan, self.plan_t0 = plan_stop(self._current(now_s), self.limits), now_s
                     self.plan_kind = "jog_end"
@@ -493,23 +540,6 @@ class AxisMotion(DriveRunsMixin):
                              f"{self.user.unit} {self.cfg.settle_s:g} s after the profile ended "
                              f"(error {err / abs(self.scale):g}, velocity {self.velocity / abs(self.scale):g})")]
         return []
-
-    def _csv_limit_ahead(self, velocity: float, lim: Limits | None = None) -> str:
-        """CSV jog at (up to) ``velocity``: the software limit the axis would pass if it braked a
-        cycle later, or ''. Conservative braking distance: bringing the acceleration to zero
-        (at most |v| a/j), then a jerk-limited stop from |v| at zero acceleration
-        (|v| (|v|/a + a/j) / 2), plus three cycles' travel for the inputs' delay."""
-        c = self.cfg
-        limit = c.max_position if velocity > 0 else c.min_position
-        if limit is None or velocity == 0:
-            return ""
-        lim = lim or self.limits
-        speed = abs(velocity)
-        brake = (speed * lim.acceleration / lim.jerk + speed * (speed / lim.acceleration + lim.acceleration / lim.jerk) / 2
-                 + speed * 3 * self.lead_s)
-        if (self.position + math.copysign(brake, velocity) - limit) * velocity >= 0:
-            return f"{'max' if velocity > 0 else 'min'}_position {limit / self.scale:g}"
-        return ""
 
     def _drop(self) -> list[Finished]:
         self.plan = None

@@ -12,9 +12,9 @@ What it models (IEC 61800-7-201 / CiA 402, CiA 301):
   5..8 ramp and stay in Quick stop active, transition 16 back on Enable operation);
 - the fault reaction (0x605E) in Fault reaction active, then Fault (transition 14); 0x603F error
   code, 0x1001 error register and an EMCY record on fault, an EMCY with code 0 on reset;
-- modes PP 1, PV 3, PT 4, homing 6 (:mod:`bus_agent.sim.homing_model`: 0x6098/0x6099/0x609A/
-  0x607C, a home switch on 0x60FD bit 2), CSP 8, CSV 9, CST 10 with the 0x6061 echo; halt
-  (controlword bit 8);
+- modes PP 1 (:mod:`bus_agent.sim.profile_model`), PV 3, PT 4, homing 6
+  (:mod:`bus_agent.sim.homing_model`: 0x6098/0x6099/0x609A/0x607C, a home switch on 0x60FD
+  bit 2), CSP 8, CSV 9, CST 10 with the 0x6061 echo; halt (controlword bit 8);
   simple kinematics (position integrates velocity); CSP following error (0x8611, window 0x6065);
 - an object dictionary as a constant table of :class:`ObjectEntry`, values per instance, SDO
   access with CoE abort codes (:class:`SdoAbort`).
@@ -43,31 +43,14 @@ from bus_agent.cia402.states import (
 from bus_agent.bus.pdo import RXPDO_INDEX, TXPDO_INDEX, DriveInputs, DriveOutputs
 from bus_agent.sim.drive_profiles import PROFILES, DriveProfile, Emcy, decode_command
 from bus_agent.sim.homing_model import HOME_SWITCH_BIT, HOMING_BITS_MASK, SimHoming
+from bus_agent.sim.profile_model import SimProfilePosition, ramp
 # The object dictionary, abort and error codes live in bus_agent.sim.objects; re-exported here
 # for the simulators and tests that import them from the drive model.
 from bus_agent.sim.objects import (
-    _INDEXES,
-    _INT_FORMATS,
-    _INT_RANGES,
-    _PDO_CONFIG_INDEXES,
-    ABORT_DEVICE_STATE,
-    ABORT_LENGTH_MISMATCH,
-    ABORT_NO_OBJECT,
-    ABORT_NO_SUBINDEX,
-    ABORT_NOT_MAPPABLE,
-    ABORT_READ_ONLY,
-    ABORT_VALUE_RANGE,
-    ABORT_WRITE_ONLY,
-    ERROR_COMMUNICATION_LOST,
-    ERROR_FOLLOWING_ERROR,
-    ERROR_GENERIC,
-    OBJECT_TABLE,
-    OBJECTS,
-    SDO_ABORT_TEXT,
-    ObjectEntry,
-    SdoAbort,
-    _e,
-    error_register_for,
+    _INDEXES, _INT_FORMATS, _INT_RANGES, _PDO_CONFIG_INDEXES, ABORT_DEVICE_STATE, ABORT_LENGTH_MISMATCH,
+    ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, ABORT_NOT_MAPPABLE, ABORT_READ_ONLY, ABORT_VALUE_RANGE,
+    ABORT_WRITE_ONLY, ERROR_COMMUNICATION_LOST, ERROR_FOLLOWING_ERROR, ERROR_GENERIC, OBJECT_TABLE, OBJECTS,
+    SDO_ABORT_TEXT, ObjectEntry, SdoAbort, _e, error_register_for,
 )
 
 __all__ = ["ABORT_DEVICE_STATE", "ABORT_LENGTH_MISMATCH", "ABORT_NO_OBJECT", "ABORT_NO_SUBINDEX", "ABORT_NOT_MAPPABLE",
@@ -147,10 +130,7 @@ class DriveModel:
         self._torque = 0.0
         self._mode_pending: int | None = None
         self._mode_delay = 0
-        self._pp_target: float | None = None
-        self._prev_new_setpoint = False
-        self._pp_ack = False
-        self._pp_wait: int | None = None
+        self._pp = SimProfilePosition()  # mode 1: the set-point handshake and its target
         #: test knobs of the PP handshake: steps before a set-point is acknowledged, and an
         #: acknowledge that never falls (a drive bug the master must survive)
         self.pp_ack_delay_steps = 0
@@ -372,7 +352,7 @@ class DriveModel:
         self._state = state
         self._steps_in_state = 0
         if state is State.OPERATION_ENABLED:
-            self._pp_target = None
+            self._pp.target = None
         else:
             self._homing.interrupt()
 
@@ -476,20 +456,11 @@ class DriveModel:
 
     # ---------------------------------------------------------------- motion
 
-    def _ramp_to(self, target_v: float, accel: float, decel: float, dt: float) -> None:
-        v = self._velocity
-        rate = decel if abs(target_v) < abs(v) or target_v * v < 0 else accel
-        dv = rate * dt
-        if abs(target_v - v) <= dv:
-            self._velocity = target_v
-        else:
-            self._velocity = v + math.copysign(dv, target_v - v)
-
     def _stop(self, option: int, dt: float) -> None:
         if option == 0:
             self._velocity = 0.0
         else:
-            self._ramp_to(0.0, 0.0, self._decel_for_option(option), dt)
+            self._velocity = ramp(self._velocity, 0.0, 0.0, self._decel_for_option(option), dt)
 
     def _motion(self, cw: int, dt: float) -> None:
         v = self._values
@@ -499,7 +470,7 @@ class DriveModel:
         if s is State.OPERATION_ENABLED:
             if cw & CONTROLWORD_HALT:
                 self._homing.interrupt()
-                self._pp_target = None  # halt ends a profile position set-point (nothing resumes)
+                self._pp.target = None  # halt ends a profile position set-point (nothing resumes)
                 self._stop(int(v[(0x605D, 0)]), dt)
                 self._target_reached = self._velocity == 0.0
             else:
@@ -560,42 +531,17 @@ class DriveModel:
             self._velocity = max(-vmax, min(vmax, self._velocity))
         elif mode == Mode.PROFILE_VELOCITY:
             target_v = max(-vmax, min(vmax, float(int(v[(0x60FF, 0)]))))
-            self._ramp_to(target_v, accel, decel, dt)
+            self._velocity = ramp(self._velocity, target_v, accel, decel, dt)
             self._target_reached = abs(self._velocity - target_v) <= _VELOCITY_WINDOW
         elif mode == Mode.PROFILE_POSITION:
-            # set-point handshake: bit 4 rising -> take 0x607A (after pp_ack_delay_steps) and set
-            # the acknowledge (statusword bit 12); it falls with bit 4 (unless pp_ack_stuck)
-            new_setpoint = bool(cw & 0x10)
-            if new_setpoint and not self._prev_new_setpoint:
-                self._pp_wait = self.pp_ack_delay_steps
-            self._prev_new_setpoint = new_setpoint
-            if new_setpoint and self._pp_wait is not None:
-                if self._pp_wait <= 0:
-                    target = float(int(v[(0x607A, 0)]))
-                    if cw & 0x40:  # relative
-                        target += self._pp_target if self._pp_target is not None else self._position
-                    self._pp_target = self._within_limits(target)
-                    self._pp_ack = True
-                    self._pp_wait = None
-                else:
-                    self._pp_wait -= 1
-            elif not new_setpoint and not self.pp_ack_stuck:
-                self._pp_wait = None
-                self._pp_ack = False
-            if self._pp_target is None:
-                self._ramp_to(0.0, accel, decel, dt)
-            else:
-                dist = self._pp_target - self._position
-                # the fastest speed that can still stop at the target with 0x6084
-                want = math.copysign(min(float(v[(0x6081, 0)]), vmax, math.sqrt(2.0 * decel * abs(dist))), dist)
-                self._ramp_to(want, accel, decel, dt)
-                if dt > 0 and abs(dist) <= abs(self._velocity) * dt:
-                    self._velocity = dist / dt  # land on the target this step
-                self._target_reached = abs(dist - self._velocity * dt) < 0.5
+            self._velocity, self._target_reached = self._pp.step(
+                cw, int(v[(0x607A, 0)]), self._position, self._velocity, profile_velocity=float(v[(0x6081, 0)]),
+                vmax=vmax, accel=accel, decel=decel, dt=dt, within_limits=self._within_limits,
+                ack_delay_steps=self.pp_ack_delay_steps, ack_stuck=self.pp_ack_stuck)
         elif mode == Mode.HOMING:
             self._home(cw, dt)
         else:
-            self._ramp_to(0.0, accel, decel, dt)  # no mode: hold
+            self._velocity = ramp(self._velocity, 0.0, accel, decel, dt)  # no mode: hold
 
     def _within_limits(self, target: float) -> float:
         """A position target limited to the software position limits 0x607D:1/2 (CiA 402)."""
@@ -620,7 +566,7 @@ class DriveModel:
         if at_edge:
             self._position = float(int(v[(0x607C, 0)]))  # the edge latched: position = home offset
         accel = float(v[(0x609A, 0)]) or 1.0
-        self._ramp_to(want or 0.0, accel, accel, dt)
+        self._velocity = ramp(self._velocity, want or 0.0, accel, accel, dt)
         if self._velocity == 0.0:
             h.at_rest()
 
@@ -637,7 +583,7 @@ class DriveModel:
         if s is State.OPERATION_ENABLED:
             if mode in (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY, Mode.CYCLIC_SYNC_TORQUE):
                 sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # drive follows the command value
-            elif mode == Mode.PROFILE_POSITION and self._pp_ack:
+            elif mode == Mode.PROFILE_POSITION and self._pp.ack:
                 sw |= 1 << StatuswordBit.OPERATION_MODE_SPECIFIC_12  # set-point acknowledge
             elif mode == Mode.HOMING:
                 sw = (sw & ~HOMING_BITS_MASK) | self._homing.bits(self._velocity)

@@ -38,9 +38,9 @@ def test_a_departing_agent_wakes_the_commands_waiting_for_it() -> None:
     from supervisor.fleet import Fleet
 
     fleet = Fleet(connect=["tcp/127.0.0.1:1"], name="t")   # not opened: only its view is used
-    fleet._host_alive(keys.alive("h1"), True)
+    fleet._view.host_alive(keys.alive("h1"), True)
     col = _Collector(frozenset({DriveRef("h1", "a")}))
-    fleet._collectors.add(col)
+    fleet._commands.collectors.add(col)
     waiting, woken = threading.Event(), []
 
     def waiter() -> None:
@@ -53,6 +53,6 @@ def test_a_departing_agent_wakes_the_commands_waiting_for_it() -> None:
     assert waiting.wait(10)
     with col.cv:  # taken only once the waiter is inside wait()
         pass
-    fleet._host_alive(keys.alive("h1"), False)
+    fleet._view.host_alive(keys.alive("h1"), False)
     t.join(10)
     assert woken == [True] and fleet.hosts() == []
