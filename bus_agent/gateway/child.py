@@ -235,7 +235,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
 
     def publish_bad(snap: rt.CycleSnapshot) -> None:
         for gw in gws:
-            gw.publish_bad_now(snap)
+            gw.publisher.publish_bad_now(snap)
 
     proxy.bad_sink = publish_bad
 
