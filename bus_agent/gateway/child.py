@@ -101,7 +101,7 @@ class CycleProxy:
         answer = self._round_trip(cid, encode_command(cid, cmd), SUBMIT_TIMEOUT_S)
         hops.stamp("gw.answer")
         if answer is None:
-            self.state = "error"  # why submit said no (Gateway._refused reads it)
+            self.state = "error"  # why submit said no (the command path's refusal text reads it)
             accepted = False
         else:
             accepted, self.state = answer

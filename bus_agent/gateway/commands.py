@@ -143,7 +143,7 @@ class Commands:
 
     def _next_timer_s(self) -> float:
         t = time.monotonic() + 0.2
-        nxt = self._peers.next_expiry_s()
+        nxt = self._leases.next_expiry_s()
         if nxt is not None:
             t = min(t, nxt)
         return t

@@ -32,6 +32,7 @@ from types import SimpleNamespace
 from typing import Any, Callable
 
 from bus_agent import runtime as rt
+from bus_agent.gateway.settings import GatewaySettings
 from schemas import keys
 from schemas import messages as m
 
@@ -205,7 +206,7 @@ class HostClaim:
     ``agent_status_now`` of the gateway's feed, to say when a conflict begins or ends.
     :meth:`on_own_status` and :meth:`tick` run on ``gw-command``."""
 
-    def __init__(self, settings: Any, config: Any, emit: Callable[[Any], None],
+    def __init__(self, settings: GatewaySettings, config: Any, emit: Callable[[rt.CycleEvent], None],
                  agent_status_now: Callable[[], None]) -> None:
         self.host = settings.host
         self.instance = settings.instance or new_instance()

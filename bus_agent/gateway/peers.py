@@ -132,10 +132,6 @@ class Peers:
             if ended:
                 self._leases_ended(ended)
 
-    def next_expiry_s(self) -> float | None:
-        """When the next lease expires (monotonic), None without leases."""
-        return self.leases.next_expiry_s()
-
     def tick(self, now: float) -> None:
         """End the leases expired at ``now`` (their reactions run)."""
         ended = self.leases.expire(now)

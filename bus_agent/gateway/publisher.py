@@ -16,7 +16,7 @@ import operator
 import os
 import threading
 import time
-from typing import TYPE_CHECKING, Mapping
+from typing import Mapping
 
 import zenoh
 
@@ -24,15 +24,13 @@ from bus_agent import hops
 from bus_agent import runtime as rt
 from bus_agent.cycle.realtime import name_thread, set_thread_fifo
 from bus_agent.gateway.handoff import Feed
+from bus_agent.gateway.hostclaim import HostClaim
+from bus_agent.gateway.peers import Peers
 from bus_agent.gateway.requests import MSGPACK, key_expr, undeclare
 from bus_agent.gateway.settings import BAD_STATES, GatewaySettings
 from schemas import keys
 from schemas import messages as m
 from schemas.error_codes import describe
-
-if TYPE_CHECKING:
-    from bus_agent.gateway.hostclaim import HostClaim
-    from bus_agent.gateway.peers import Peers
 
 log = logging.getLogger("bus_agent.gateway.gateway")
 
