@@ -245,12 +245,14 @@ class Commands:
         r = parsed.request
         if self._claim.conflict_text and r.op in CONFLICT_REFUSED_OPS:
             # Another agent may obey the same command: nothing that raises power or clears a fault.
+            conflict = self._claim.conflict_text
             for axis in parsed.axes or ("",):
-                self._outcome(req, rt.Outcome(axis, "rejected", state=self._feed.state(axis), reason=self._claim.conflict_text))
+                self._outcome(req, rt.Outcome(axis, "rejected", state=self._feed.state(axis), reason=conflict))
             return
         on_outcome = functools.partial(self._outcome_from_cycle, req)
         if not parsed.axes:  # agent command
-            blocked = self._peers.blocking(r.supervisor, [parsed.args["axis"]] if parsed.args.get("axis") else self.axes)
+            axes = [parsed.args["axis"]] if parsed.args.get("axis") else self.axes
+            blocked = self._peers.blocking(r.supervisor, axes)
             if blocked:
                 self._outcome(req, rt.Outcome("", "busy", reason=f"leased: {blocked}"))
                 return
@@ -316,7 +318,7 @@ class Commands:
         if event and outcome.axis:
             detail = f"{req.op} {reply.outcome}" + (f": {reply.reason}" if reply.reason else "")
             self._feed.emit(rt.CycleEvent(outcome.axis, "outcome", detail=detail, to_state=reply.state,
-                                     error_code=reply.error_code, request_id=req.request_id))
+                                          error_code=reply.error_code, request_id=req.request_id))
         if req.done:
             self._pending.discard(req)
             log.info("agent %s: command %s op %s from %s finished: %s", self.host, req.request_id, req.op,

@@ -111,8 +111,8 @@ class Peers:
                      f"lease refused: another addressed drive is leased by {dec.previous}"
             return rt.Outcome(dec.axis, "busy", state=state, reason=reason)
         if dec.result is LeaseResult.TAKEN_OVER:
-            self._feed.emit(rt.CycleEvent(dec.axis, "lease", detail=f"lease taken over by {dec.holder} from {dec.previous}",
-                                          request_id=req.request_id))
+            detail = f"lease taken over by {dec.holder} from {dec.previous}"
+            self._feed.emit(rt.CycleEvent(dec.axis, "lease", detail=detail, request_id=req.request_id))
         elif dec.result in (LeaseResult.GRANTED, LeaseResult.RELEASED):
             who = dec.holder or dec.previous
             self._feed.emit(rt.CycleEvent(dec.axis, "lease", detail=f"lease {dec.result.value} ({who})",
@@ -149,8 +149,8 @@ class Peers:
             ops = LEASE_REACTION_OPS.get(reaction, LEASE_REACTION_OPS["quick_stop_then_disable"])
             log.warning("drive %s/%s: lease of %s %s: %s", self.host, e.lease.axis, e.lease.holder, why,
                         " then ".join(ops) or "no reaction")
-            self._feed.emit(rt.CycleEvent(e.lease.axis, "lease",
-                                          detail=f"lease of {e.lease.holder} ended ({why}): {', then '.join(ops) or 'no reaction'}"))
+            detail = f"lease of {e.lease.holder} ended ({why}): {', then '.join(ops) or 'no reaction'}"
+            self._feed.emit(rt.CycleEvent(e.lease.axis, "lease", detail=detail))
             if ops:
                 by_reaction.setdefault(ops, []).append(e.lease.axis)
         for ops, axes in by_reaction.items():

@@ -344,7 +344,8 @@ class Publisher:
             overruns=st.overruns, wkc_errors=st.wkc_errors, expected_wkc=st.expected_wkc,
             axes=list(self.axes), al_states={d.axis: d.al_state for d in snap.drives} if snap else {},
             leases=dict(self._peers.holders), groups={g: list(ms) for g, ms in self.s.groups.items()},
-            instance=self._claim.instance, conflict=self._claim.conflict_text[:400], commands=dict(self._command_counts),
+            instance=self._claim.instance, conflict=self._claim.conflict_text[:400],
+            commands=dict(self._command_counts),
             dc={d.axis: d.dc for d in snap.drives} if snap else {},
             dc_offset_p50_us=st.dc_offset_p50_us, dc_offset_p99_us=st.dc_offset_p99_us,
         )

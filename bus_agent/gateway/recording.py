@@ -14,7 +14,8 @@ from typing import Any
 
 import zenoh
 
-from bus_agent.gateway.requests import MSGPACK, RECORDING_QUEUE, RECORDING_TIMEOUT_S, finish, recording_message, reply_err
+from bus_agent.gateway.requests import (MSGPACK, RECORDING_QUEUE, RECORDING_TIMEOUT_S, finish, recording_message,
+                                        reply_err)
 from schemas import keys
 from schemas import messages as m
 
