@@ -85,20 +85,21 @@ def run(rounds: int) -> dict[str, Any]:
                 reply = m.CommandReply(request_id=req.request_id, host="b1", op="enable", outcome="done", axis=a,
                                        state="operation_enabled", elapsed_s=0.01, cycles=9)
                 m.encode(reply)
-                gw._publish_event(rt.CycleEvent(a, "outcome", detail="enable done", to_state="operation_enabled",
-                                                request_id=req.request_id), 1, time.time_ns())
+                gw.publisher.publish_event(rt.CycleEvent(a, "outcome", detail="enable done", to_state="operation_enabled",
+                                                         request_id=req.request_id), 1, time.time_ns())
 
         def audit() -> None:
-            gw._audit(key, parsed.request, parsed.axes, "alice", "accepted")
-            while gw._events:
-                ev, cycle, t_ns = gw._events.popleft()
-                gw._publish_event(ev, cycle, t_ns)
+            gw.commands.audit(key, parsed.request, parsed.axes, "alice", "accepted")
+            events = gw.feed.events
+            while events:
+                ev, cycle, t_ns = events.popleft()
+                gw.publisher.publish_event(ev, cycle, t_ns)
 
         status = m.DriveStatus(host="b1", axis="axis0", seq=1, time_ns=time.time_ns(), cycle=1, state="fault",
                                statusword=0x0218, controlword=0, goal="disabled", halt=False, mode=8,
                                mode_display=8, position=0, velocity=0, torque=0, error_code=0x2310,
                                error_text="continuous over-current")
-        gw._commands_idle.set()
+        gw.inbox.idle.set()
         base_us = _per_op_us(existing, rounds)
         audit_us = _per_op_us(audit, rounds)
         encode_us = _per_op_us(lambda: m.encode(status), rounds * 16)

@@ -101,7 +101,7 @@ class CycleProxy:
         answer = self._round_trip(cid, encode_command(cid, cmd), SUBMIT_TIMEOUT_S)
         hops.stamp("gw.answer")
         if answer is None:
-            self.state = "error"  # why submit said no (Gateway._refused reads it)
+            self.state = "error"  # why submit said no (the command path's refusal text reads it)
             accepted = False
         else:
             accepted, self.state = answer
@@ -235,7 +235,7 @@ def child_main(argv: Sequence[str] | None = None) -> int:
 
     def publish_bad(snap: rt.CycleSnapshot) -> None:
         for gw in gws:
-            gw.publish_bad_now(snap)
+            gw.publisher.publish_bad_now(snap)
 
     proxy.bad_sink = publish_bad
 

@@ -29,11 +29,16 @@ import threading
 import time
 import uuid
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, Callable
 
+from bus_agent import runtime as rt
+from bus_agent.gateway.settings import GatewaySettings
 from schemas import keys
+from schemas import messages as m
 
 log = logging.getLogger(__name__)
+#: The running conflict is logged under the gateway's logger name, like the gateway's other news.
+gwlog = logging.getLogger("bus_agent.gateway.gateway")
 
 #: How long start-up waits for a link to a configured router or peer before it checks anyway.
 LINK_WAIT_S = 2.0
@@ -190,3 +195,86 @@ class ClaimLink:
                     close()
                 except Exception as exc:  # closing must finish
                     log.warning("host claim: close: %s", exc)
+
+
+class HostClaim:
+    """The gateway's part for its host name: this process' instance id, the start-up check, the
+    claim's own session (:class:`ClaimLink`, when ``config`` is given) and the running conflict.
+
+    Given: the settings' host, instance and check flags, the claim session's ``config``
+    (:func:`claim_config`; None when the agent's own session serves), and ``emit`` and
+    ``agent_status_now`` of the gateway's feed, to say when a conflict begins or ends.
+    :meth:`on_own_status` and :meth:`tick` run on ``gw-command``."""
+
+    def __init__(self, settings: GatewaySettings, config: Any, emit: Callable[[rt.CycleEvent], None],
+                 agent_status_now: Callable[[], None]) -> None:
+        self.host = settings.host
+        self.instance = settings.instance or new_instance()
+        self._check_host = settings.check_host
+        self._has_connect = settings.has_connect
+        # Other agents under our host name; a conflict ends after three silent status periods.
+        self._conflicts = ConflictTracker(self.host, self.instance, max(1.0, 3 * settings.agent_period_s))
+        #: '' without a conflict, else what it is (refuses the ops of CONFLICT_REFUSED_OPS).
+        self.conflict_text = ""
+        self._config = config
+        self._link: ClaimLink | None = None
+        self._opened = False
+        self._emit = emit
+        self._agent_status_now = agent_status_now
+
+    def check(self, session: Any, on_own_status: Callable[[Any], None]) -> None:
+        """Open the claim's session (if configured; it listens to our host's agent status with
+        ``on_own_status``) and, unless disabled, raise :class:`HostNameTaken` when another agent
+        holds the host name (the claim's session closed again)."""
+        # The claim goes through a session the routers route for (claim_config): a peer's own
+        # session does not reach another peer behind the same router.
+        claim = None
+        if self._config is not None:
+            self._link = ClaimLink(self._config, keys.agent_status(self.host), on_own_status)
+            claim = self._link.open()
+        self._opened = claim is not None
+        if not self._check_host:
+            return
+        try:
+            if claim is not None:
+                check_host_free(claim, self.host, has_connect=True)
+            else:  # a client open already waited for a router: check what the own session sees now
+                check_host_free(session, self.host, has_connect=self._has_connect and self._link is None)
+        except Exception:
+            if self._link is not None:
+                self._link.close()
+            raise
+
+    def retry(self, stop: threading.Event) -> threading.Thread | None:
+        """Thread ``gw-claim`` when the claim's session did not open at :meth:`check`, else None."""
+        if self._link is None or self._opened:
+            return None
+        return self._link.retry(stop)
+
+    def on_own_status(self, sample: Any) -> None:
+        """An agent status under our host name (ours, or another instance's: a conflict)."""
+        try:
+            st = m.decode(sample.payload.to_bytes(), m.AgentStatus)
+        except m.SchemaError:
+            return
+        if self._conflicts.seen(st.instance, time.monotonic()):
+            self._conflict_changed()
+
+    def tick(self, now: float) -> None:
+        """End the conflict once the other instances were silent long enough."""
+        if self._conflicts.expire(now):
+            self._conflict_changed()
+
+    def _conflict_changed(self) -> None:
+        self.conflict_text = self._conflicts.text
+        if self.conflict_text:
+            gwlog.error("agent %s: %s", self.host, self.conflict_text)
+        else:
+            gwlog.warning("agent %s: host name conflict over (no other instance for %.0f s)", self.host,
+                        self._conflicts.hold_s)
+        self._emit(rt.CycleEvent("", "conflict", detail=self.conflict_text or "host name conflict over"))
+        self._agent_status_now()  # say it in the agent status now
+
+    def close(self) -> None:
+        if self._link is not None:
+            self._link.close()

@@ -254,3 +254,11 @@ def reply_err(query: zenoh.Query, text: str) -> None:
     except Exception as exc:
         log.warning("reply_err failed: %s", exc)
     finish(query)
+
+
+def undeclare(decl: Any) -> None:
+    """Undeclare a Zenoh entity; a failure (the session already closed) is only logged."""
+    try:
+        decl.undeclare()
+    except Exception as exc:
+        log.debug("undeclare: %s", exc)

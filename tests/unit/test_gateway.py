@@ -181,7 +181,7 @@ def test_repeated_request_id_returns_first_outcome(gw):
     wait_for(lambda: cycle.held, what="first command submitted")
     t2 = threading.Thread(target=lambda: results.append(command(client, "x1", "enable", rid="dup")))
     t2.start()
-    wait_for(lambda: len(gateway._requests["dup"].waiting) == 2, what="repeat attached to the pending request")
+    wait_for(lambda: len(gateway.commands.request("dup").waiting) == 2, what="repeat attached to the pending request")
     cycle.release_held()
     t.join(5)
     t2.join(5)
@@ -226,7 +226,7 @@ def watching_x2(net, **settings):
     got: list = []
     sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
     try:
-        wait_for(lambda: "x2" in gateway._published and gateway._status_pubs["x2"].matching_status.matching,
+        wait_for(lambda: "x2" in gateway.publisher.published and gateway.publisher.status_pubs["x2"].matching_status.matching,
                  what="first status published and the subscriber matched")
         yield gateway, cycle, got
     finally:
@@ -282,7 +282,7 @@ def test_lease_busy_takeover_release(gw):
     assert oks[0][1].outcome == "busy"
     oks, _ = command(client, "x1", "lease", args={"holder": "supB", "takeover": True}, supervisor="supB")
     assert (oks[0][1].outcome, oks[0][1].lease_holder) == ("done", "supB")
-    wait_for(lambda: gateway._published.get("x1") and gateway._published["x1"].lease_holder == "supB",
+    wait_for(lambda: gateway.publisher.published.get("x1") and gateway.publisher.published["x1"].lease_holder == "supB",
              what="status shows the holder")
     oks, _ = command(client, "x1", "release", args={"holder": "supB"}, supervisor="supB")
     assert oks[0][1].outcome == "done"
@@ -335,7 +335,7 @@ def test_remote_group_member_fault_triggers(net):
         time.sleep(0.2)
         assert len(cycle.triggers) == 1 and cycle.triggers[0][0] == "g" and "far/y1 fault" in cycle.triggers[0][1]
         token = client_s.liveliness().declare_token(keys.alive("far"))
-        remote = gateway._remotes[0]
+        remote = gateway.peers.remotes[0]
 
         def publish_good():
             pub.put(m.encode(good))
@@ -357,7 +357,7 @@ def test_a_change_of_what_was_asked_alone_waits_for_the_drives_answer_bounded(ne
     with watching_x2(net, cycle_us=1_000_000) as (gateway, cycle, got):
         n = len(got)
         cycle.set("x2", controlword=0x0006, goal="enabled")
-        wait_for(lambda: "x2" in gateway._held_until, what="the asked change held")
+        wait_for(lambda: "x2" in gateway.publisher.held_until, what="the asked change held")
         assert got[n:] == []
         cycle.set("x2", state="ready_to_switch_on", statusword=0x0231)
         wait_for(lambda: len(got) > n, what="the answer's status")
@@ -367,7 +367,7 @@ def test_a_change_of_what_was_asked_alone_waits_for_the_drives_answer_bounded(ne
         cycle.set("x2", controlword=0x0007)                       # the drive never answers this one
         wait_for(lambda: len(got) > n, timeout_s=20.0, what="the held change, out after the bound")
         assert [(s.state, s.controlword) for s in got[n:]] == [("ready_to_switch_on", 0x0007)]
-        assert "x2" not in gateway._held_until
+        assert "x2" not in gateway.publisher.held_until
         cycle.set("x2", state="fault", error_code=0x2310)         # a drive's own change: never held
         wait_for(lambda: any(s.state == "fault" for s in got), what="the fault at once")
         seqs = [s.seq for s in got]

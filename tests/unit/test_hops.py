@@ -9,10 +9,9 @@ import sys
 import textwrap
 import threading
 from pathlib import Path
-from types import SimpleNamespace
 
 from bus_agent import hops
-from bus_agent.gateway.publisher import PublisherMixin
+from bus_agent.gateway.publisher import PublishPriority
 from bus_agent.gateway.requests import axes_in_key
 from schemas import keys
 from tests.conftest import require_root
@@ -89,27 +88,24 @@ def test_zenoh_threads_are_put_under_sched_fifo():
 
 def test_publish_pass_runs_under_normal_scheduling_and_waits_under_sched_fifo():
     require_root()
-    pub = PublisherMixin.__new__(PublisherMixin)   # only the scheduling state is used
-    pub.s = SimpleNamespace(rt_priority=2)
-    pub.host = "h1"
-    pub._publish_normal = False
+    priority = PublishPriority(2, "h1")
     seen: list[int] = []
 
     def thread() -> None:
         from bus_agent.cycle.realtime import set_thread_fifo
 
-        pub._publish_fifo = set_thread_fifo(2, "test")
+        priority.fifo = set_thread_fifo(2, "test")
         seen.append(os.sched_getscheduler(0))
-        pub._publish_normal_priority()   # after the alarms of a pass
+        priority.to_normal()   # after the alarms of a pass
         seen.append(os.sched_getscheduler(0))
-        pub._publish_realtime_again()    # before waiting for the next snapshot
+        priority.to_fifo()    # before waiting for the next snapshot
         seen.append(os.sched_getscheduler(0))
 
     t = threading.Thread(target=thread)
     t.start()
     t.join(10)
     assert seen == [os.SCHED_FIFO, os.SCHED_OTHER, os.SCHED_FIFO]
-    assert pub._publish_normal is False
+    assert priority.normal is False
 
 
 def test_axes_in_key_is_remembered_per_key_op_and_principal():

@@ -222,7 +222,7 @@ def test_the_gateway_publishes_a_new_fault_at_once_on_the_callers_thread() -> No
     got: list = []
     sub = client.declare_subscriber(keys.drive_status(HOST, "x2"), lambda s: got.append(m.decode(s.payload)))
     try:
-        wait_for(lambda: gateway._status_pubs["x2"].matching_status.matching, what="the subscriber matched")
+        wait_for(lambda: gateway.publisher.status_pubs["x2"].matching_status.matching, what="the subscriber matched")
 
         def snap() -> rt.CycleSnapshot:
             return rt.CycleSnapshot(cycle.cycle, time.time_ns(), tuple(cycle.drives.values()), (), rt.CycleStats())
