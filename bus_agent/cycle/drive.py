@@ -81,7 +81,7 @@ class Drive:
     error_code_readable: bool = True    # False once an SDO read of 0x603F was refused: EMCY only
     last_emcy_code: int = 0             # the last emergency's error code (0 after an error reset EMCY)
     dc: str = "none"                    # DC state of the slave (bus dc_states)
-    # the last published snapshot and the values it was built from (Cycle._drive_snapshots)
+    # the last published snapshot and the values it was built from (Snapshots.drive_snapshots)
     snapshot: DriveSnapshot | None = None
     snapshot_key: tuple = ()
     #: The axis limits on the targets written to the wire (``out``); built from ``motion``.
