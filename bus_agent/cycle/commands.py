@@ -10,6 +10,7 @@ halt to a drive's controller (its outcome when the controller reports it), a mot
 from __future__ import annotations
 
 import logging
+from typing import Sequence
 
 from bus_agent import hops
 from bus_agent.cia402.controller import Goal
@@ -52,9 +53,8 @@ class Commands:
         """Why no command can act on ``d`` now ('' if one can)."""
         return self._health.refusal(d, self._nmt.run)
 
-    def apply(self, now_ns: int) -> bool:
-        """Apply the queued commands; True when there were any."""
-        cmds = self._book.take()
+    def apply(self, cmds: Sequence[DriveCommand | AgentCommand], now_ns: int) -> None:
+        """Apply ``cmds`` (taken from the command book), in order."""
         for cmd in cmds:
             try:
                 if isinstance(cmd, AgentCommand):
@@ -65,7 +65,6 @@ class Commands:
                 log.exception("host %s: command %s failed", self._seg.host, getattr(cmd, "request_id", "?"))
                 if isinstance(cmd, AgentCommand):
                     send_outcome(cmd, Outcome(axis="", outcome="rejected", reason=f"internal error: {e}"))
-        return bool(cmds)
 
     def _apply_drive(self, cmd: DriveCommand, now_ns: int) -> None:
         hops.stamp("cy.apply")

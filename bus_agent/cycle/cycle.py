@@ -518,16 +518,22 @@ class Cycle:
         work: Sequence[Drive] = drives
         # (an express reflex since the last cycle changed goals, and its exchange inputs)
         expressed, express_events = self.reflexes.take_express()
+        losing = health.losing
         if (changed is not None and not reports and running and nmt.run is None
-                and not health.losing and not expressed):
+                and not losing and not expressed):
             work = ctl.select(changed)
-        ctl.read_inputs(work)
+        if work:
+            ctl.read_inputs(work)
         ctl.take_emergencies()
-        origins = ctl.new_faults(work, now_ns)
-        origins += health.take_lost_origins()
+        origins = ctl.new_faults(work, now_ns) if work else []
+        if losing:
+            origins += health.take_lost_origins()
 
         # commands and remote triggers -> group reflexes
-        applied = self._commands.apply(now_ns) if running else False
+        cmds = self._book.take() if running else None
+        applied = bool(cmds)
+        if cmds:
+            self._commands.apply(cmds, now_ns)
         triggers = self.triggers
         triggers.look()
         if triggers.queue:
@@ -544,9 +550,10 @@ class Cycle:
             health.wanted_changed()  # an NMT command may change the wanted AL states
 
         # controllers -> outputs -> deadlines
-        stats.drives_stepped += len(work)
-        ctl.step(work, now_ns)
-        self._book.deadlines(work, now_ns)
+        if work:
+            stats.drives_stepped += len(work)
+            ctl.step(work, now_ns)
+            self._book.deadlines(work, now_ns)
         if nmt.run is not None:
             nmt.step(now_ns)
             health.wanted_changed()
