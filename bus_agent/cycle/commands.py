@@ -18,13 +18,11 @@ from bus_agent.cia402.states import Mode, decode_statusword
 from bus_agent.cycle.drive import FAULT_STATES, VALID_MODES, Drive, Pending, Segment
 from bus_agent.cycle.motion import MotionStage
 from bus_agent.cycle.nmt import Nmt
-from bus_agent.cycle.outcomes import INBOX_MAX, CommandBook, send_outcome
+from bus_agent.cycle.outcomes import CommandBook, send_outcome
 from bus_agent.cycle.slaves import SlaveHealth
 from bus_agent.cycle.stats import Statistics
 from bus_agent.motion.axis import MOTION_OPS
 from bus_agent.runtime import AgentCommand, DriveCommand, Outcome
-
-__all__ = ["Commands", "GOAL_OF_OP", "INBOX_MAX"]
 
 log = logging.getLogger("bus_agent.cycle.cycle")
 

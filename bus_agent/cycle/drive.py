@@ -125,7 +125,3 @@ class Segment:
     @property
     def axes(self) -> tuple[str, ...]:
         return tuple(d.axis for d in self.drives)
-
-    def drives_of(self, slave: int) -> list[Drive]:
-        """The drives of the slave at position ``slave``."""
-        return [d for d in self.drives if d.slave == slave]
