@@ -201,8 +201,8 @@ def phase_agent(args) -> dict:
         resets = _enable_all(cyc)
         out = _measure(cyc, args)
         out["startup_fault_resets"] = resets
-        if cyc._dc is not None:
-            out["dc_pi_held_cycles"] = cyc._dc.held
+        if cyc.dc.sync is not None:
+            out["dc_pi_held_cycles"] = cyc.dc.sync.held
         return out
     finally:
         cyc.stop()

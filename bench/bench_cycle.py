@@ -63,8 +63,8 @@ def phase_agent(args) -> dict:
     cyc.start()
     try:
         resets = _enable_all(cyc)
-        assert cyc._thread is not None and cyc._thread.native_id is not None
-        tid = cyc._thread.native_id
+        assert cyc.thread is not None and cyc.thread.native_id is not None
+        tid = cyc.thread.native_id
         c0, t0, ns0 = cyc.cycles, time.monotonic(), task_cpu_ns(tid)
         out = _measure(cyc, args)
         el, cycles, ns = time.monotonic() - t0, cyc.cycles - c0, task_cpu_ns(tid) - ns0

@@ -127,13 +127,13 @@ def phase_spin(args) -> dict:
     cyc.start()
     try:
         time.sleep(1.0)  # warm-up: the adaptive spin has measured its first sleeps
-        assert cyc._thread is not None and cyc._thread.native_id is not None
-        tid = cyc._thread.native_id
+        assert cyc.thread is not None and cyc.thread.native_id is not None
+        tid = cyc.thread.native_id
         first, t0, ns0 = cyc.period_log_len, time.monotonic(), task_cpu_ns(tid)
         while cyc.period_log_len - first < n and time.monotonic() - t0 < args.seconds * 3 + 10:
             time.sleep(0.05)
         el, ns, last = time.monotonic() - t0, task_cpu_ns(tid) - ns0, cyc.period_log_len
-        spin = cyc._spin_auto_ns if cyc.spin_ns is None else cyc.spin_ns
+        spin = cyc.timing.spin_auto_ns if cyc.spin_ns is None else cyc.spin_ns
     finally:
         cyc.stop()
     periods = array("q", cyc.period_log[first:last]) if cyc.period_log is not None else array("q")

@@ -163,7 +163,7 @@ class AgentConfig:
     default_motion: MotionConfig = MotionConfig()
     gateway: str = "process"            # GATEWAY_MODES
     rt_priority: int = 0                # [cycle] rt_priority: SCHED_FIFO of the cycle thread (0: off)
-    express_reflex: bool = True         # [cycle] express_reflex: a remote trigger wakes the cycle (Cycle._express)
+    express_reflex: bool = True         # [cycle] express_reflex: a remote trigger wakes the cycle (Cycle.express)
     spin_at_rest: bool = False          # [cycle] spin_at_rest: spin before deadlines with every drive off too
     dc: DcConfig = DcConfig()           # [dc]: distributed clocks (SYNC0, the cycle kept in step)
     recorder: RecorderConfig = RecorderConfig()

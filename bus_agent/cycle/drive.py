@@ -1,4 +1,4 @@
-"""The cycle's per-drive and per-command records, and the state sets the cycle's parts share.
+"""The cycle's per-drive and per-command records, the segment record, and the state sets the cycle's parts share.
 
 Plain mutable records owned by the cycle thread (:class:`bus_agent.cycle.cycle.Cycle`); nothing
 here does I/O.
@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bus_agent.bus.base import ALState, SlaveALStatus
+from bus_agent.bus.base import ALState, SlaveALStatus, SlaveInfo
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
 from bus_agent.cia402.controller import DriveController, Goal
 from bus_agent.cia402.states import Mode, State
 from bus_agent.config import DriveConfig
+from bus_agent.cycle.groups import Groups
 from bus_agent.motion.axis import AxisMotion
 from bus_agent.motion.output_stage import OutputStage
 from bus_agent.runtime import AgentCommand, DriveCommand, DriveSnapshot
@@ -80,7 +81,7 @@ class Drive:
     error_code_readable: bool = True    # False once an SDO read of 0x603F was refused: EMCY only
     last_emcy_code: int = 0             # the last emergency's error code (0 after an error reset EMCY)
     dc: str = "none"                    # DC state of the slave (bus dc_states)
-    # the last published snapshot and the values it was built from (Cycle._drive_snapshots)
+    # the last published snapshot and the values it was built from (Snapshots.drive_snapshots)
     snapshot: DriveSnapshot | None = None
     snapshot_key: tuple = ()
     #: The axis limits on the targets written to the wire (``out``); built from ``motion``.
@@ -105,3 +106,22 @@ class NmtRun:
     down_deadline_ns: int
     note: str = ""
     ticket: int = 0           # AL status must be read after this management request
+
+
+class Segment:
+    """What the cycle knows of its segment once open: the slaves, the configured drives (in
+    configuration order: ``Drive.index``), the drives by axis and the groups. One record per
+    cycle, given to the parts that look drives up; filled in place by ``Cycle.open``."""
+
+    __slots__ = ("host", "slaves", "drives", "by_axis", "groups")
+
+    def __init__(self, host: str, groups: Groups) -> None:
+        self.host = host
+        self.slaves: list[SlaveInfo] = []
+        self.drives: list[Drive] = []
+        self.by_axis: dict[str, Drive] = {}
+        self.groups = groups
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return tuple(d.axis for d in self.drives)

@@ -1,20 +1,22 @@
 """The cycle's side of the motion layer: motion ops in, targets out, one outcome per command.
 
-A mixin of :class:`bus_agent.cycle.cycle.Cycle` (cycle thread only). The motion logic itself
-is pure and lives in :mod:`bus_agent.motion`; this module only routes commands to each drive's
+:class:`MotionStage` (cycle thread only). The motion logic itself is pure and lives in
+:mod:`bus_agent.motion`; this part only routes commands to each drive's
 :class:`~bus_agent.motion.axis.AxisMotion`, copies its targets into the drive's output record
-(the cycle's ``target_position``/``target_velocity``, written by the usual output path) and turns
-its :class:`~bus_agent.motion.axis.Finished` records into command outcomes.
+(the cycle's ``target_position``/``target_velocity``) through the drive's output stage
+(:func:`write_targets`), and turns its :class:`~bus_agent.motion.axis.Finished` records into
+command outcomes (through the :class:`~bus_agent.cycle.outcomes.CommandBook`).
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 from bus_agent.cia402.states import State
-from bus_agent.cycle.base import CycleBase
-from bus_agent.cycle.drive import Drive
-from bus_agent.cycle.management import SdoJob
+from bus_agent.cycle.drive import Drive, Segment
+from bus_agent.cycle.management import Management, SdoJob
+from bus_agent.cycle.outcomes import CommandBook, send_outcome
+from bus_agent.cycle.stats import Statistics
 from bus_agent.motion.axis import MODE_CSP, MODE_CSV, Finished, Rejected, retime_group, sync_limits
 from bus_agent.motion.homing import MODE_HOMING
 from bus_agent.motion.profile import MODE_PP, MODE_PV
@@ -26,37 +28,46 @@ _FAULTS = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 _ENABLED = State.OPERATION_ENABLED
 
 
-class MotionMixin(CycleBase):
-    """Motion commands and per-cycle motion steps of the :class:`Cycle`."""
+class MotionStage:
+    """Motion commands and per-cycle motion steps of the cycle's drives."""
+
+    def __init__(self, seg: Segment, book: CommandBook, mgmt: Management, stats: Statistics,
+                 wall_ns: Callable[[], int]) -> None:
+        self._seg = seg
+        self._book = book
+        self._mgmt = mgmt
+        self._stats = stats
+        self._wall_ns = wall_ns
 
     # ---- commands ------------------------------------------------------------------------------
 
-    def _motion_command(self, d: Drive, cmd: DriveCommand, now_ns: int) -> None:
-        """move / jog / stop for one axis (a ``sync`` move goes through :meth:`_group_move`)."""
+    def command(self, d: Drive, cmd: DriveCommand, now_ns: int) -> None:
+        """move / jog / stop / home for one axis (a ``sync`` move goes through :meth:`group_move`)."""
         m = d.motion
         now_s = now_ns / 1e9
         start_ns = cmd.received_ns or now_ns
         deadline_s = (start_ns + int(cmd.timeout_s * 1e9)) / 1e9
-        token = (cmd, self.cycles)
+        token = (cmd, self._stats.cycles)
         if cmd.op == "home":
             sup = d.ctrl.supported_modes
             if sup is not None and MODE_HOMING not in sup:
-                self._reply(d, cmd, "rejected", f"homing (mode 6) is not supported by the drive (0x6502: modes "
-                            f"{sorted(sup)})", now_ns, start_ns)
+                self._book.reply(d, cmd, "rejected", f"homing (mode 6) is not supported by the drive (0x6502: "
+                                 f"modes {sorted(sup)})", now_ns, start_ns)
                 return
             ended = m.start_home(token, cmd.request_id, cmd.args, now_s, deadline_s, d.ctrl.mode)
-            self._motion_requests(d, now_ns)
-            self._motion_finished(d, ended, now_ns)
+            self._requests(d, now_ns)
+            self.finished(d, ended, now_ns)
             return
         ended = m.command(token, cmd.request_id, cmd.op, cmd.args, now_s, deadline_s)
-        self._motion_requests(d, now_ns)
+        self._requests(d, now_ns)
         if m.active is not None and m.active.token is token:
             d.ctrl.set_halt(False)  # a new move after a halt: PLCopen MC_Halt may be overridden
-        self._motion_finished(d, ended, now_ns)
+        self.finished(d, ended, now_ns)
 
-    def _group_move(self, cmd: DriveCommand, now_ns: int) -> None:
+    def group_move(self, cmd: DriveCommand, now_ns: int, refusal: Callable[[Drive], str]) -> None:
         """A synchronised move of the axes of one query: all start in the same cycle (or at
-        ``start_at_ns``) and arrive together. Any axis refusing refuses the whole group."""
+        ``start_at_ns``) and arrive together. Any axis refusing refuses the whole group
+        (``refusal``: why no command can act on a drive now, '' if one can)."""
         args = cmd.args
         targets = args.get("targets")
         start_ns = cmd.received_ns or now_ns
@@ -66,13 +77,15 @@ class MotionMixin(CycleBase):
         drives: list[Drive] = []
         prepared = []
         refused: dict[str, str] = {}
+        by_axis = self._seg.by_axis
+        reply = self._book.reply
         for axis in axes:
-            d = self._by_axis.get(axis)
+            d = by_axis.get(axis)
             if d is None:
                 refused[axis] = f"no axis {axis!r} here"
-                self._outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=refused[axis]))
+                send_outcome(cmd, Outcome(axis=axis, outcome="rejected", reason=refused[axis]))
                 continue
-            why = self._refusal(d)
+            why = refusal(d)
             if why:
                 refused[axis] = why
                 drives.append(d)
@@ -100,13 +113,13 @@ class MotionMixin(CycleBase):
         if refused:
             for d in drives:
                 why = refused.get(d.axis) or "group move refused: " + "; ".join(f"{a}: {r}" for a, r in refused.items())
-                self._reply(d, cmd, "rejected", why, now_ns, start_ns)
+                reply(d, cmd, "rejected", why, now_ns, start_ns)
             return
         duration = max((p.duration for p in plans), default=0.0)
         if args.get("prepare"):
             for d in drives:
-                self._reply(d, cmd, "done", f"prepared: minimum duration {duration:.6f} s", now_ns, start_ns,
-                            duration_s=duration)
+                reply(d, cmd, "done", f"prepared: minimum duration {duration:.6f} s", now_ns, start_ns,
+                      duration_s=duration)
             return
         t0_s = now_s
         start_at = args.get("start_at_ns")
@@ -115,38 +128,39 @@ class MotionMixin(CycleBase):
             if t0_s < now_s:
                 late = now_s - t0_s
                 for d in drives:
-                    self._reply(d, cmd, "rejected", f"start_at_ns is {late * 1e3:.3f} ms in the past", now_ns, start_ns)
+                    reply(d, cmd, "rejected", f"start_at_ns is {late * 1e3:.3f} ms in the past", now_ns, start_ns)
                 return
-        token_cycle = self.cycles
+        token_cycle = self._stats.cycles
         for d, plan, prep in zip(drives, plans, prepared):
             d.ctrl.set_halt(False)
             ended = d.motion.start_plan((cmd, token_cycle), cmd.request_id, "sync", plan, t0_s, deadline_s,
                                         note="; ".join(prep[3]), synchronized=True)
-            self._motion_finished(d, ended, now_ns)
+            self.finished(d, ended, now_ns)
 
     def _retime(self, d: Drive, now_ns: int) -> None:
         """``d``'s synchronized move fell behind after a stall: re-time it with the other axes of
-        the same group move here (one command, :meth:`_group_move`), so they keep arriving
+        the same group move here (one command, :meth:`group_move`), so they keep arriving
         together (see :func:`~bus_agent.motion.axis.retime_group`). The drives stepped later in
         this cycle sample the new plans already; those stepped before continue from them."""
         a = d.motion.active
         cmd = a.token[0] if a is not None else None
-        members = [x.motion for x in self.drives if not x.lost and x.motion.active is not None
+        members = [x.motion for x in self._seg.drives if not x.lost and x.motion.active is not None
                    and x.motion.active.token[0] is cmd] if cmd is not None else [d.motion]
         retime_group(members or [d.motion], now_ns / 1e9)
 
-    def _motion_abort(self, d: Drive, reason: str, now_ns: int, *, drop: bool = False) -> None:
+    def abort(self, d: Drive, reason: str, now_ns: int, *, drop: bool = False) -> None:
         """End the running motion command of ``d`` (aborted); ``drop``: forget the plan too (the
         drive is leaving Operation enabled or is lost), else decelerate on the profile."""
         m = d.motion
         ended = m.lose(reason, now_ns / 1e9) if drop else m.abort(reason, now_ns / 1e9)
-        self._motion_requests(d, now_ns)
-        self._motion_finished(d, ended, now_ns)
+        self._requests(d, now_ns)
+        self.finished(d, ended, now_ns)
 
-    def _motion_requests(self, d: Drive, now_ns: int) -> None:
+    def _requests(self, d: Drive, now_ns: int) -> None:
         """What the axis's motion asks of the cycle: a mode (homing: 6, then the previous mode
         back), SDO downloads (homing or profile parameters: on the management thread, since
-        mailbox round trips never run on the cycle thread; answered in ``_apply_sdo``)."""
+        mailbox round trips never run on the cycle thread; answered through
+        ``SlaveHealth.apply_reports``)."""
         m = d.motion
         if m.mode_request is not None:
             d.ctrl.request_mode(m.mode_request, now_ns / 1e9)
@@ -155,15 +169,16 @@ class MotionMixin(CycleBase):
             self._mgmt.sdo(SdoJob(d.slave, "write", writes=m.sdo_request))
             m.sdo_request = None
 
-    def _motion_finished(self, d: Drive, ended: Sequence[Finished], now_ns: int) -> None:
+    def finished(self, d: Drive, ended: Sequence[Finished], now_ns: int) -> None:
+        """Outcomes of the motion commands that ended."""
         for f in ended:
             cmd, start_cycle = f.token
-            self._reply(d, cmd, f.outcome, f.reason, now_ns, cmd.received_ns or now_ns, start_cycle,
-                        duration_s=f.duration_s)
+            self._book.reply(d, cmd, f.outcome, f.reason, now_ns, cmd.received_ns or now_ns, start_cycle,
+                             duration_s=f.duration_s)
 
     # ---- per cycle -----------------------------------------------------------------------------
 
-    def _motion_step(self, d: Drive, hold_target: bool, now_ns: int) -> None:
+    def step(self, d: Drive, hold_target: bool, now_ns: int) -> None:
         """Observe, step, and copy the axis's targets into the drive's output record. Cycle-safe."""
         i = d.inputs
         m = d.motion
@@ -176,7 +191,7 @@ class MotionMixin(CycleBase):
         if m.retime_due:
             self._retime(d, now_ns)
         if m.mode_request is not None or m.sdo_request is not None:
-            self._motion_requests(d, now_ns)
+            self._requests(d, now_ns)
         if m.write and not hold_target:
             if m.homing is not None or m.mode == MODE_HOMING:
                 d.target_position = m.target_position
@@ -191,8 +206,7 @@ class MotionMixin(CycleBase):
         if m.mode == MODE_PV and m.profile_run is None:
             d.target_velocity = 0  # no stale 0x60FF in profile velocity (a jump on the next enable)
         if ended:
-            self._motion_finished(d, ended, now_ns)
-
+            self.finished(d, ended, now_ns)
 
 def write_targets(d: Drive, hold_target: bool) -> None:
     """Copy the drive's targets into its output record through its output stage

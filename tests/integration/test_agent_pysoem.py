@@ -318,7 +318,7 @@ def test_drives_at_rest_are_skipped_and_their_outputs_stay_on_the_wire(ecat_segm
         rid = agent.cmd("enable", "axis0", "axis1", "axis2", "axis3")
         assert all(o.outcome == "done" for o in agent.wait_outcomes(rid, 4))
         cyc = agent.cycle
-        _wait(lambda: not cyc._busy, 5, "every drive at rest")
+        _wait(lambda: not cyc.controllers.busy, 5, "every drive at rest")
         c0, s0 = cyc.cycles, cyc.drives_stepped
         _wait(lambda: cyc.cycles >= c0 + 500, 10, "500 cycles")
         c1, s1 = cyc.cycles, cyc.drives_stepped

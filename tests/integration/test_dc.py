@@ -206,7 +206,7 @@ def test_a_power_cycled_reference_clock_holds_the_pi_and_comes_back_in_phase(eca
     agent.cycle.start()
     try:
         _enable_both(agent)
-        dcs = agent.cycle._dc
+        dcs = agent.cycle.dc.sync
         assert dcs is not None
         _wait(lambda: abs(dcs.error_ns) < 50_000, 20, "the PI settled")
         held0 = dcs.held

@@ -393,7 +393,7 @@ def test_overruns_counted_with_injected_clock():
 
     cyc = Cycle(bus, cfg, clock_ns=clock, sleep=fake_sleep, manage_gc=False, switch_interval_s=None)
     cyc.open()
-    orig = cyc._cycle
+    orig = cyc.run_cycle
     count = [0]
 
     def slow_cycle(now_ns: int) -> None:
@@ -401,13 +401,12 @@ def test_overruns_counted_with_injected_clock():
         clock.ns += 100_000 + next(schedule)  # each cycle takes 100 us, two take much longer
         count[0] += 1
         if count[0] >= 20:
-            cyc._stop_requested.set()
-            cyc._stop_deadline_ns = 0
+            cyc.begin_stop(True, 0.0)
 
-    cyc._cycle = slow_cycle
-    cyc._run()
+    cyc.run_cycle = slow_cycle  # type: ignore[method-assign]
+    cyc.run()
     assert cyc.overruns == 2
-    periods = sorted(cyc._periods[i] for i in range(1, 20))
+    periods = sorted(cyc.statistics.periods[i] for i in range(1, 20))
     # drift-free: back on the 1 ms grid after each overrun (within the fake clock's 1 us reads)
     assert abs(periods[len(periods) // 2] - 1_000_000) <= 5_000
     cyc.stop()

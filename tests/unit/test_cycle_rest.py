@@ -85,7 +85,7 @@ def test_skipping_drives_at_rest_equals_stepping_every_drive(actions):
                 for r in (fast, full):
                     r.cycle.trigger_group("line", "h2/far fault 0x2310")
                     if a[0] == "express":  # applied between two cycles, with its own exchange
-                        r.cycle._express(r.clock.ns + 300_000)
+                        r.cycle.express(r.clock.ns + 300_000)
                 tick()
             else:
                 for r in (fast, full):

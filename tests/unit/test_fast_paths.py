@@ -140,10 +140,10 @@ def test_a_drive_at_rest_keeps_its_snapshot_and_a_change_builds_a_new_one():
         faulted = h.until(lambda s: s.drives[2].state == "fault")
         assert faulted.drives[2].error_code == 0x2310 and faulted.drives[0] is first.drives[0]
         # every published value equals a snapshot built from scratch of the same cycle
-        assert h.cycle._drive_snapshots(h.cycle.drives) is faulted.drives
+        assert h.cycle.snapshots.drive_snapshots(h.cycle.drives) is faulted.drives
         for d in h.cycle.drives:
             d.snapshot = None
-        assert h.cycle._drive_snapshots(h.cycle.drives) == faulted.drives
+        assert h.cycle.snapshots.drive_snapshots(h.cycle.drives) == faulted.drives
         # the positional build names each value right: the fields from their sources, by name
         d, snap = h.cycle.drives[2], faulted.drives[2]
         i = d.inputs
@@ -270,28 +270,27 @@ def test_the_spin_adapts_to_how_late_the_sleep_wakes():
         late = []
         for _ in range(cycles):
             deadline = clock.ns + 1_000_000
-            cyc._wait_until(deadline)
+            cyc.timing.wait_until(deadline)
             late.append(clock.ns - deadline)
-            cyc.cycles += 1
-        cyc._adapt_spin()
+        cyc.timing.adapt_spin()
         return late
 
     cyc.spin_at_rest = True                             # the spin itself (the drive is off here)
     assert cyc.spin_ns is None                          # adaptive by default
-    assert cyc._spin_auto_ns == SPIN_NS                 # until sleeps were measured
+    assert cyc.timing.spin_auto_ns == SPIN_NS                 # until sleeps were measured
     clock.over = 20_000
     assert max(wait(50)) < 5_000                        # woken 20 us late, spun 150 us: on time
-    assert SPIN_MIN_NS <= cyc._spin_auto_ns <= 20_000 + 30_000 + 5_000
+    assert SPIN_MIN_NS <= cyc.timing.spin_auto_ns <= 20_000 + 30_000 + 5_000
     clock.over = 0
     wait(2000)                                          # a whole window of punctual sleeps
-    assert SPIN_MIN_NS <= cyc._spin_auto_ns <= SPIN_MIN_NS + 5_000  # the fake clock ticks 1 us a read
+    assert SPIN_MIN_NS <= cyc.timing.spin_auto_ns <= SPIN_MIN_NS + 5_000  # the fake clock ticks 1 us a read
     clock.over = 400_000                                # a loaded host: the spin goes back up
     wait(10)
-    assert cyc._spin_auto_ns == SPIN_NS
+    assert cyc.timing.spin_auto_ns == SPIN_NS
     cyc.spin_ns = 100_000                               # fixed (benchmarks)
     clock.over = 0
     deadline = clock.ns + 1_000_000
-    cyc._wait_until(deadline)
+    cyc.timing.wait_until(deadline)
     assert 0 <= clock.ns - deadline < 5_000
 
 
@@ -313,7 +312,7 @@ def test_the_loop_spins_only_while_a_drive_is_switched_on_asked_up_or_moving():
 
     def late() -> int:
         deadline = clock.ns + 1_000_000
-        cyc._wait_until(deadline)
+        cyc.timing.wait_until(deadline)
         return clock.ns - deadline
 
     def run(cmd: str) -> list[bool]:
@@ -332,10 +331,10 @@ def test_the_loop_spins_only_while_a_drive_is_switched_on_asked_up_or_moving():
         cyc.tick()
     assert late() >= 40_000                              # both drives off: no spin
     assert all(run("enable"))                            # from the command on: the spin
-    assert late() < 5_000 and cyc._armed == {1}          # axis1 in Operation enabled
+    assert late() < 5_000 and cyc.controllers.armed == {1}          # axis1 in Operation enabled
     run("disable")
     cyc.tick()
-    assert late() >= 40_000 and not cyc._armed          # off again
+    assert late() >= 40_000 and not cyc.controllers.armed          # off again
     cyc.spin_at_rest = True
     assert late() < 5_000
     cyc.stop(ordered=False)

@@ -79,26 +79,25 @@ def _run_cycles(cyc: Cycle, clock: Clock, cycles: int, trigger_in_sleep: int) ->
         clock.ns += 1_000  # every read of the clock takes 1 us, so the spin ends
         return clock.ns
 
-    orig = cyc._cycle
+    orig = cyc.run_cycle
 
     def timed_cycle(now_ns: int) -> None:
         starts.append(now_ns)
         orig(now_ns)
         clock.ns += 100_000
         if len(starts) >= cycles:
-            cyc._stop_requested.set()
-            cyc._stop_deadline_ns = 0
+            cyc.begin_stop(True, 0.0)
 
-    cyc._sleep = sleep
+    cyc.timing.sleep = sleep
     cyc.clock_ns = spin_clock
-    cyc._cycle = timed_cycle  # type: ignore[method-assign]
-    cyc._run()
+    cyc.run_cycle = timed_cycle  # type: ignore[method-assign]
+    cyc.run()
     return starts
 
 
 def test_a_trigger_during_the_sleep_goes_out_at_once_and_the_schedule_stays() -> None:
     cyc, bus, clock, snaps, exchanges = _enabled_cycle()
-    dc = cyc._dc = CountingDc()  # type: ignore[assignment]
+    dc = cyc.dc.sync = CountingDc()  # type: ignore[assignment]
     starts = _run_cycles(cyc, clock, cycles=6, trigger_in_sleep=2)
     # one express exchange between the 2nd and 3rd cycle, at the trigger (halfway through the sleep)
     assert cyc.express_exchanges == 1
@@ -141,7 +140,7 @@ def test_a_trigger_for_members_at_rest_sends_no_extra_frame() -> None:
     cyc.groups = type(cyc.groups)("h1", {"other": ("h1/axis9", "h2/axis0")}, ("axis0", "axis1"))
     clock.ns += PERIOD_NS
     cyc.trigger_group("other", "h2/axis0 lost")
-    cyc._express(clock.ns)
+    cyc.express(clock.ns)
     assert cyc.express_exchanges == 0 and not exchanges      # no local member: nothing to send
     assert snaps and snaps[-1].events == ()
 
@@ -173,7 +172,7 @@ def test_the_cycle_thread_wakes_for_a_trigger_and_the_member_leaves_operation_en
         assert nxt.cycle == before.cycle + 1 and nxt.drives[0].state == State.QUICK_STOP_ACTIVE.value
     finally:
         cyc.stop()
-    assert cyc._wake_fd == -1
+    assert cyc.triggers.wake_fd == -1
     cyc.trigger_group("arm", "after stop")  # the closed wake is not written
 
 
@@ -331,12 +330,12 @@ def test_no_express_frame_while_another_drive_follows_a_trajectory() -> None:
     for _ in range(20):
         clock.ns += PERIOD_NS
         cyc.tick()
-    d1 = cyc._by_axis["axis1"]
+    d1 = next(d for d in cyc.drives if d.axis == "axis1")
     assert d1.motion.plan is not None and not moved          # axis1 is moving
     n = len(exchanges)
     clock.ns += PERIOD_NS // 2
     cyc.trigger_group("arm", "h2/axis0 fault 0x7305")
-    cyc._express(clock.ns)
+    cyc.express(clock.ns)
     assert cyc.express_exchanges == 0 and len(exchanges) == n   # no extra frame
     assert snaps[-1].drives[0].goal == "quick_stop"             # but the reflex is applied now
     assert any(e.kind == "reflex" for e in snaps[-1].events)
@@ -353,7 +352,7 @@ def test_no_express_frame_on_a_bus_without_express_exchange() -> None:
     bus.express_exchange = False  # type: ignore[misc]
     clock.ns += PERIOD_NS // 2
     cyc.trigger_group("arm", "h2/axis0 fault 0x7305")
-    cyc._express(clock.ns)
+    cyc.express(clock.ns)
     assert cyc.express_exchanges == 0 and not exchanges and snaps[-1].drives[0].goal == "quick_stop"
     from bus_agent.bus.canopen.bus import CanopenBus
     assert CanopenBus.express_exchange is False
