@@ -43,11 +43,9 @@ ALLOWED_ATTRIBUTES = {
     "bus_agent.gateway.gateway.Gateway",  # issue 26: being composed
     "bus_agent.gateway.peers.PeersMixin",  # issue 26: being composed
     "bus_agent.gateway.publisher.PublisherMixin",  # issue 26: being composed
-    "bus_agent.sim.ecat.esc.Esc",  # issue 26: being composed
 }
 ALLOWED_LONG_MODULES = {
     "bus_agent/sim/drive_model.py",  # issue 26: being composed
-    "bus_agent/sim/ecat/esc.py",  # issue 26: being composed
 }
 ALLOWED_CYCLES: set[tuple[str, ...]] = set()
 ALLOWED_BINARIES = {
