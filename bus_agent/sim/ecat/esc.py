@@ -242,9 +242,9 @@ class Esc:
                 return True
             dst[: self.mem_size - ado] = self.mv[ado:self.mem_size]
             return True
-        mailbox = self._mbx.read(ado, end, dst)
-        if mailbox is not None:
-            return mailbox
+        mbx = self._mbx
+        if end > mbx.in_start and ado < mbx.in_end and mbx.enabled[1]:
+            return mbx.read(ado, end, dst)
         dst[:] = self.mv[ado:end]
         return True
 
@@ -257,9 +257,9 @@ class Esc:
         if ado >= self.mem_size:
             return True
         if ado >= REG_END:
-            mailbox = self._mbx.write(ado, end, src, self.al_state == ALState.INIT)
-            if mailbox is not None:
-                return mailbox
+            mbx = self._mbx
+            if end > mbx.out_start and ado < mbx.out_end and mbx.enabled[0]:
+                return mbx.write(ado, end, src, self.al_state == ALState.INIT)
             self.mv[ado:end] = src[: end - ado]
             return True
         reg_end = min(end, REG_END)

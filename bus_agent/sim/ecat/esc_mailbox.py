@@ -30,6 +30,8 @@ class MailboxSms:
         self.mailbox = mailbox
         self.out_start, self.out_size = out
         self.in_start, self.in_size = in_
+        #: Where each SM ends: the ESC checks a datagram against these itself (its hot path)
+        self.out_end, self.in_end = self.out_start + self.out_size, self.in_start + self.in_size
         self.reset()
 
     def reset(self) -> None:
@@ -62,31 +64,26 @@ class MailboxSms:
             if not self.in_full and self.mailbox.last_sent is not None and self.enabled[1]:
                 self._put(self.mailbox.last_sent)
 
-    def read(self, ado: int, end: int, dst: memoryview) -> bool | None:
-        """A read of [ado, end) that touches SM1: None when it does not (or SM1 is off); False
-        (no WKC, data untouched) while SM1 is empty; True once copied (its last byte read
-        empties SM1)."""
-        if not (end > self.in_start and ado < self.in_start + self.in_size and self.enabled[1]):
-            return None
+    def read(self, ado: int, end: int, dst: memoryview) -> bool:
+        """A read of [ado, end) that touches SM1, enabled: False (no WKC, data untouched) while
+        SM1 is empty; True once copied (its last byte read empties SM1)."""
         if not self.in_full:
             return False
         dst[:] = self._mv[ado:end]
-        if end >= self.in_start + self.in_size:  # last byte read: SM1 empties
+        if end >= self.in_end:  # last byte read: SM1 empties
             self.in_full = False
             self.render_status()
             self.offer()
         return True
 
-    def write(self, ado: int, end: int, src: memoryview, init: bool) -> bool | None:
-        """A write of [ado, end) that touches SM0: None when it does not (or SM0 is off); False
-        (no WKC) while SM0 is full or the slave is in INIT (``init``); True once taken (its last
-        byte hands the request to the mailbox)."""
-        if not (end > self.out_start and ado < self.out_start + self.out_size and self.enabled[0]):
-            return None
+    def write(self, ado: int, end: int, src: memoryview, init: bool) -> bool:
+        """A write of [ado, end) that touches SM0, enabled: False (no WKC) while SM0 is full or
+        the slave is in INIT (``init``); True once taken (its last byte hands the request to the
+        mailbox)."""
         if self.out_full or init:
             return False
         self._mv[ado:end] = src[: end - ado]
-        if end >= self.out_start + self.out_size:
+        if end >= self.out_end:
             self._written()
         return True
 
