@@ -24,10 +24,6 @@ ALLOWED_MIXINS = {
 ALLOWED_MULTIPLE_BASES = {
     "bus_agent.cycle.cycle.Cycle",  # issue 26: being composed
     "bus_agent.gateway.gateway.Gateway",  # issue 26: being composed
-    # An unanswered CAN SDO is both an SdoError (the CANopen start-up's callers, canopen/bus.py and
-    # canopen/pdo.py, catch it as one and wait on abort code 0) and a NoAnswer (the management
-    # thread's only retry rule, cycle/management.py): one class for it needs those callers changed.
-    "bus_agent.bus.canopen.sdo.SdoNoAnswer",
 }
 ALLOWED_ATTRIBUTES = {
     "bus_agent.cycle.base.CycleBase",  # issue 26: being composed
