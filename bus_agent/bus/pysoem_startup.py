@@ -131,6 +131,7 @@ class PysoemStartup:
         except Exception as e:
             raise BusError(f"{self.ifname}: cannot open the interface: {e}") from None
         self.master = m
+        self._publish()  # closed by the bus's close() if start-up ends here
         deadline = time.monotonic() + self.config_init_deadline_s
         n = 0
         try:
