@@ -42,8 +42,9 @@ import sys
 import time
 from typing import Callable
 
-from bench.agent_phases import enable_all, measure
-from bench.agent_phases import phase_bare as bare_loop
+from bench.agent_phases import enable_all as _enable_all
+from bench.agent_phases import measure as _measure
+from bench.agent_phases import phase_bare as bare
 from bench.codec_cost import best_of as _best_of
 from bench.codec_cost import codec_figures
 from bench.common import bench_parser, main_result, period_figures, read_period_logs, run_json, segment, task_cpu_ns
@@ -65,11 +66,11 @@ def phase_agent(args) -> dict:
     cyc.snapshot_sink = sink.append
     cyc.start()
     try:
-        resets = enable_all(cyc)
+        resets = _enable_all(cyc)
         assert cyc._thread is not None and cyc._thread.native_id is not None
         tid = cyc._thread.native_id
         c0, t0, ns0 = cyc.cycles, time.monotonic(), task_cpu_ns(tid)
-        out = measure(cyc, args)
+        out = _measure(cyc, args)
         el, cycles, ns = time.monotonic() - t0, cyc.cycles - c0, task_cpu_ns(tid) - ns0
         out.update(startup_fault_resets=resets, **_cpu(ns, el, cycles, args.cycle_us))
         return out
@@ -79,7 +80,7 @@ def phase_agent(args) -> dict:
 
 def phase_bare(args) -> dict:
     args.dc = "off"
-    out = bare_loop(args)
+    out = bare(args)
     # one thread: the process's CPU is the loop's
     out.update(_cpu(int(out["cpu_s"] * 1e9), out["seconds"], out["cycles"], args.cycle_us))
     return out
