@@ -39,12 +39,12 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
-from array import array
 
-from bench.common import (ROOT, alternate_phases, bench_parser, free_port, main_result, paced_loop, period_figures, proc_cpu_s,
-                          pysoem_to_op, quantiles, read_period_logs, run_json, segment, self_cpu_s)
+from bench.agent_phases import enable_all, measure, phase_bare
+from bench.codec_cost import codec_figures
+from bench.common import (ROOT, alternate_phases, bench_parser, free_port, main_result, period_figures, proc_cpu_s, quantiles,
+                          read_period_logs, run_json, segment)
 from bus_agent import hops
 
 def jitter_ratios(results: dict) -> dict:
@@ -54,133 +54,6 @@ def jitter_ratios(results: dict) -> dict:
     bare = results["bare"]["jitter_us"]
     return {f"{k}_{q}_jitter_over_bare": round(v["jitter_us"][q] / bare[q], 2) if bare[q] else None
             for k, v in results.items() if k != "bare" for q in ("p99", "p999", "max")}
-
-
-def _dump(args, periods, dc_offsets=None) -> None:
-    """The phase's periods (ns) into its log file; frame-to-SYNC0 offsets (ns) into ``<file>.dc``."""
-    if getattr(args, "log_file", None):
-        with open(args.log_file, "wb") as f:
-            array("q", periods).tofile(f)
-        if dc_offsets is not None:
-            with open(args.log_file + ".dc", "wb") as f:
-                array("q", dc_offsets).tofile(f)
-
-
-# ---- phases (each in its own process) ---------------------------------------------------------
-
-
-def phase_bare(args) -> dict:
-    """Bare pysoem: the loop any pysoem program would write, with the cycle's timing method."""
-    import pysoem
-
-    from bus_agent.bus.pdo import RX_STRUCT
-
-    m = pysoem.Master()
-    expected = pysoem_to_op(m, args.ifname, args.drives, dc_cycle_ns=args.cycle_us * 1000 if args.dc == "auto" else 0)
-    slaves = list(m.slaves)
-    # outputs of each slave's size: the default 13-byte layout packed as any program would
-    pack = [(lambda: RX_STRUCT.pack(0, 0, 0, 0, 8)) if len(s.output) == RX_STRUCT.size
-            else (lambda n=len(s.output): bytes(n)) for s in slaves]
-    period = args.cycle_us * 1000
-    wkc_errors = 0
-    send, receive, timeout_us = m.send_processdata, m.receive_processdata, args.receive_timeout_us
-    cycles = int(args.seconds * 1e9 / period)
-    # the frame's phase in the SYNC0 period (no PI: the bare loop does not follow DC time)
-    offsets = array("q", bytes(8 * cycles)) if args.dc == "auto" and m.dc_time else None
-
-    def step(i: int) -> None:
-        nonlocal wkc_errors
-        send(release_gil=True)
-        if receive(timeout_us, release_gil=True) != expected:
-            wkc_errors += 1
-        if offsets is not None:
-            offsets[i] = m.dc_time % period
-        for s, pk in zip(slaves, pack):  # what any program does each cycle: read inputs, write outputs
-            _ = s.input
-            s.output = pk()
-
-    run = paced_loop(cycles, period, step, args.rt_priority)
-    m.state = pysoem.INIT_STATE
-    m.write_state()
-    m.close()
-    periods = run.periods[1:]
-    _dump(args, periods, offsets)
-    return {"cycles": len(run.periods), "seconds": round(run.elapsed_s, 2), "overruns": run.overruns,
-            "wkc_errors": wkc_errors, "cpu_s": round(run.cpu_s, 3), "cpu_pct": round(100 * run.cpu_s / run.elapsed_s, 1),
-            **period_figures(list(periods), period)}
-
-
-def _command_all(cyc, op: str, axes, timeout_s: float = 10.0) -> list:
-    """Submit ``op`` for ``axes`` to the cycle; its outcomes, one per axis."""
-    from bus_agent.runtime import DriveCommand
-
-    done = threading.Semaphore(0)
-    outs: list = []
-
-    def on(o):
-        outs.append(o)
-        done.release()
-
-    assert cyc.submit(DriveCommand(request_id=f"bench-{op}-{time.monotonic_ns()}", op=op, axes=tuple(axes),
-                                   on_outcome=on, received_ns=time.monotonic_ns(), timeout_s=timeout_s))
-    for _ in axes:
-        if not done.acquire(timeout=timeout_s + 2):
-            raise RuntimeError(f"{op} did not finish")
-    return outs
-
-
-def _ready(cyc) -> int:
-    """Every slave in OP and no drive in fault; the number of drives fault-reset to get there.
-
-    On a loaded host the start-up can stall the process data past the slaves' SM watchdog: the
-    agent brings such a slave back to OP itself, but its drive reports the communication loss as a
-    fault (0x8130), which the agent never resets on its own. The benchmark resets it explicitly,
-    once, and reports how many it reset (``startup_fault_resets``)."""
-    deadline = time.monotonic() + 30.0
-    while not (cyc.latest is not None and all(d.al_state == "op" and not d.lost for d in cyc.latest.drives)):
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"slaves not in OP: {[(d.axis, d.al_state) for d in cyc.latest.drives]}")
-        time.sleep(0.05)
-    faulted = [d.axis for d in cyc.latest.drives if d.state in ("fault", "fault_reaction_active")]
-    if faulted:
-        print(f"bench_agent: start-up faults on {len(faulted)} drive(s), reset explicitly", file=sys.stderr)
-        bad = [o for o in _command_all(cyc, "fault_reset", faulted) if o.outcome != "done"]
-        if bad:
-            raise RuntimeError(f"fault reset failed: {bad[:3]}")
-    return len(faulted)
-
-
-def _enable_all(cyc, timeout_s: float = 10.0) -> int:
-    """:func:`_ready`, then enable every drive; the start-up fault resets."""
-    resets = _ready(cyc)
-    bad = [o for o in _command_all(cyc, "enable", cyc.axes, timeout_s) if o.outcome != "done"]
-    if bad:
-        raise RuntimeError(f"enable failed: {bad[:3]}")
-    return resets
-
-
-def _measure(cyc, args) -> dict:
-    """Periods (and, with SYNC0, frame-to-SYNC0 offsets) of the next ``args.seconds`` of cycles."""
-    period = args.cycle_us * 1000
-    n = int(args.seconds * 1e9 / period)
-    cyc.dc_log = array("q", bytes(8 * n)) if "sync0" in cyc.dc_states else None
-    ov0, wk0, c0 = cyc.overruns, cyc.wkc_errors, cyc.cycles
-    cpu0 = self_cpu_s()
-    t0 = time.monotonic()
-    cyc.period_log_len = 0
-    cyc.period_log = array("q", bytes(8 * n))
-    while cyc.period_log_len < n and time.monotonic() - t0 < args.seconds * 3 + 10:
-        time.sleep(0.05)
-    elapsed = time.monotonic() - t0
-    cpu = self_cpu_s() - cpu0
-    got = cyc.period_log_len
-    log = list(cyc.period_log[:got])
-    cyc.period_log = None
-    dc_log, cyc.dc_log = cyc.dc_log, None
-    _dump(args, array("q", log), None if dc_log is None else dc_log[:got])
-    return {"cycles": cyc.cycles - c0, "seconds": round(elapsed, 2), "overruns": cyc.overruns - ov0,
-            "wkc_errors": cyc.wkc_errors - wk0, "cpu_s": round(cpu, 3), "cpu_pct": round(100 * cpu / elapsed, 1),
-            **period_figures(log, period)}
 
 
 def phase_agent(args) -> dict:
@@ -198,8 +71,8 @@ def phase_agent(args) -> dict:
     cyc.snapshot_sink = sink.append  # what a gateway does: enqueue only
     cyc.start()
     try:
-        resets = _enable_all(cyc)
-        out = _measure(cyc, args)
+        resets = enable_all(cyc)
+        out = measure(cyc, args)
         out["startup_fault_resets"] = resets
         if cyc.dc.sync is not None:
             out["dc_pi_held_cycles"] = cyc.dc.sync.held
@@ -223,7 +96,7 @@ def _phase_gateway(args, mode: str) -> dict:
     agent.start()
     load = None
     try:
-        resets = _enable_all(agent.cycle)
+        resets = enable_all(agent.cycle)
         load = subprocess.Popen([sys.executable, "-m", "bench.bench_agent", "--phase", "load", "--connect", ep,
                                  "--host", "bench", "--drives", str(args.drives), "--rate", str(args.query_rate),
                                  "--seconds", str(args.seconds + 5)],
@@ -232,7 +105,7 @@ def _phase_gateway(args, mode: str) -> dict:
         bridge = agent.bridge
         child = bridge.pid if bridge is not None else None
         fwd0, gcpu0, t0 = (bridge.forwarded if bridge else 0), (proc_cpu_s(child) if child else 0.0), time.monotonic()
-        res = _measure(agent.cycle, args)
+        res = measure(agent.cycle, args)
         res["startup_fault_resets"] = resets
         if bridge is not None and child:
             el = time.monotonic() - t0
@@ -287,14 +160,6 @@ def encoding_figures(drives: int, n: int = 2000) -> dict:
         f.due(snap, 0.0)   # the per-cycle check of bridge-out (nothing changed, not due)
     out["filter_check_us"] = round((time.perf_counter() - t0) / n * 1e6, 2)
     return out
-
-
-def codec_figures(drives: int, n: int = 3000) -> dict:
-    """CPU of one cycle's decode + encode of every drive, ``DriveCodec`` against the fixed
-    13/15-byte structs (``bench.bench_cycle.codec_figures``, where it is described)."""
-    from bench.bench_cycle import codec_figures as figures
-
-    return figures(drives, n)
 
 
 def phase_load(args) -> dict:
@@ -413,7 +278,7 @@ def run(args) -> dict:
                 "gateway_modes": [] if args.no_gateway else args.gateway_modes, "phases": results, "ratios": ratios,
                 "enable_latency": enable,
                 "bridge_encoding": encoding_figures(args.drives),
-                "profile": args.profile, "dc": args.dc, "codec_cost": codec_figures(args.drives),
+                "profile": args.profile, "dc": args.dc, "codec_cost": codec_figures(args.drives, 3000),
                 "loadavg_1m": os.getloadavg()[0], "loadavg": list(os.getloadavg()), "cpus": os.cpu_count(),
                 "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
 

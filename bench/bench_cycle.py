@@ -7,7 +7,7 @@ For each drive count, one veth pair and one ``ecat-sim`` serve two phases that a
 ``--rounds`` rounds, each phase in its own process:
 
 1. ``bare``: pysoem send/receive on the cycle's timing, every slave's inputs read and outputs
-   packed each cycle (``bench.bench_agent.phase_bare``); its one thread is the loop;
+   packed each cycle (``bench.agent_phases.phase_bare``); its one thread is the loop;
 2. ``agent``: ``Cycle`` over ``PysoemBus``, every drive enabled and at rest in CSP, snapshots
    handed to a sink (what a gateway does); the cycle thread's own CPU is read from
    /proc/self/task/<tid>/schedstat (nanoseconds), so the management thread is not counted.
@@ -42,6 +42,11 @@ import sys
 import time
 from typing import Callable
 
+from bench.agent_phases import enable_all as _enable_all
+from bench.agent_phases import measure as _measure
+from bench.agent_phases import phase_bare as bare
+from bench.codec_cost import best_of as _best_of
+from bench.codec_cost import codec_figures
 from bench.common import bench_parser, main_result, period_figures, read_period_logs, run_json, segment, task_cpu_ns
 
 
@@ -50,7 +55,6 @@ def phase_agent(args) -> dict:
     """The agent cycle with every drive enabled; the cycle thread's CPU over the phase."""
     from collections import deque
 
-    from bench.bench_agent import _enable_all, _measure
     from bus_agent.bus.dc import DcConfig
     from bus_agent.bus.pysoem_bus import PysoemBus
     from bus_agent.config import AgentConfig
@@ -75,8 +79,6 @@ def phase_agent(args) -> dict:
 
 
 def phase_bare(args) -> dict:
-    from bench.bench_agent import phase_bare as bare
-
     args.dc = "off"
     out = bare(args)
     # one thread: the process's CPU is the loop's
@@ -203,73 +205,7 @@ def _move(axis: str, outs: list):
                         received_ns=time.monotonic_ns(), timeout_s=600.0)
 
 
-def _best_of(runs: dict[str, Callable[[], object]], n: int, per_run: int = 100,
-             inner: list[int] | None = None) -> tuple[dict[str, float], dict[str, float]]:
-    """Thread CPU (us) of one call of each, best of ``n`` interleaved runs of ``per_run`` calls;
-    and the same without the CPU the calls add to ``inner[0]`` (ns; a timed part inside them)."""
-    best = {k: float("inf") for k in runs}
-    own = dict(best)
-    for _ in range(n):  # interleaved, so a burst of load lands on all alike
-        for k, fn in runs.items():
-            if inner is not None:
-                inner[0] = 0
-            t0 = time.thread_time_ns()
-            for _ in range(per_run):
-                fn()
-            ns = time.thread_time_ns() - t0
-            best[k] = min(best[k], ns / per_run / 1000)
-            own[k] = min(own[k], (ns - (inner[0] if inner is not None else 0)) / per_run / 1000)
-    return best, own
-
-
 PHASES = {"bare": phase_bare, "agent": phase_agent}
-
-
-def codec_figures(drives: int, cycles: int) -> dict:
-    """CPU (us) of one cycle's decode + encode of ``drives`` drives, as the bus does it: every
-    slave's input read from its object (a stand-in for pysoem's slave) and decoded, every output
-    encoded. The fixed 13/15-byte structs in a loop (the decode before per-drive codecs) against
-    ``DriveCodec`` (the segment decoder, then one encode per drive) for the default layout and an
-    Omron-like predefined mapping. Best of 60 interleaved runs of thread CPU time."""
-    from types import SimpleNamespace
-
-    from bus_agent.bus.codec import DriveCodec, segment_decoder
-    from bus_agent.bus.mapping import DEFAULT_MAPPING, mapping_of
-    from bus_agent.bus.pdo import RX_STRUCT, TX_STRUCT, DriveInputs, DriveOutputs
-    from bus_agent.sim.ecat.profiles import OMRON_LIKE
-
-    recs = [DriveInputs() for _ in range(drives)]
-    outs = [DriveOutputs() for _ in range(drives)]
-    fixed_src = [SimpleNamespace(input=bytes(TX_STRUCT.size)) for _ in range(drives)]
-    unpack, pack = TX_STRUCT.unpack_from, RX_STRUCT.pack
-
-    def fixed() -> None:
-        for src, rec, o in zip(fixed_src, recs, outs):
-            (rec.statusword, rec.position_actual, rec.velocity_actual, rec.torque_actual,
-             rec.modes_of_operation_display, rec.error_code) = unpack(src.input)
-            pack(o.controlword, o.target_position, o.target_velocity, o.target_torque, o.modes_of_operation)
-
-    def with_codec(codec: DriveCodec) -> Callable[[], None]:
-        src = [SimpleNamespace(input=bytes(codec.in_size)) for _ in range(drives)]
-        decode_all = segment_decoder([codec] * drives, recs, src)
-        encode = codec.encode
-
-        def run() -> None:
-            decode_all()
-            for o in outs:
-                encode(o)
-        return run
-
-    omron = mapping_of([(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C12]],
-                       [(p, list(OMRON_LIKE.maps[p])) for p in OMRON_LIKE.assign[0x1C13]])
-    runs: dict[str, Callable[[], object]] = {"fixed": fixed, "default": with_codec(DriveCodec(DEFAULT_MAPPING)),
-                                             "predefined": with_codec(DriveCodec(omron))}
-    best = _best_of(runs, 60, max(1, cycles // 60))[0]
-    f = best["fixed"]
-    return {"drives": drives, "fixed_struct_us_per_cycle": round(f, 2),
-            "codec_default_us_per_cycle": round(best["default"], 2),
-            "codec_predefined_us_per_cycle": round(best["predefined"], 2),
-            "ratio_default": round(best["default"] / f, 2), "ratio_predefined": round(best["predefined"] / f, 2)}
 
 
 class _PassThrough:

@@ -7,7 +7,7 @@ One veth pair and one ``ecat-sim`` serve every phase; the phases alternate in ``
 (each in its own process, so the process CPU is its own), and the periods of a phase's rounds
 are merged:
 
-1. ``bare``: the bare pysoem loop of :mod:`bench.bench_agent` (the baseline);
+1. ``bare``: the bare pysoem loop of :mod:`bench.agent_phases` (the baseline);
 2. ``idle``: the agent's cycle (``Cycle`` over ``PysoemBus``), every drive enabled, no motion;
 3. ``motion``: the same with every axis moving all the time: synchronized moves of all 16 axes
    back and forth (a jerk-limited ruckig profile per axis, sampled every cycle and written as
@@ -43,7 +43,8 @@ import threading
 import time
 from collections import deque
 
-from bench.bench_agent import _enable_all, _measure, jitter_ratios, phase_bare
+from bench.agent_phases import enable_all, measure, phase_bare
+from bench.bench_agent import jitter_ratios
 from bench.common import (alternate_phases, bench_parser, loadavg, main_result, percentile, period_figures, run_stamp, segment,
                           read_period_logs, run_json, summary_ms)
 
@@ -86,8 +87,8 @@ def phase_idle(args) -> dict:
     cyc.snapshot_sink = sink.append
     cyc.start()
     try:
-        resets = _enable_all(cyc)
-        out = _measure(cyc, args)
+        resets = enable_all(cyc)
+        out = measure(cyc, args)
         out["startup_fault_resets"] = resets
         return out
     finally:
@@ -112,10 +113,10 @@ def phase_motion(args) -> dict:
             sign = -sign
 
     try:
-        resets = _enable_all(cyc)
+        resets = enable_all(cyc)
         t = threading.Thread(target=feeder, daemon=True)
         t.start()
-        out = _measure(cyc, args)
+        out = measure(cyc, args)
         stop.set()
         t.join(30)
         out["startup_fault_resets"] = resets
@@ -140,7 +141,7 @@ def phase_latency(args) -> dict:
     cyc.snapshot_sink = sink
     cyc.start()
     try:
-        _enable_all(cyc)
+        enable_all(cyc)
         rng = random.Random(1)
         lat_ms: list[float] = []
         lat_cycles: list[int] = []

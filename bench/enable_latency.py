@@ -37,7 +37,7 @@ import sys
 import threading
 import time
 
-from bench.bench_agent import _ready
+from bench.agent_phases import ready_to_enable
 from bench.common import ROOT, free_port, percentile, proc_cpu_s, stop_process, summary_ms, thread_cpu_ns
 from bus_agent import hops
 
@@ -226,7 +226,7 @@ def phase_enable_latency(args) -> dict:
         if not ready or echo.stdout.readline().strip() != "echo ready":
             raise RuntimeError("echo queryable did not start")
         cyc = agent.cycle
-        resets = _ready(cyc)
+        resets = ready_to_enable(cyc)
         # CPU of the gateway process: idle for a while, then over the client's rounds, so the
         # rounds' own cost can be told from publishing at rest (CPU time holds up on a loaded
         # machine where wall-clock latencies do not). Not the cycle process: its spin before each

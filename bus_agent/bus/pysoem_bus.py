@@ -1,7 +1,8 @@
 """The pysoem backend: a NIC (or the master end of a veth pair facing ``ecat-sim``).
 
-Start-up (not cycle-safe, seconds): ``open`` and ``start`` in
-:mod:`bus_agent.bus.pysoem_startup`. Cycle-safe: ``exchange`` (LRW: send_processdata + receive_processdata), ``inputs`` /
+Start-up (not cycle-safe, seconds): ``open`` and ``start`` by its part
+:class:`~bus_agent.bus.pysoem_startup.PysoemStartup`; distributed clocks by its part
+:class:`~bus_agent.bus.pysoem_dc.PysoemDc`. Cycle-safe: ``exchange`` (LRW: send_processdata + receive_processdata), ``inputs`` /
 ``set_outputs`` (preallocated records, one struct pack/unpack per slave).
 
 Management (``read_al_status``, ``request_al_state``, ``recover``, SDO) is meant for the cycle's
@@ -24,17 +25,14 @@ from __future__ import annotations
 
 import logging
 import struct
-import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
-from bus_agent.bus.base import ALState, BusError, SlaveALStatus, al_status_text
+from bus_agent.bus.base import ALState, BusError, SlaveALStatus, SlaveInfo, al_status_text
 from bus_agent.bus.codec import DriveCodec
 from bus_agent.bus.emergency import EmergencyLog
-from bus_agent.bus.mailbox import SiiMailbox
-from bus_agent.bus.mapping import SlaveMapping, SlaveSetup
 from bus_agent.bus.pdo import DriveInputs, DriveOutputs
-from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, SYNC0_START_S
+from bus_agent.bus.pysoem_dc import MGMT_TIMEOUT_US, PysoemDc
 from bus_agent.bus.pysoem_init_cmds import apply_safeop_sdos
 from bus_agent.bus.pysoem_startup import (CONFIG_INIT_DEADLINE_S, REG_EEP_CONFIG, REG_FMMU0, REG_SM0, SOEM_CALL_S,
                                           STATE_ACK, PysoemStartup, al_state)
@@ -53,9 +51,10 @@ _AL_CONTROL_REG = 0x0120
 _AL_STATUS_REG = 0x0130      # 0x0130 AL status, 0x0134 AL status code
 
 
-class PysoemBus(PysoemStartup):
-    """The Bus protocol over pysoem (backend "pysoem"); start-up in :class:`PysoemStartup`,
-    distributed clocks in :class:`PysoemDc`."""
+class PysoemBus:
+    """The Bus protocol over pysoem (backend "pysoem"). It owns two parts and calls them: start-up
+    (:class:`PysoemStartup`: open, start, SDO transfers, a recovered slave's configuration) and
+    distributed clocks (:class:`PysoemDc`); the cycle and management paths are its own."""
 
     backend = "pysoem"
     express_exchange = True
@@ -64,36 +63,23 @@ class PysoemBus(PysoemStartup):
                  config_init_deadline_s: float = CONFIG_INIT_DEADLINE_S, soem_call_s: float = SOEM_CALL_S) -> None:
         import pysoem  # imported here so the sim backend needs no pysoem
 
-        self._pysoem = pysoem
         self.ifname = ifname
         self.receive_timeout_us = receive_timeout_us
         self.release_gil = release_gil
-        self.config_init_deadline_s = config_init_deadline_s
-        self.soem_call_s = soem_call_s
-        #: Deadlines only, until the agent sets its guarded steps (stop signal, guard process)
-        self.startup_steps = StartupSteps()
-        self._map_phase = False
+        self._dc = PysoemDc(ifname)
+        self._startup = PysoemStartup(pysoem, ifname, self._dc, config_init_deadline_s=config_init_deadline_s,
+                                      soem_call_s=soem_call_s, on_emergency=self._on_emergency,
+                                      exchange=self.exchange, on_segment=self._on_segment)
+        # The segment as start-up set it up (:meth:`_on_segment`), read by the cycle path directly
         self._master: Any = None
         self._slaves: list[Any] = []
         self._inputs: list[DriveInputs] = []
-        self._expected_wkc = 0
-        self._setups: dict[int, SlaveSetup] = {}
-        self._dc_capable: list[bool] = []
-        self._sync0: dict[int, tuple[int, int]] = {}
-        self._sync0_armed_at: dict[int, float] = {}
-        #: Per SYNC0 slave: its propagation delay (0x0928) as config_dc set it, for recovery.
-        self._dc_delay: dict[int, int] = {}
-        self._preop_values: dict[tuple[int, int], bytes | BusError] = {}
-        self._mappings: dict[int, SlaveMapping] = {}
         self._codecs: list[DriveCodec] = []
         self._decode_all: Callable[[], list[int] | None] = lambda: None
         self._changed: list[int] | None = None
-        self._opened = False
         self._closed = False
         #: Per slave: the recovery step under way ("to_init", "to_preop", "to_safeop", "to_op").
         self._recover_step: dict[int, str] = {}
-        #: Per slave: SM and FMMU register blocks read back in OP at start-up (for reconfiguration).
-        self._esc_config: dict[int, tuple[bytes, bytes]] = {}
         self._al_last: dict[int, SlaveALStatus] = {}
         self._no_frame_since: float | None = None
         self._frames_back = 0
@@ -101,17 +87,84 @@ class PysoemBus(PysoemStartup):
         self._poll_first = -1
         self._emcy = EmergencyLog()
         self._mailbox_turn = -1
-        self._mailbox_lock = threading.Lock()
-        self._sdo_retries = 0
-        self._mailboxes: list[SiiMailbox] = []
         #: position -> (error code, text) of its last CoE emergency (read by the cycle for error_text)
         self.error_texts = self._emcy.error_texts
 
-    # ---- start-up ------------------------------------------------------------------------------
+    def _on_segment(self, master: Any, slaves: list[Any], inputs: list[DriveInputs], codecs: list[DriveCodec],
+                    decode_all: Callable[[], list[int] | None]) -> None:
+        """Start-up's segment, whenever it changes (opened, mapped, released)."""
+        self._master, self._slaves, self._inputs, self._codecs, self._decode_all = (
+            master, slaves, inputs, codecs, decode_all)
+
+    # ---- start-up (the PysoemStartup part) ---------------------------------------------------------
+
+    @property
+    def startup_steps(self) -> StartupSteps:
+        """The steps of start-up with their deadlines (the agent sets its own, guarded, before open)."""
+        return self._startup.steps
+
+    @startup_steps.setter
+    def startup_steps(self, steps: StartupSteps) -> None:
+        self._startup.steps = steps
+
+    @property
+    def config_init_deadline_s(self) -> float:
+        """How long open() keeps retrying config_init when no slave answers."""
+        return self._startup.config_init_deadline_s
+
+    @property
+    def soem_call_s(self) -> float:
+        """The deadline of each SOEM call start-up cannot interrupt."""
+        return self._startup.soem_call_s
+
+    def open(self) -> list[SlaveInfo]:
+        """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
+        return self._startup.open()
+
+    def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
+        """Each slave's PDO mapping and start-up SDOs in PRE-OP, its codec, then SAFE-OP and OP
+        (:meth:`PysoemStartup.start`). Returns the expected working counter. Raises BusError."""
+        return self._startup.start(mapping_override)
 
     @property
     def expected_wkc(self) -> int:
-        return self._expected_wkc
+        return self._startup.expected_wkc
+
+    def codec(self, position: int) -> DriveCodec:
+        """The process-data codec of the slave at ``position`` (after start())."""
+        return self._codecs[position]
+
+    def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
+        v = self._startup.preop_values.get((position, index)) if subindex == 0 else None
+        if v is None:
+            return self.sdo_read(position, index, subindex, size)
+        if isinstance(v, BusError):
+            raise v
+        return v
+
+    def _sdo(self, position: int, transfer: Callable[[], Any], what: str, hint: bool = False,
+             attempts: int = 1) -> Any:
+        """One SDO transfer (:meth:`PysoemStartup.sdo`)."""
+        return self._startup.sdo(position, transfer, what, hint, attempts)
+
+    # ---- distributed clocks (the PysoemDc part) ------------------------------------------------
+
+    def dc_capable(self, position: int) -> bool:
+        """True when the slave's ESC has distributed clocks (0x0008 bit 2), read at open()."""
+        return self._dc.capable[position]
+
+    def dc_states(self) -> list[str]:
+        """Per slave: "sync0" (SYNC0 started), "off" (DC capable, unused) or "none"."""
+        return self._dc.states()
+
+    @property
+    def dc_active(self) -> bool:
+        return bool(self._dc.sync0)
+
+    def dc_time_ns(self) -> int:
+        """System time of the reference clock from the last frame's FRMW (0x0910). Cycle-safe."""
+        return self._master.dc_time
 
     # ---- cycle ------------------------------------------------------------------------------------
 
@@ -205,11 +258,9 @@ class PysoemBus(PysoemStartup):
     def request_al_state(self, position: int | None, state: ALState) -> None:
         """Write AL control (0x0120) for one slave (FPWR, bounded) or all (broadcast), with the
         error acknowledge. No wait."""
-        value = int(state) | STATE_ACK
         if position is None:
-            self._master.state = value  # slave 0 of SOEM's list = broadcast (BWR 0x0120)
-            self._master.write_state()
-        elif not self._write_al_control(position, value):
+            self._startup.request_all(state)
+        elif not self._write_al_control(position, int(state) | STATE_ACK):
             log.debug("slave %d: AL control %s not taken", position, state.wire_name)
 
     def recover(self, position: int) -> bool:
@@ -252,16 +303,16 @@ class PysoemBus(PysoemStartup):
                 self._recover_step.pop(position, None)  # start again from INIT
             return False
         if state == ALState.SAFEOP:
-            if position in self._sync0 and step == "to_safeop" and not self._setups[position].sync0_before_safeop:
+            if position in self._dc.sync0 and step == "to_safeop" and not self._startup.setups[position].sync0_before_safeop:
                 # a power cycle reset the slave's DC unit: SYNC0 again, OP after its first pulse
                 try:
-                    self._start_sync0([position])
+                    self._dc.start_sync0(self._slaves, [position])
                 except BusError as e:
                     log.warning("%s", e)
                     return False
                 self._recover_step[position] = "sync0"
                 return False
-            if step == "sync0" and time.monotonic() - self._sync0_armed_at.get(position, 0.0) < SYNC0_START_S:
+            if step == "sync0" and self._dc.sync0_pending(position):
                 return False
             if step in ("to_safeop", "sync0") and not self._safeop_sdos_again(position):
                 return False
@@ -269,7 +320,7 @@ class PysoemBus(PysoemStartup):
             self._recover_step[position] = "to_op"
             return False
         if state == ALState.INIT:
-            cfg = self._esc_config.get(position)
+            cfg = self._startup.esc_config.get(position)
             if cfg is None:
                 raise BusError(f"slave {position}: no SM/FMMU configuration to restore (start() not done)")
             sm, _fmmu = cfg
@@ -287,15 +338,15 @@ class PysoemBus(PysoemStartup):
             return False
         if state == ALState.PREOP and step in ("to_preop", "sync0_preop", "to_safeop"):
             if step == "to_preop":
-                _sm, fmmu = self._esc_config[position]
+                _sm, fmmu = self._startup.esc_config[position]
                 try:
-                    self._configure_slave(position)  # a power cycle forgot mapping and SDOs
+                    self._startup.configure_slave(position)  # a power cycle forgot mapping and SDOs
                     if fmmu:
                         s._fpwr(REG_FMMU0, fmmu, MGMT_TIMEOUT_US)
-                    if position in self._sync0:  # ... and its DC time: set again before SYNC0
-                        self._restore_dc_time(position)
-                        if self._setups[position].sync0_before_safeop:
-                            self._start_sync0([position])
+                    if position in self._dc.sync0:  # ... and its DC time: set again before SYNC0
+                        self._dc.restore_time(self._slaves, position, self._fprd)
+                        if self._startup.setups[position].sync0_before_safeop:
+                            self._dc.start_sync0(self._slaves, [position])
                             self._recover_step[position] = "sync0_preop"
                             return False
                 except BusError as e:
@@ -305,7 +356,7 @@ class PysoemBus(PysoemStartup):
                 except Exception as e:
                     log.debug("slave %d: FMMU configuration not taken: %s", position, e)
                     return False
-            if step == "sync0_preop" and time.monotonic() - self._sync0_armed_at.get(position, 0.0) < SYNC0_START_S:
+            if step == "sync0_preop" and self._dc.sync0_pending(position):
                 return False
             self._write_al_control(position, int(ALState.SAFEOP))
             self._recover_step[position] = "to_safeop"
@@ -318,11 +369,11 @@ class PysoemBus(PysoemStartup):
     def _safeop_sdos_again(self, position: int) -> bool:
         """After a reconfiguration: the slave's SAFE-OP start-up SDOs (ESI ``SO`` InitCmds), as at
         start-up. False (try again at the next call) when one is refused."""
-        setup = self._setups.get(position)
+        setup = self._startup.setups.get(position)
         if setup is None or not setup.safeop_sdos:
             return True
         try:
-            apply_safeop_sdos(self._slaves, {position: setup}, self._sdo, lambda: None)
+            apply_safeop_sdos(self._slaves, {position: setup}, self._startup.sdo, lambda: None)
         except BusError as e:
             log.warning("%s", e)
             return False
@@ -349,26 +400,27 @@ class PysoemBus(PysoemStartup):
             if not self._slaves:
                 return
             position = self._mailbox_turn = (self._mailbox_turn + 1) % len(self._slaves)
-        if not self._mailbox_lock.acquire(blocking=False):
+        lock = self._startup.mailbox_lock
+        if not lock.acquire(blocking=False):
             return  # an SDO transfer is reading the mailboxes: it hands any emergency over itself
         try:
             self._slaves[position].mbx_receive()
         except Exception as e:
             raise BusError(f"slave {position}: mailbox read failed: {type(e).__name__} {e}") from None
         finally:
-            self._mailbox_lock.release()
+            lock.release()
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         """CoE SDO upload. Raises BusError with the abort code or mailbox error (NoAnswer: none came).
         Not cycle-safe (mailbox round trips)."""
         s = self._slaves[position]
-        return bytes(self._sdo(position, lambda: s.sdo_read(index, subindex, size, release_gil=True),
+        return bytes(self._startup.sdo(position, lambda: s.sdo_read(index, subindex, size, release_gil=True),
                                f"slave {position}: SDO upload 0x{index:04X}:{subindex}"))
 
     def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
         """CoE SDO download. Raises BusError with the abort code."""
         s = self._slaves[position]
-        self._sdo(position, lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
+        self._startup.sdo(position, lambda: s.sdo_write(index, subindex, bytes(data), release_gil=True),
                   f"slave {position}: SDO download 0x{index:04X}:{subindex}")
 
     def close(self) -> None:
@@ -377,4 +429,4 @@ class PysoemBus(PysoemStartup):
             return
         self._closed = True
         if self._master is not None:
-            self._release_master("on close")
+            self._startup.release("on close")

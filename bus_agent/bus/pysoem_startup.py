@@ -1,5 +1,5 @@
-"""Start-up of the pysoem backend (the :class:`PysoemStartup` part of
-:class:`bus_agent.bus.pysoem_bus.PysoemBus`): ``open`` = Master.open + config_init (retried
+"""Start-up of the pysoem backend (:class:`PysoemStartup`, a part
+:class:`bus_agent.bus.pysoem_bus.PysoemBus` owns): ``open`` = Master.open + config_init (retried
 until a deadline); ``start`` = PDO mapping read (and per policy written) by SDO in PRE-OP through
 pysoem's ``config_func`` hook, config_map, SAFE-OP, then OP with process data flowing, each with a
 deadline. Errors name the slave and decode the AL status code (register 0x0134, ETG.1000.6
@@ -72,39 +72,56 @@ def al_state(value: int) -> ALState:
         return ALState.NONE
 
 
-class PysoemStartup(PysoemDc):
-    """open() and start() over the master (attributes set up by PysoemBus)."""
+class PysoemStartup:
+    """Start-up of a pysoem master: open() and start(), the SDO transfers of start-up and of the
+    management thread (one mailbox lock), and a recovered slave's configuration again. It owns
+    the master and the slaves it finds, their mappings, codecs and start-up setups, and tells
+    its owner the segment it set up (``on_segment``) whenever that changes."""
 
-    _pysoem: Any
-    _setups: dict[int, SlaveSetup]
-    _mappings: dict[int, SlaveMapping]
-    _codecs: list[DriveCodec]
-    _preop_values: dict[tuple[int, int], bytes | BusError]
-    _inputs: list[DriveInputs]
-    _esc_config: dict[int, tuple[bytes, bytes]]
-    _expected_wkc: int
-    _opened: bool
-    #: Per slave: its mailbox as its SII describes it (read at open)
-    _mailboxes: list[SiiMailbox]
-    config_init_deadline_s: float
-    #: The steps of start-up with their deadlines (the agent sets its own, guarded, before open)
-    startup_steps: StartupSteps
-    soem_call_s: float
-    _map_phase: bool
-    _on_emergency: Callable[[int, Any], None]                      # PysoemBus
-    #: Held for every mailbox exchange (SDO transfer, mailbox read): a mailbox read on one thread
-    #: would take the answer an SDO transfer on another waits for.
-    _mailbox_lock: threading.Lock
-    #: Transfers made again (no answer in time, or an answer of the wrong size) since open.
-    _sdo_retries: int
-    sdo_read: Callable[[int, int, int, int], bytes]                # PysoemBus
-    set_outputs: Callable[[int, DriveOutputs], None]               # PysoemBus
-    request_al_state: Callable[[int | None, ALState], None]        # PysoemBus
+    def __init__(self, pysoem: Any, ifname: str, dc: PysoemDc, *, config_init_deadline_s: float, soem_call_s: float,
+                 on_emergency: Callable[[int, Any], None], exchange: Callable[[], int],
+                 on_segment: Callable[[Any, list[Any], list[DriveInputs], list[DriveCodec],
+                                       Callable[[], list[int] | None]], None]) -> None:
+        self._pysoem = pysoem
+        self.ifname = ifname
+        self._dc = dc
+        self.config_init_deadline_s = config_init_deadline_s
+        self.soem_call_s = soem_call_s
+        self._on_emergency = on_emergency
+        self._exchange = exchange
+        self._on_segment = on_segment
+        #: The steps of start-up with their deadlines: deadlines only, until the agent sets its own
+        #: (stop signal, guard process) before open
+        self.steps = StartupSteps()
+        self._map_phase = False
+        self.master: Any = None
+        self.slaves: list[Any] = []
+        self.inputs: list[DriveInputs] = []
+        self.codecs: list[DriveCodec] = []
+        self.decode_all: Callable[[], list[int] | None] = lambda: None
+        self.expected_wkc = 0
+        self.opened = False
+        self.setups: dict[int, SlaveSetup] = {}
+        self._mappings: dict[int, SlaveMapping] = {}
+        #: Objects read in PRE-OP at start-up (0x6502), or the error reading them
+        self.preop_values: dict[tuple[int, int], bytes | BusError] = {}
+        #: Per slave: SM and FMMU register blocks read back in OP at start-up (for reconfiguration).
+        self.esc_config: dict[int, tuple[bytes, bytes]] = {}
+        #: Per slave: its mailbox as its SII describes it (read at open)
+        self._mailboxes: list[SiiMailbox] = []
+        #: Held for every mailbox exchange (SDO transfer, mailbox read): a mailbox read on one thread
+        #: would take the answer an SDO transfer on another waits for.
+        self.mailbox_lock = threading.Lock()
+        #: Transfers made again (no answer in time, or an answer of the wrong size) since open.
+        self.sdo_retries = 0
+
+    def _publish(self) -> None:
+        self._on_segment(self.master, self.slaves, self.inputs, self.codecs, self.decode_all)
 
     def open(self) -> list[SlaveInfo]:
         """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
         pysoem = self._pysoem
-        steps = self.startup_steps
+        steps = self.steps
         m = pysoem.Master()
         try:
             with steps.step(f"{self.ifname}: open the interface", OPEN_S):
@@ -113,7 +130,8 @@ class PysoemStartup(PysoemDc):
             raise
         except Exception as e:
             raise BusError(f"{self.ifname}: cannot open the interface: {e}") from None
-        self._master = m
+        self.master = m
+        self._publish()  # closed by the bus's close() if start-up ends here
         deadline = time.monotonic() + self.config_init_deadline_s
         n = 0
         try:
@@ -135,17 +153,18 @@ class PysoemStartup(PysoemDc):
         if n <= 0:
             self._abort_open()
             raise BusError(f"{self.ifname}: no slave answered within {self.config_init_deadline_s:g} s")
-        self._slaves = list(m.slaves)
-        for pos, s in enumerate(self._slaves):
+        self.slaves = list(m.slaves)
+        for pos, s in enumerate(self.slaves):
             # CoE emergencies reach the bus's log whenever SOEM reads the mailbox (every SDO
             # transfer, poll_mailbox); without a callback pysoem would fail that SDO transfer
             s.add_emergency_callback(functools.partial(self._on_emergency, pos))
-        self._inputs = [DriveInputs() for _ in self._slaves]
-        self._dc_capable = [self._read_dc_capable(s) for s in self._slaves]
-        self._mailboxes = [self._read_sii_mailbox(pos, s) for pos, s in enumerate(self._slaves)]
-        self._opened = True
+        self.inputs = [DriveInputs() for _ in self.slaves]
+        self._dc.read_capable(self.slaves)
+        self._mailboxes = [self._read_sii_mailbox(pos, s) for pos, s in enumerate(self.slaves)]
+        self.opened = True
+        self._publish()
         infos = []
-        for pos, s in enumerate(self._slaves):
+        for pos, s in enumerate(self.slaves):
             infos.append(SlaveInfo(pos, s.name, SlaveIdentity(s.man, s.id, s.rev, 0)))
             log.info("%s: slave %d %r vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.ifname, pos, s.name, s.man, s.id, s.rev)
@@ -154,7 +173,7 @@ class PysoemStartup(PysoemDc):
     def _read_sii_mailbox(self, position: int, s: Any) -> SiiMailbox:
         """The slave's mailbox sizes and protocols from its SII (EEPROM words 0x19, 0x1B, 0x1C)."""
         try:
-            with self.startup_steps.step(f"slave {position}: reading its SII mailbox words", OPEN_S):
+            with self.steps.step(f"slave {position}: reading its SII mailbox words", OPEN_S):
                 w18 = bytes(s.eeprom_read(SII_MAILBOX_WORD, 20000))
                 w1a = bytes(s.eeprom_read(SII_MAILBOX_WORD + 2, 20000))
                 w1c = bytes(s.eeprom_read(SII_PROTOCOLS_WORD, 20000))
@@ -176,17 +195,18 @@ class PysoemStartup(PysoemDc):
 
     def _abort_open(self) -> None:
         try:
-            self._master.close()
+            self.master.close()
         except Exception:
             pass
-        self._master = None
+        self.master = None
+        self._publish()
 
     def _config_func(self, position: int) -> None:
         """pysoem PO2SO hook, in PRE-OP (inside config_map): the slave's mapping and start-up SDOs.
         SOEM calls it for each slave, then reads that slave's PDO sizes itself: each is a step."""
-        name = f"slave {position} ({self._slaves[position].name!r})"
+        name = f"slave {position} ({self.slaves[position].name!r})"
         self._config_map_phase(f"config_map: {name}: reading (and per policy writing) its PDO mapping by SDO")
-        self._configure_slave(position)
+        self.configure_slave(position)
         self._config_map_phase(f"config_map: SOEM reading the PDO sizes of {name} (CoE, else its SII) and the "
                                "slaves after it")
 
@@ -194,28 +214,28 @@ class PysoemStartup(PysoemDc):
         """End config_map's current step and begin ``name`` (None: none), each with soem_call_s."""
         if self._map_phase:
             self._map_phase = False
-            self.startup_steps.end()
+            self.steps.end()
         if name is not None:
-            self.startup_steps.begin(name, self.soem_call_s)
+            self.steps.begin(name, self.soem_call_s)
             self._map_phase = True
 
-    def _configure_slave(self, position: int) -> SlaveMapping:
+    def configure_slave(self, position: int) -> SlaveMapping:
         """In PRE-OP: read the drive's PDO mapping, write what its policy wants (only what
         differs), read it back, check it, then apply the start-up SDOs. SDOs release the GIL.
         Raises BusError naming the slave, the object, the abort code and what to do."""
-        setup = self._setups.get(position, SlaveSetup())
-        s = self._slaves[position]
+        setup = self.setups.get(position, SlaveSetup())
+        s = self.slaves[position]
         who = f"slave {position} ({s.name!r})"
 
         def read(index: int, sub: int, size: int) -> bytes:
             what = f"{who}: reading its PDO mapping: SDO upload 0x{index:04X}:{sub:02X}"
             for _ in range(MAPPING_READ_ATTEMPTS):
-                data = bytes(self._sdo(position, lambda: s.sdo_read(index, sub, size, release_gil=True), what,
+                data = bytes(self.sdo(position, lambda: s.sdo_read(index, sub, size, release_gil=True), what,
                                        attempts=MAPPING_READ_ATTEMPTS))
                 if len(data) == size:
                     return data
                 # the late answer to an earlier upload of this object (another subindex)
-                self._sdo_retries += 1
+                self.sdo_retries += 1
                 log.warning("%s: %d byte(s) where the object has %d: the answer to another upload; again",
                             what, len(data), size)
             raise BusError(f"{what}: answered {len(data)} byte(s) where the object has {size}, "
@@ -225,7 +245,7 @@ class PysoemStartup(PysoemDc):
         policy = setup.policy
         steps = plan_writes(policy, current)
         for step in steps:
-            self._sdo(position, lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
+            self.sdo(position, lambda: s.sdo_write(step.index, step.subindex, step.data, release_gil=True),
                       f"{who}: mapping policy {policy.policy!r}: SDO write {step} = 0x{step.value:X}", hint=True)
         if steps:
             current = self._read_mapping_twice(read, who)
@@ -238,20 +258,20 @@ class PysoemStartup(PysoemDc):
             raise BusError(f"{who}: its PDO mapping cannot run the cycle: {'; '.join(problems)} "
                            f"(mapping policy {policy.policy!r}: {describe(current)}); {hint}")
         for sdo in setup.sdos:
-            self._sdo(position, lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True),
+            self.sdo(position, lambda: s.sdo_write(sdo.index, sdo.subindex, sdo.data, release_gil=True),
                       f"{who}: start-up SDO {sdo}")
         if setup.sdos:
             log.info("%s: %d start-up SDO(s) applied", who, len(setup.sdos))
-        if position < len(self._codecs) and self._codecs[position].mapping != current:
+        if position < len(self.codecs) and self.codecs[position].mapping != current:
             raise BusError(f"{who}: its PDO mapping is not the one of start-up ({describe(current)}, was "
-                           f"{describe(self._codecs[position].mapping)}): not brought back")
+                           f"{describe(self.codecs[position].mapping)}): not brought back")
         self._mappings[position] = current
         try:  # for preop_sdo_read: the cycle reads it after start() without a mailbox round trip
-            self._preop_values[(position, 0x6502)] = bytes(self._sdo(
+            self.preop_values[(position, 0x6502)] = bytes(self.sdo(
                 position, lambda: s.sdo_read(0x6502, 0, 4, release_gil=True), f"{who}: SDO upload 0x6502:00",
                 attempts=MAPPING_READ_ATTEMPTS))
         except BusError as e:
-            self._preop_values[(position, 0x6502)] = e
+            self.preop_values[(position, 0x6502)] = e
         return current
 
     def _read_mapping_twice(self, read: Callable[[int, int, int], bytes], who: str) -> SlaveMapping:
@@ -259,22 +279,22 @@ class PysoemStartup(PysoemDc):
         time, its answer may still come and be taken for the next upload of the same object:
         SOEM matches an answer's index, not its subindex. So a read during which any upload was
         made again is followed by another, until one goes without and agrees with the one before."""
-        retries = self._sdo_retries
+        retries = self.sdo_retries
         current = read_mapping(read)
         for _ in range(MAPPING_READ_ATTEMPTS):
-            if self._sdo_retries == retries:
+            if self.sdo_retries == retries:
                 return current
             log.warning("%s: reading its PDO mapping needed another try: reading it again (%s)", who,
                         describe(current))
-            retries = self._sdo_retries
+            retries = self.sdo_retries
             again = read_mapping(read)
-            if again == current and self._sdo_retries == retries:
+            if again == current and self.sdo_retries == retries:
                 return current
             current = again
         raise BusError(f"{who}: its PDO mapping could not be read twice alike without lost answers "
                        f"({MAPPING_READ_ATTEMPTS + 1} reads; the last: {describe(current)}); check the link")
 
-    def _sdo(self, position: int, transfer: Callable[[], Any], what: str, hint: bool = False,
+    def sdo(self, position: int, transfer: Callable[[], Any], what: str, hint: bool = False,
              attempts: int = 1) -> Any:
         """One SDO transfer with the slave at ``position``; its failure as a BusError naming
         ``what`` and what the slave answered: an SDO abort code and its meaning (with ``hint``:
@@ -285,9 +305,9 @@ class PysoemStartup(PysoemDc):
         CoE is named as such, without a transfer."""
         self._coe_check(position, what)
         for attempt in range(1, attempts + 1):
-            self.startup_steps.check()  # a transfer is up to 700 ms: a stop or deadline between them
+            self.steps.check()  # a transfer is up to 700 ms: a stop or deadline between them
             try:
-                with self._mailbox_lock:
+                with self.mailbox_lock:
                     return transfer()
             except self._pysoem.SdoError as e:
                 code = e.abort_code & 0xFFFFFFFF
@@ -298,24 +318,11 @@ class PysoemStartup(PysoemDc):
                 if not lost:
                     raise BusError(f"{what} failed: {why}") from None
                 if attempt < attempts:
-                    self._sdo_retries += 1
+                    self.sdo_retries += 1
                     log.warning("%s: %s (attempt %d of %d); trying again", what, why, attempt, attempts)
                     continue
                 raise NoAnswer(f"{what} failed: {why}" + (f" ({attempts} attempts)" if attempts > 1 else "")) from None
         raise AssertionError("unreachable")
-
-    def preop_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
-        """An object read in PRE-OP at start-up (0x6502), else an SDO upload now."""
-        v = self._preop_values.get((position, index)) if subindex == 0 else None
-        if v is None:
-            return self.sdo_read(position, index, subindex, size)
-        if isinstance(v, BusError):
-            raise v
-        return v
-
-    def codec(self, position: int) -> DriveCodec:
-        """The process-data codec of the slave at ``position`` (after start())."""
-        return self._codecs[position]
 
     def start(self, mapping_override: Mapping[int, object] | None = None) -> int:
         """Read (and per policy write) each slave's PDO mapping and apply its start-up SDOs in
@@ -327,7 +334,7 @@ class PysoemStartup(PysoemDc):
         A process-data size that disagrees with the mapping (see :data:`START_ATTEMPTS`) sends
         the segment back to INIT and config_init for another try; the slaves found then must be
         the ones found by open()."""
-        if not self._opened:
+        if not self.opened:
             raise BusError(f"{self.ifname}: start() before open()")
         for attempt in range(1, START_ATTEMPTS + 1):
             try:
@@ -343,21 +350,21 @@ class PysoemStartup(PysoemDc):
     def _reopen(self) -> None:
         """Every slave to INIT, the master closed, then open() again; the same slaves (name and
         identity per position) must answer."""
-        before = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
-        self._release_master("before another start")
-        self._opened = False
+        before = [(s.name, s.man, s.id, s.rev) for s in self.slaves]
+        self.release("before another start")
+        self.opened = False
         self.open()
-        after = [(s.name, s.man, s.id, s.rev) for s in self._slaves]
+        after = [(s.name, s.man, s.id, s.rev) for s in self.slaves]
         if after != before:
             raise BusError(f"{self.ifname}: the segment changed during start-up: {len(before)} slave(s) "
                            f"{before} before, {len(after)} {after} now")
 
-    def _release_master(self, when: str) -> None:
+    def release(self, when: str) -> None:
         """Every slave to INIT (briefly checked) if the segment was opened, then the NIC released."""
-        m = self._master
+        m = self.master
         try:
-            if self._opened:
-                self.request_al_state(None, ALState.INIT)
+            if self.opened:
+                self.request_all(ALState.INIT)
                 m.state_check(int(ALState.INIT), 50_000)
         except Exception as e:
             log.warning("%s: INIT request %s failed: %s", self.ifname, when, e)
@@ -366,39 +373,45 @@ class PysoemStartup(PysoemDc):
                 m.close()
             except Exception:
                 pass
-            self._master = None
+            self.master = None
+            self._publish()
+
+    def request_all(self, state: ALState) -> None:
+        """AL control (0x0120) of every slave at once (a broadcast), with the error acknowledge."""
+        self.master.state = int(state) | STATE_ACK  # slave 0 of SOEM's list = broadcast (BWR 0x0120)
+        self.master.write_state()
 
     def _start_once(self, mapping_override: Mapping[int, object] | None) -> int:
         """One try of :meth:`start`; raises ProcessDataSizeError on a size mismatch."""
-        self._codecs = []
+        self.codecs = []
         self._mappings = {}
-        self._preop_values = {}
+        self.preop_values = {}
         pysoem = self._pysoem
-        m = self._master
+        m = self.master
         setups: dict[int, SlaveSetup] = {}
         for pos, setup in (mapping_override or {}).items():
-            if not 0 <= pos < len(self._slaves):
+            if not 0 <= pos < len(self.slaves):
                 raise BusError(f"{self.ifname}: a mapping policy is configured for slave {pos}, which is not on the segment")
             if not isinstance(setup, SlaveSetup):
                 raise BusError(f"slave {pos}: mapping setup must be a SlaveSetup, got {type(setup).__name__}")
             setups[pos] = setup
-        self._setups = setups
-        self._sync0 = {pos: st.sync0 for pos, st in setups.items() if st.sync0 is not None}
+        self.setups = setups
+        self._dc.use({pos: st.sync0 for pos, st in setups.items() if st.sync0 is not None})
         before_safeop = any(st.sync0_before_safeop for st in setups.values() if st.sync0 is not None)
-        if self._sync0:
+        if self._dc.sync0:
             # PRE-OP: find the DC slaves, latch and set offsets and delays; from here on every
             # process-data frame carries the FRMW of the reference clock (master.dc_time)
-            with self.startup_steps.step(f"{self.ifname}: config_dc (SOEM measures the DC delays)", self.soem_call_s):
+            with self.steps.step(f"{self.ifname}: config_dc (SOEM measures the DC delays)", self.soem_call_s):
                 found = m.config_dc()
             if not found:
                 raise BusError(f"{self.ifname}: config_dc found no DC slave, although slave(s) "
-                               f"{sorted(self._sync0)} report DC in 0x0008")
-        no_coe = [f"slave {pos} ({s.name!r}) {problem}" for pos, s in enumerate(self._slaves)
+                               f"{sorted(self._dc.sync0)} report DC in 0x0008")
+        no_coe = [f"slave {pos} ({s.name!r}) {problem}" for pos, s in enumerate(self.slaves)
                   if (problem := self._mailboxes[pos].coe_problem())]
         if no_coe:  # its PDO mapping cannot be read: named now, before any transfer is tried
             raise BusError(f"{self.ifname}: " + "; ".join(no_coe))
         m.manual_state_change = before_safeop  # config_map requests SAFE-OP by itself otherwise
-        for pos, s in enumerate(self._slaves):
+        for pos, s in enumerate(self.slaves):
             s.config_func = self._config_func
         try:
             self._config_map_phase(f"{self.ifname}: config_map (SOEM maps the process data)")
@@ -413,59 +426,60 @@ class PysoemStartup(PysoemDc):
             raise BusError(f"{self.ifname}: config_map: {details}") from None
         except Exception as e:
             raise BusError(f"{self.ifname}: config_map failed: {e}") from None
-        self._codecs = []
-        for pos, s in enumerate(self._slaves):
+        self.codecs = []
+        for pos, s in enumerate(self.slaves):
             mp = self._mappings[pos]
             try:
-                codec = DriveCodec(mp, dict(self._setups.get(pos, SlaveSetup()).objects))
+                codec = DriveCodec(mp, dict(self.setups.get(pos, SlaveSetup()).objects))
             except MappingError as e:
                 raise BusError(f"slave {pos} ({s.name!r}): {e}") from None
             if len(s.output) != codec.out_size or len(s.input) != codec.in_size:
                 raise ProcessDataSizeError(f"slave {pos} ({s.name!r}): process data is {len(s.output)} bytes out / "
                                f"{len(s.input)} in, its PDO mapping says {codec.out_size}/{codec.in_size} "
                                f"({describe(mp)})")
-            self._codecs.append(codec)
+            self.codecs.append(codec)
             log.info("%s: slave %d: %s; absent actual values: %s; other objects: %s", self.ifname, pos,
                      describe(mp), ", ".join(codec.absent_inputs) or "none", ", ".join(codec.extra_names) or "none")
-        self._decode_all = segment_decoder(self._codecs, self._inputs, self._slaves, changes=True)
+        self.decode_all = segment_decoder(self.codecs, self.inputs, self.slaves, changes=True)
+        self._publish()
         if before_safeop:
-            self._start_sync0(sorted(self._sync0))
-            self._wait_sync0_start()
+            self._dc.start_sync0(self.slaves, sorted(self._dc.sync0))
+            self._dc.wait_sync0_start()
             m.state = pysoem.SAFEOP_STATE
             m.write_state()
-        with self.startup_steps.step(f"{self.ifname}: to SAFE-OP", SAFEOP_DEADLINE_S + 1.0):
+        with self.steps.step(f"{self.ifname}: to SAFE-OP", SAFEOP_DEADLINE_S + 1.0):
             self._wait_state(ALState.SAFEOP, SAFEOP_DEADLINE_S, exchange=False)
-        if self._sync0 and not before_safeop:
-            self._start_sync0(sorted(self._sync0))
-        self._expected_wkc = m.expected_wkc
+        if self._dc.sync0 and not before_safeop:
+            self._dc.start_sync0(self.slaves, sorted(self._dc.sync0))
+        self.expected_wkc = m.expected_wkc
         # Outputs must flow while OP is requested, or the SM watchdog trips on the way.
-        for pos in range(len(self._slaves)):
-            self.set_outputs(pos, DriveOutputs())
-        self.exchange()
-        self._wait_sync0_start(exchange=True)
-        apply_safeop_sdos(self._slaves, self._setups, self._sdo, self.exchange)
+        for s, codec in zip(self.slaves, self.codecs):
+            s.output = codec.encode(DriveOutputs())
+        self._exchange()
+        self._dc.wait_sync0_start(self._exchange)
+        apply_safeop_sdos(self.slaves, self.setups, self.sdo, self._exchange)
         m.state = pysoem.OP_STATE
         m.write_state()
-        with self.startup_steps.step(f"{self.ifname}: to OP", OP_DEADLINE_S + 1.0):
+        with self.steps.step(f"{self.ifname}: to OP", OP_DEADLINE_S + 1.0):
             self._wait_state(ALState.OP, OP_DEADLINE_S, exchange=True)
-        with self.startup_steps.step(f"{self.ifname}: reading back SM, FMMU and DC registers", OPEN_S):
+        with self.steps.step(f"{self.ifname}: reading back SM, FMMU and DC registers", OPEN_S):
             self._read_esc_config()
-            self._read_dc_delays()
-        log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self._slaves),
-                 self._expected_wkc)
-        return self._expected_wkc
+            self._dc.read_delays(self.slaves)
+        log.info("%s: %d slave(s) in OP, expected working counter %d", self.ifname, len(self.slaves),
+                 self.expected_wkc)
+        return self.expected_wkc
 
     def _read_esc_config(self) -> None:
         """Read back each slave's SM (0x0800) and FMMU (0x0600) registers as SOEM programmed
         them, so recover() can program a reset slave again without SOEM's reconfig_slave."""
-        for pos, s in enumerate(self._slaves):
+        for pos, s in enumerate(self.slaves):
             try:
                 n_fmmu, n_sm = struct.unpack("<BB", s._fprd(REG_FMMU_COUNT, 2, 2000))
                 sm = bytes(s._fprd(REG_SM0, 8 * n_sm, 2000)) if n_sm else b""
                 fmmu = bytes(s._fprd(REG_FMMU0, 16 * n_fmmu, 2000)) if n_fmmu else b""
             except Exception as e:
                 raise BusError(f"slave {pos} ({s.name!r}): reading back its SM/FMMU registers failed: {e}") from None
-            self._esc_config[pos] = (sm, fmmu)
+            self.esc_config[pos] = (sm, fmmu)
 
     def _wait_state(self, state: ALState, deadline_s: float, exchange: bool) -> None:
         """Until every slave is in ``state`` (requested already), at most ``deadline_s``: the
@@ -473,16 +487,16 @@ class PysoemStartup(PysoemDc):
         indication (AL status bit 4) and stays below until the master acknowledges it, which
         start-up does not: the same refusal seen at two rewrites in a row ends the wait at once.
         Raises BusError naming every slave not there, with its AL status code."""
-        m = self._master
+        m = self.master
         start = time.monotonic()
         deadline = start + deadline_s
         rewrite_at = start + STATE_REWRITE_S
         refused: tuple[int, ...] = ()
-        steps = self.startup_steps
+        steps = self.steps
         while True:
             steps.check()  # the loop's own deadline is checked below; a stop signal here
             if exchange:
-                self.exchange()
+                self._exchange()
             if m.state_check(int(state), STATE_POLL_US) == int(state):
                 return
             now = time.monotonic()
@@ -490,7 +504,7 @@ class PysoemStartup(PysoemDc):
                 break
             if now >= rewrite_at:
                 m.read_state()
-                seen = tuple(pos for pos, s in enumerate(self._slaves)
+                seen = tuple(pos for pos, s in enumerate(self.slaves)
                              if s.state & STATE_ACK and al_state(s.state) != state)
                 if seen and seen == refused:
                     break
@@ -502,7 +516,7 @@ class PysoemStartup(PysoemDc):
                 m.write_state()
         m.read_state()
         bad = []
-        for pos, s in enumerate(self._slaves):
+        for pos, s in enumerate(self.slaves):
             st = s.state
             if al_state(st) != state or st & STATE_ACK:
                 code = s.al_status

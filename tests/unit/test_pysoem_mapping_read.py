@@ -66,8 +66,8 @@ class LateSlave:
 
 def _configure(slave: LateSlave) -> object:
     bus = PysoemBus("none")
-    bus._slaves = [slave]
-    return bus._configure_slave(0)
+    bus._startup.slaves = [slave]
+    return bus._startup.configure_slave(0)
 
 
 def test_the_stand_in_gives_a_plain_read_a_wrong_mapping():

@@ -225,13 +225,13 @@ class CanopenBus:
             try:
                 ident = sdo_mod.read_identity(self._reader(node))
                 break
-            except sdo_mod.SdoError as e:
+            except sdo_mod.SDO_FAILURES as e:
                 if e.abort_code or time.monotonic() >= deadline:
                     raise BusError(f"CAN {self.channel}: node {nid} (position {pos}) not identified within "
                                    f"{self.boot_timeout_s:g} s: {e}") from None
         try:
             name = self._reader(node)(0x1008, 0).decode(errors="replace")
-        except sdo_mod.SdoError:
+        except sdo_mod.SDO_FAILURES:
             name = f"node{nid}"
         log.info("CAN %s: node %d %r vendor 0x%08X product 0x%08X revision 0x%08X serial 0x%08X",
                  self.channel, nid, name, *ident)
@@ -267,7 +267,7 @@ class CanopenBus:
             frames = pdo_mod.PdoFrames(mapping, node.objects)
         except MappingError as e:
             raise BusError(f"CAN {self.channel}: {e}") from None
-        except sdo_mod.SdoError as e:  # the node refused the mapping (an object it cannot map, ...)
+        except sdo_mod.SDO_FAILURES as e:  # the node refused the mapping (an object it cannot map, ...) or did not answer
             raise BusError(f"CAN {self.channel}: PDO policy {node.cfg.pdo!r}: {e}") from None
         if node.frames is not None and node.frames.mapping != mapping:
             raise BusError(f"CAN {self.channel}: node {nid}: its PDO mapping is not the one of start-up "

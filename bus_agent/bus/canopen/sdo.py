@@ -1,5 +1,6 @@
-"""SDO client adapter (CiA 301 §7.2.4) over python-canopen's ``SdoClient``: errors become
-:class:`SdoError` (a BusError) naming the node, the object and the abort code with its text.
+"""SDO client adapter (CiA 301 §7.2.4) over python-canopen's ``SdoClient``: an abort becomes
+:class:`SdoError` (a BusError) naming the node, the object and the abort code with its text; no
+valid answer :class:`SdoNoAnswer` (a :class:`NoAnswer`, abort code 0): :data:`SDO_FAILURES`.
 Blocking (one request/response per expedited transfer): management thread and start-up only.
 """
 
@@ -16,20 +17,38 @@ SdoRead = Callable[[int, int], bytes]          # (index, subindex) -> bytes
 SdoWrite = Callable[[int, int, bytes], None]   # (index, subindex, data)
 
 
+def _text(node_id: int, what: str, index: int, subindex: int, abort_code: int, detail: str) -> str:
+    code = f"aborted with 0x{abort_code:08X} " if abort_code else ""
+    return f"node {node_id}: SDO {what} 0x{index:04X}:{subindex} {code}({detail})"
+
+
 class SdoError(BusError):
-    """An SDO transfer refused (``abort_code``) or unanswered (``abort_code`` 0)."""
+    """An SDO transfer the node refused (``abort_code``): its definite answer."""
 
     def __init__(self, node_id: int, what: str, index: int, subindex: int, abort_code: int, detail: str) -> None:
         self.node_id = node_id
         self.index = index
         self.subindex = subindex
         self.abort_code = abort_code
-        code = f"aborted with 0x{abort_code:08X} " if abort_code else ""
-        super().__init__(f"node {node_id}: SDO {what} 0x{index:04X}:{subindex} {code}({detail})")
+        super().__init__(_text(node_id, what, index, subindex, abort_code, detail))
 
 
-class SdoNoAnswer(SdoError, NoAnswer):
-    """An SDO transfer without a valid answer in time (``abort_code`` 0): it may be made again."""
+class SdoNoAnswer(NoAnswer):
+    """An SDO transfer without a valid answer in time: it may be made again (the only retry
+    rule, :class:`NoAnswer`). ``abort_code`` 0, so a caller of either failure
+    (:data:`SDO_FAILURES`) tells them apart by the code, as CiA 301 has no code for it."""
+
+    abort_code = 0
+
+    def __init__(self, node_id: int, what: str, index: int, subindex: int, detail: str) -> None:
+        self.node_id = node_id
+        self.index = index
+        self.subindex = subindex
+        super().__init__(_text(node_id, what, index, subindex, 0, detail))
+
+
+#: Either failure of an SDO transfer: refused (:class:`SdoError`) or unanswered (:class:`SdoNoAnswer`).
+SDO_FAILURES = (SdoError, SdoNoAnswer)
 
 
 def _abort_text(e: SdoAbortedError) -> str:
@@ -37,23 +56,23 @@ def _abort_text(e: SdoAbortedError) -> str:
 
 
 def read(client: SdoClient, node_id: int, index: int, subindex: int) -> bytes:
-    """Upload one object. Raises SdoError."""
+    """Upload one object. Raises SdoError or SdoNoAnswer."""
     try:
         return bytes(client.upload(index, subindex))
     except SdoAbortedError as e:
         raise SdoError(node_id, "read", index, subindex, e.code, _abort_text(e)) from None
     except SdoCommunicationError as e:
-        raise SdoNoAnswer(node_id, "read", index, subindex, 0, f"no valid answer: {e}") from None
+        raise SdoNoAnswer(node_id, "read", index, subindex, f"no valid answer: {e}") from None
 
 
 def write(client: SdoClient, node_id: int, index: int, subindex: int, data: bytes) -> None:
-    """Download one object. Raises SdoError (the node changed nothing)."""
+    """Download one object. Raises SdoError (the node changed nothing) or SdoNoAnswer."""
     try:
         client.download(index, subindex, bytes(data))
     except SdoAbortedError as e:
         raise SdoError(node_id, "write", index, subindex, e.code, _abort_text(e)) from None
     except SdoCommunicationError as e:
-        raise SdoNoAnswer(node_id, "write", index, subindex, 0, f"no valid answer: {e}") from None
+        raise SdoNoAnswer(node_id, "write", index, subindex, f"no valid answer: {e}") from None
 
 
 _FORMATS = {8: "<B", 16: "<H", 32: "<I"}
@@ -71,7 +90,7 @@ ABSENT = frozenset({0x06020000, 0x06090011})
 
 def read_identity(sdo_read: SdoRead) -> tuple[int, int, int, int]:
     """0x1018 (vendor id, product code, revision, serial). Only the vendor id is mandatory (CiA
-    301): an absent product code, revision or serial reads 0. Raises SdoError."""
+    301): an absent product code, revision or serial reads 0. Raises SdoError or SdoNoAnswer."""
     values = []
     for sub in (1, 2, 3, 4):
         try:

@@ -124,3 +124,51 @@ class DcClock:
         return {"sync0": self.sync0_running(), "sync0_cycle_ns": self.sync0[1] if self.sync0 else 0,
                 "sync0_start_ns": self.sync0[0] if self.sync0 else 0,
                 "sync0_late": self.sync0_late, "system_time_ns": self.system_ns()}
+
+
+#: dc-required sync error (0x001A), counted as drives count missed SM events against SYNC0
+#: (ETG.6010 0x10F1:02, sync error counter limit): +3 for a SYNC0 period without new outputs,
+#: -1 for a period with, a sync error above the limit. So 51 periods in a row without outputs
+#: (51 ms at 1 kHz: before the 100 ms SM watchdog), or a master at half the SYNC0 rate for about
+#: 150 periods; a late frame now and then is not one. Counted in OP only (from entering it).
+SYNC_ERROR_MISSED = 3
+SYNC_ERROR_LIMIT = 150
+
+
+class SyncErrorCounter:
+    """The sync error counter of a dc-required drive in OP (:data:`SYNC_ERROR_LIMIT`)."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Entering OP: counting starts again at the next SYNC0 event."""
+        self.counter = 0
+        self._seen: tuple[int, int] | None = None  # (SYNC0 events, outputs) at the start of counting
+        self._events = 0  # SYNC0 events at the last count
+        self._lag_ref = 0
+
+    def count(self, events: int, outputs: int) -> bool:
+        """``events`` SYNC0 events and ``outputs`` process-data writes so far; True when the
+        counter is above the limit."""
+        # lag = SYNC0 periods - outputs since OP: in step it stays within one of its lowest
+        # (an output is due in every period); each rise beyond that is a period missed
+        if self._seen is None:
+            if events:
+                self._seen = (events, outputs)
+                self._events, self._lag_ref = events, 0
+            return False
+        events0, outs0 = self._seen
+        lag = (events - events0) - (outputs - outs0)
+        periods, self._events = events - self._events, events
+        if periods <= 0:
+            self._lag_ref = min(self._lag_ref, lag)
+            return False
+        if lag > self._lag_ref + 1:
+            missed = lag - self._lag_ref - 1
+            self._lag_ref = lag - 1
+            self.counter += SYNC_ERROR_MISSED * missed
+        else:
+            self.counter = max(0, self.counter - periods)
+            self._lag_ref = min(self._lag_ref, lag)
+        return self.counter > SYNC_ERROR_LIMIT

@@ -1,7 +1,9 @@
 """One simulated EtherCAT slave controller (ESC) hosting a CiA 402 drive model.
 
-Register map, SII EEPROM interface, SyncManagers, FMMUs, the AL state machine and the
-mailbox glue (ETG.1000.4 / ETG.1000.6, ESC datasheet section II register descriptions).
+Register map, SII EEPROM interface, SyncManagers, FMMUs and the AL state machine (ETG.1000.4 /
+ETG.1000.6, ESC datasheet section II register descriptions). Its parts: the mailbox SMs
+(:mod:`.esc_mailbox`), the process data (:mod:`.esc_pd`), the DC clock and sync error counter
+(:mod:`.dc`); the SII image is built by :mod:`.sii`.
 The ESC is driven by :class:`bus_agent.sim.ecat.segment.Segment`, which addresses it with
 datagrams; process data (LRD/LWR/LRW) goes through the segment's precomputed FMMU plans.
 """
@@ -11,14 +13,15 @@ from __future__ import annotations
 import logging
 import struct
 import time
-from typing import Callable
+from typing import Callable, Mapping
 
 from bus_agent.bus.base import AL_ERROR_FLAG, ALState
-from bus_agent.bus.pdo import RX_STRUCT, RXPDO_DEFAULT, TX_STRUCT, TXPDO_DEFAULT, DriveOutputs
-from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, SdoAbort
+from bus_agent.sim.drive_model import PROFILES, DriveModel, DriveProfile, ObjectEntry
 from bus_agent.sim.ecat.coe import Mailbox, SdoServer
-from bus_agent.sim.ecat.image import BitImage
-from bus_agent.sim.ecat.dc import DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_MODE_SM, DcClock
+from bus_agent.sim.ecat.dc import (DC_END, DC_FIRST, REG_ACTIVATION, REG_SYS_TIME, SYNC_ERROR_LIMIT, SYNC_MODE_SM, DcClock,
+                                   SyncErrorCounter)
+from bus_agent.sim.ecat.esc_mailbox import MailboxSms
+from bus_agent.sim.ecat.esc_pd import ProcessData
 from bus_agent.sim.ecat.profiles import EcatProfile, PdoCatalog, as_ecat
 from bus_agent.sim.ecat.sii import MBX_PROTO_COE, MBX_PROTO_FOE, PDI_CONTROL, build_sii, type_code, without_mailbox
 
@@ -75,16 +78,8 @@ class AlStatusCode:
     INVALID_DC_SYNC = 0x0030
 
 
-#: dc-required sync error (0x001A), counted as drives count missed SM events against SYNC0
-#: (ETG.6010 0x10F1:02, sync error counter limit): +3 for a SYNC0 period without new outputs,
-#: -1 for a period with, a sync error above the limit. So 51 periods in a row without outputs
-#: (51 ms at 1 kHz: before the 100 ms SM watchdog), or a master at half the SYNC0 rate for about
-#: 150 periods; a late frame now and then is not one. Counted in OP only (from entering it).
-SYNC_ERROR_MISSED = 3
-SYNC_ERROR_LIMIT = 150
 EEP_STATUS_R64 = 0x0040  # 8-byte reads supported
 EEP_CMD_READ, EEP_CMD_WRITE, EEP_CMD_RELOAD = 0x01, 0x02, 0x04
-SM_STATUS_MBX_FULL = 0x08
 SM_WD_ENABLE = 0x40  # SM control bit 6: watchdog trigger
 
 # Registers the master cannot overwrite: (start, end) byte ranges restored after a write.
@@ -100,6 +95,24 @@ _STATES = {int(s) for s in ALState if s != ALState.NONE}
 U16 = struct.Struct("<H")
 FMMU = struct.Struct("<IHBBHBBB3x")
 SM = struct.Struct("<HHBBBB")
+
+
+def sii_pdos(catalog: PdoCatalog, objects: Mapping[tuple[int, int], ObjectEntry]
+             ) -> list[tuple[int, int, list[tuple[int, int, int, int]]]]:
+    """(PDO index, SM, entries) of every PDO, for the SII categories: the power-on assigned
+    ones on SM2/SM3, the others (alternatives) on 0xFF; empty alternatives left out."""
+    out = []
+    for assign, sm in ((0x1C13, 3), (0x1C12, 2)):
+        lo, hi = (0x1600, 0x17FF) if assign == 0x1C12 else (0x1A00, 0x1BFF)
+        for pdo in sorted(catalog.maps, key=lambda p: (p not in catalog.assign[assign], p)):
+            if not lo <= pdo <= hi or not (catalog.maps[pdo] or pdo in catalog.assign[assign]):
+                continue
+            entries = []
+            for e in catalog.maps[pdo]:
+                i, s, b = e >> 16, (e >> 8) & 0xFF, e & 0xFF
+                entries.append((i, s, b, type_code(objects.get((i, s)))))
+            out.append((pdo, sm if pdo in catalog.assign[assign] else 0xFF, entries))
+    return out
 
 
 class Esc:
@@ -124,14 +137,19 @@ class Esc:
         self.mailbox = Mailbox(self.sdo, self.sms[0].length, coe=bool(ep.mailbox_protocols & MBX_PROTO_COE))
         self.last = last
         self.on_change = on_change
-        (self.mbx_out_start, self.mbx_out_size), (self.mbx_in_start, self.mbx_in_size) = \
-            [(d.start, d.length) for d in self.sms[:2]]
-        self.pd_out_start, self.pd_in_start = self.sms[2].start, self.sms[3].start
         # process RAM up to the end of the highest SM (an ESI's layout; process images up to MAX_IMAGE)
         self.mem_size = max(MEM_SIZE, max(d.start + max(d.length, MAX_IMAGE) for d in self.sms))
         self.mem = bytearray(self.mem_size)
         self.mv = memoryview(self.mem)
         self.dc = DcClock(self.mem) if self.ecat_profile.dc else None
+        self._sync_errors = SyncErrorCounter()
+        self._mbx = MailboxSms(position, self.mem, self._set8, self.mailbox, (self.sms[0].start, self.sms[0].length),
+                               (self.sms[1].start, self.sms[1].length))
+        self._pd = ProcessData(position, self.mem, self.model, self.sdo.pdo, self.sms[2].start, self.sms[3].start)
+        # the segment calls these for every slave at every step: no call in between
+        self.apply_outputs = self._pd.apply_outputs
+        self.update_inputs = self._pd.update_inputs
+        self.offer_mailbox = self._mbx.offer
         self.sdo.sync_info = self._sync_info
         self.ro = bytearray(REG_END)
         self.present = True
@@ -139,7 +157,7 @@ class Esc:
         self.sii = bytearray(build_sii(
             vendor_id=profile.vendor_id, product_code=profile.product_code, revision=profile.revision,
             serial=position + 1, name=profile.device_name, order=ep.sii_order or profile.device_name,
-            pdos=self._sii_pdos(catalog), sms=self.sms, coe_details=ep.coe_details,
+            pdos=sii_pdos(catalog, self.model.objects), sms=self.sms, coe_details=ep.coe_details,
             mailbox_protocols=ep.mailbox_protocols))
         self.has_mailbox = self.ecat_profile.mailbox != "none"
         if not self.has_mailbox:
@@ -148,22 +166,6 @@ class Esc:
             U16.pack_into(self.sii, 0x1C * 2, MBX_PROTO_FOE)
             self.mailbox.coe = False
         self.power_on()
-
-    def _sii_pdos(self, catalog: PdoCatalog) -> list[tuple[int, int, list[tuple[int, int, int, int]]]]:
-        """(PDO index, SM, entries) of every PDO, for the SII categories: the power-on assigned
-        ones on SM2/SM3, the others (alternatives) on 0xFF; empty alternatives left out."""
-        out = []
-        for assign, sm in ((0x1C13, 3), (0x1C12, 2)):
-            lo, hi = (0x1600, 0x17FF) if assign == 0x1C12 else (0x1A00, 0x1BFF)
-            for pdo in sorted(catalog.maps, key=lambda p: (p not in catalog.assign[assign], p)):
-                if not lo <= pdo <= hi or not (catalog.maps[pdo] or pdo in catalog.assign[assign]):
-                    continue
-                entries = []
-                for e in catalog.maps[pdo]:
-                    i, s, b = e >> 16, (e >> 8) & 0xFF, e & 0xFF
-                    entries.append((i, s, b, type_code(self.model.objects.get((i, s)))))
-                out.append((pdo, sm if pdo in catalog.assign[assign] else 0xFF, entries))
-        return out
 
     # -- reset ----------------------------------------------------------------------------
     def power_on(self) -> None:
@@ -196,28 +198,14 @@ class Esc:
         self._render_al()
         self.mailbox.reset()
         self.sdo.pdo.reset()
-        self.sm_enabled = [False] * 4
-        self._sm1_repeat = 0
-        self.mbx_out_full = False
-        self.mbx_in_full = False
+        self._mbx.reset()
         self.fmmus: list[tuple[int, int, int, int]] = []  # (logical start, length, physical, type)
         self.out_time = 0.0
         self.out_count = 0  # process-data writes of outputs (the segment counts them)
-        self.sync_error_counter = 0
-        self._sync_seen: tuple[int, int] | None = None  # (SYNC0 events, out_count) at the start of counting
-        self._sync_events = 0  # SYNC0 events at the last count
-        self._lag_ref = 0
+        self._sync_errors.reset()
         self.last_step = 0.0  # when the segment last stepped this slave's drive model
         self.outputs_fresh = False
-        # (struct, field map) of a remapped PDO; None for the default mapping
-        self.rx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
-        self.tx_codec: tuple[struct.Struct | BitImage, list[tuple[int, int]]] | None = None
-        self._tx_values: Callable[[], tuple] = tuple
-        self._last_tx: tuple | None = None  # the inputs last packed (a bit image only when they change)
-        self.out_size = 0
-        self.in_size = 0
-        self.last_out = bytearray()
-        self.out_view: memoryview | None = None
+        self._pd.reset()
         self.wd_timeout_s = 0.1
         self.on_change("all")
 
@@ -231,6 +219,11 @@ class Esc:
     def _render_al(self) -> None:
         self._set16(Reg.AL_STATUS, int(self.al_state) | (AL_ERROR_FLAG if self.al_error else 0))
         self._set16(Reg.AL_STATUS_CODE, self.al_code)
+
+    @property
+    def sync_error_counter(self) -> int:
+        """The sync error counter of a dc-required drive in OP (0x001A above its limit)."""
+        return self._sync_errors.counter
 
     @property
     def station_address(self) -> int:
@@ -249,15 +242,9 @@ class Esc:
                 return True
             dst[: self.mem_size - ado] = self.mv[ado:self.mem_size]
             return True
-        if end > self.mbx_in_start and ado < self.mbx_in_start + self.mbx_in_size and self.sm_enabled[1]:
-            if not self.mbx_in_full:
-                return False
-            dst[:] = self.mv[ado:end]
-            if end >= self.mbx_in_start + self.mbx_in_size:  # last byte read: SM1 empties
-                self.mbx_in_full = False
-                self._render_sm_status()
-                self.offer_mailbox()
-            return True
+        mbx = self._mbx
+        if end > mbx.in_start and ado < mbx.in_end and mbx.enabled[1]:
+            return mbx.read(ado, end, dst)
         dst[:] = self.mv[ado:end]
         return True
 
@@ -270,13 +257,9 @@ class Esc:
         if ado >= self.mem_size:
             return True
         if ado >= REG_END:
-            if end > self.mbx_out_start and ado < self.mbx_out_start + self.mbx_out_size and self.sm_enabled[0]:
-                if self.mbx_out_full or self.al_state == ALState.INIT:
-                    return False
-                self.mv[ado:end] = src[: end - ado]
-                if end >= self.mbx_out_start + self.mbx_out_size:
-                    self._mailbox_written()
-                return True
+            mbx = self._mbx
+            if end > mbx.out_start and ado < mbx.out_end and mbx.enabled[0]:
+                return mbx.write(ado, end, src, self.al_state == ALState.INIT)
             self.mv[ado:end] = src[: end - ado]
             return True
         reg_end = min(end, REG_END)
@@ -328,28 +311,15 @@ class Esc:
         return SM.unpack_from(self.mem, Reg.SM0 + 8 * k)
 
     def _sm_written(self, old_act: bytes) -> None:
-        for k in range(4):
+        mbx = self._mbx
+        for k in (0, 1):  # SM2/SM3 being enabled is checked on the way to SAFE-OP
             enabled = bool(self.mem[Reg.SM0 + 8 * k + 6] & 0x01)
-            if enabled != self.sm_enabled[k]:
-                self.sm_enabled[k] = enabled
-                if k == 0:
-                    self.mbx_out_full = False
-                elif k == 1:
-                    self.mbx_in_full = False
-                    if enabled:
-                        self.offer_mailbox()
-        repeat = self.mem[Reg.SM0 + 8 + 6] & 0x02
-        if repeat != self._sm1_repeat:
-            self._sm1_repeat = repeat
-            self._repeat_request()
-        self._render_sm_status()
+            if enabled != mbx.enabled[k]:
+                mbx.enable(k, enabled)
+        mbx.repeat_written(self.mem[Reg.SM0 + 8 + 6] & 0x02)
+        mbx.render_status()
         self._update_watchdog()
         self.on_change("fmmu")
-
-    def _render_sm_status(self) -> None:
-        self._set8(Reg.SM0 + 5, SM_STATUS_MBX_FULL if self.mbx_out_full else 0)
-        self._set8(Reg.SM0 + 8 + 5, SM_STATUS_MBX_FULL if self.mbx_in_full else 0)
-        self._set8(Reg.SM0 + 8 + 7, self._sm1_repeat)  # repeat ack follows the request
 
     def _read_fmmus(self) -> None:
         fmmus = []
@@ -370,35 +340,6 @@ class Esc:
             self.wd_timeout_s = (divider + 2) * 40e-9 * time_pd
 
     # -- mailbox --------------------------------------------------------------------------
-    def _mailbox_written(self) -> None:
-        self.mbx_out_full = True
-        self._render_sm_status()
-        try:
-            self.mailbox.request(self.mv[self.mbx_out_start:self.mbx_out_start + self.mbx_out_size])
-        except Exception:  # a broken request must never stop the segment
-            log.exception("slave %d: mailbox request failed", self.position)
-        self.mbx_out_full = False  # the application consumed it at once
-        self._render_sm_status()
-        self.offer_mailbox()
-
-    def offer_mailbox(self) -> None:
-        """Move the next queued reply into SM1 if it is enabled and empty."""
-        if self.mbx_in_full or not self.sm_enabled[1] or not self.mailbox.queue:
-            return
-        frame = self.mailbox.queue.popleft()
-        self._put_sm1(frame)
-
-    def _put_sm1(self, frame: bytes) -> None:
-        self.mailbox.last_sent = frame
-        self.mem[self.mbx_in_start:self.mbx_in_start + self.mbx_in_size] = frame.ljust(self.mbx_in_size, b"\0")
-        self.mbx_in_full = True
-        self._render_sm_status()
-
-    def _repeat_request(self) -> None:
-        # The master lost the last reply (read with WKC 0): offer it again if SM1 is empty.
-        if not self.mbx_in_full and self.mailbox.last_sent is not None and self.sm_enabled[1]:
-            self._put_sm1(self.mailbox.last_sent)
-
     def push_emergencies(self) -> None:
         """Move the model's EMCY records into the mailbox (dropped below PRE-OP)."""
         emcys = self.model.take_emcy()
@@ -443,7 +384,7 @@ class Esc:
             if code:
                 self._fail(ALState.PREOP, code)
                 return
-            self._build_codecs()
+            self._pd.build_codecs()
             self.update_inputs()
         self._enter(target)
 
@@ -454,12 +395,11 @@ class Esc:
             self.model.communication_lost()
         if target == ALState.OP:
             self.out_time = time.monotonic()
-            self.sync_error_counter, self._sync_seen = 0, None
+            self._sync_errors.reset()
             self._set8(Reg.WD_STATUS_PD, 1)
         if target == ALState.INIT:
             self.mailbox.reset()
-            self.mbx_in_full = self.mbx_out_full = False
-            self._render_sm_status()
+            self._mbx.empty()
         self._render_al()
         log.debug("slave %d: AL %s -> %s", self.position, previous.name, target.name)
         self.on_change("al")
@@ -499,29 +439,9 @@ class Esc:
         if not events and (self.ecat_profile.sync0_always or self._mode_display() in (8, 9, 10)):  # as _needs_sync0
             self._fail(ALState.SAFEOP, AlStatusCode.INVALID_DC_SYNC)
             return
-        # lag = SYNC0 periods - outputs since OP: in step it stays within one of its lowest
-        # (an output is due in every period); each rise beyond that is a period missed
-        if self._sync_seen is None:
-            if events:
-                self._sync_seen = (events, self.out_count)
-                self._sync_events, self._lag_ref = events, 0
-            return
-        events0, outs0 = self._sync_seen
-        lag = (events - events0) - (self.out_count - outs0)
-        periods, self._sync_events = events - self._sync_events, events
-        if periods <= 0:
-            self._lag_ref = min(self._lag_ref, lag)
-            return
-        if lag > self._lag_ref + 1:
-            missed = lag - self._lag_ref - 1
-            self._lag_ref = lag - 1
-            self.sync_error_counter += SYNC_ERROR_MISSED * missed
-        else:
-            self.sync_error_counter = max(0, self.sync_error_counter - periods)
-            self._lag_ref = min(self._lag_ref, lag)
-        if self.sync_error_counter > SYNC_ERROR_LIMIT:
+        if self._sync_errors.count(events, self.out_count):
             log.warning("slave %d: sync error: outputs not in step with SYNC0 (counter %d > %d)", self.position,
-                        self.sync_error_counter, SYNC_ERROR_LIMIT)
+                        self._sync_errors.counter, SYNC_ERROR_LIMIT)
             self._fail(ALState.SAFEOP, AlStatusCode.SYNC_ERROR)
 
     def watchdog_expired(self) -> None:
@@ -541,10 +461,9 @@ class Esc:
         return True
 
     def _pd_sms_check(self) -> int:
-        self.out_size = self.sdo.pdo.size_bytes(0x1C12)
-        self.in_size = self.sdo.pdo.size_bytes(0x1C13)
-        for k, size, code in ((2, self.out_size, AlStatusCode.INVALID_OUTPUT_CONFIG),
-                              (3, self.in_size, AlStatusCode.INVALID_INPUT_CONFIG)):
+        out_size, in_size = self._pd.size()
+        for k, size, code in ((2, out_size, AlStatusCode.INVALID_OUTPUT_CONFIG),
+                              (3, in_size, AlStatusCode.INVALID_INPUT_CONFIG)):
             start, length, control, _st, act, _pdi = self.sm(k)
             d = self.sms[k]
             if size == 0:
@@ -554,54 +473,3 @@ class Esc:
             if not (act & 0x01) or start != d.start or length != size or control & 0x0F != d.control & 0x0F:
                 return code
         return 0
-
-    # -- process data ---------------------------------------------------------------------
-    def _build_codecs(self) -> None:
-        """Encoders for the current PDO layout (fixed from SAFE-OP on: remapping is refused)."""
-        pdo = self.sdo.pdo
-        rx_layout = pdo.layout(0x1C12)
-        tx_layout = pdo.layout(0x1C13)
-        default_rx = [(i, s, b) for i, s, b, _c, _n in RXPDO_DEFAULT]
-        default_tx = [(i, s, b) for i, s, b, _c, _n in TXPDO_DEFAULT]
-        self.rx_codec = None if rx_layout == default_rx else pdo.struct_for(0x1C12)
-        self.tx_codec = None if tx_layout == default_tx else pdo.struct_for(0x1C13)
-        if self.tx_codec is not None:
-            self._tx_values = self.model.reader(self.tx_codec[1])
-        self._last_tx = None
-        self.out_view = self.mv[self.pd_out_start:self.pd_out_start + self.out_size]
-        self.last_out = bytearray(self.out_size)
-
-    def apply_outputs(self) -> None:
-        """SM2 content -> drive model (OP only; the caller checks the state)."""
-        view = self.out_view
-        if view is None or not self.out_size or view == self.last_out:
-            return
-        self.last_out[:] = view
-        if self.rx_codec is None:
-            self.model.apply_outputs(DriveOutputs(*RX_STRUCT.unpack_from(self.mem, self.pd_out_start)))
-            return
-        st, keys = self.rx_codec
-        values = dict(zip(keys, st.unpack_from(self.mem, self.pd_out_start)))
-        current = []
-        for index, sub, _bits, _code, _name in RXPDO_DEFAULT:
-            current.append(values.pop((index, sub)) if (index, sub) in values else int(self.model.value(index, sub)))
-        for (index, sub), value in values.items():
-            try:
-                self.model.write_mapped(index, sub, value)
-            except SdoAbort as exc:
-                log.debug("slave %d: RxPDO 0x%04X:%d refused: %s", self.position, index, sub, exc)
-        self.model.apply_outputs(DriveOutputs(*current))
-
-    def update_inputs(self) -> None:
-        """Drive model -> SM3 buffer."""
-        if self.in_size == 0:
-            return
-        if self.tx_codec is None:
-            i = self.model.inputs()
-            TX_STRUCT.pack_into(self.mem, self.pd_in_start, i.statusword, i.position_actual, i.velocity_actual,
-                                i.torque_actual, i.modes_of_operation_display, i.error_code)
-            return
-        values = self._tx_values()
-        if values != self._last_tx:  # a drive at rest: nothing to pack (bit images cost a few us)
-            self._last_tx = values
-            self.tx_codec[0].pack_into(self.mem, self.pd_in_start, *values)
