@@ -433,6 +433,15 @@ class AxisMotion:
         self._last_step_s = now_s if self.plan is not None else None
         return ended
 
+    def catch_up(self, now_s: float) -> float:
+        """Advance the running profile to ``now_s`` (see :meth:`_advance`) and forget the lag
+        it fell behind by, as a re-timed group move starts afresh; the arrival time planned when
+        the move started (monotonic seconds). For :func:`retime_group`."""
+        self.retime_due = False
+        self._lag_s = 0.0
+        self._advance(now_s)
+        return self._arrive_s
+
     def _advance(self, now_s: float) -> None:
         """Advance the running profile by one period since the last step (idempotent within a
         cycle). The drive takes one target per period: a frame late by jitter or a stall (slots
@@ -554,18 +563,18 @@ def retime_group(members: list[AxisMotion], now_s: float) -> None:
     may go up to its axis limit), else the earliest arrival the slowest allows. Never a jump:
     the new plans start from the set-points. Cycle-safe (ruckig, once per stall)."""
     runs = []
+    arrivals = []
     for m in members:
-        m.retime_due = False
-        m._lag_s = 0.0
-        m._advance(now_s)
+        arrive_s = m.catch_up(now_s)
         plan = m.plan
         if plan is not None and m.plan_kind == "sync" and not math.isnan(plan.target) \
                 and 0.0 < now_s - m.plan_t0 < plan.duration:
             runs.append(m)
+            arrivals.append(arrive_s)
     if not runs:
         return
     starts = [Kinematic(*m.plan.sample(now_s - m.plan_t0)) for m in runs]  # type: ignore[union-attr]
-    arrive = max(m._arrive_s for m in runs)
+    arrive = max(arrivals)
     try:
         plans = plan_group(starts, [m.plan.target for m in runs], [m.limits for m in runs],  # type: ignore[union-attr]
                            max(arrive - now_s, 0.0))
