@@ -105,7 +105,7 @@ def test_the_statusword_table_equals_the_standards_patterns():
 # ---- the cycle's snapshots: rebuilt only for drives whose values changed ---------------------------
 
 #: Every DriveSnapshot field the cycle fills, in order. A new field must also be added to the change
-#: key in Cycle._drive_snapshots (else a change of it alone would not be published), and the cycle
+#: key in Snapshots.drive_snapshots (bus_agent/cycle/output.py; else a change of it alone would not be published), and the cycle
 #: builds the record positionally in this order: update all three.
 SNAPSHOT_FIELDS = ("axis", "slave", "state", "statusword", "controlword", "goal", "halt", "mode", "mode_display",
                    "position", "velocity", "torque", "error_code", "error_text", "al_state", "lost", "absent",
