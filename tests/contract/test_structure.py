@@ -14,10 +14,7 @@ ALLOWED_MULTIPLE_BASES: set[str] = set()
 ALLOWED_ATTRIBUTES: set[str] = set()
 ALLOWED_LONG_MODULES: set[str] = set()
 ALLOWED_CYCLES: set[tuple[str, ...]] = set()
-ALLOWED_BINARIES = {
-    "tests/data/eds/vendor.eds",  # ISO-8859-1 on purpose: vendors' EDS files are, the reader must cope
-    "tests/esi/quirks.xml",  # ISO-8859-1 on purpose: vendors' ESI files are, the parser must cope
-}
+ALLOWED_BINARIES: set[str] = set()
 
 
 @pytest.fixture(scope="module")
@@ -116,4 +113,5 @@ def test_imports_inside_functions_count_in_bench():
 def test_binary_data_is_told_from_text():
     assert not is_binary("UTF-8 text: Ä µs\n".encode())
     assert is_binary(b"PK\x03\x04\x00\x00")
-    assert is_binary("Latin-1: \xc4".encode("latin-1"))
+    assert not is_binary("Latin-1 text, as vendors' EDS files: \xc4\r\n".encode("latin-1"))
+    assert is_binary(b"\x7fELF\x02\x01\x01\x00")
