@@ -7,14 +7,18 @@ per host naming its axes (the agent starts them in one cycle); across hosts two 
 *prepare* (each agent plans, moves nothing, and answers its axes' minimum duration), then
 *commit* (every host gets the largest duration and one wall-clock start time
 :data:`START_MARGIN_S` ahead, sent concurrently). What cannot be one group is refused as a whole.
+A host whose commit ends without its drives arriving (refused, failed, missing) while others
+still move stops the others (``stop``, a defined stop they keep until released): a group move
+never goes on as part of a group.
 """
 
 from __future__ import annotations
 
 import contextvars
 import dataclasses
+import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from .results import CommandResult, DriveResult
@@ -22,6 +26,8 @@ from .selectors import DriveRef
 
 if TYPE_CHECKING:
     from .orchestration import Fleet
+
+log = logging.getLogger(__name__)
 
 #: Wall-clock margin between the commit and the common start of a cross-host group move: covers
 #: the commit's delivery to every agent (a query on a LAN: ~1 ms) and the hosts' clock offsets.
@@ -136,9 +142,39 @@ def _one_group(fleet: "Fleet", refs: Sequence[DriveRef], per_host: Mapping[str, 
                 r if not r.ok else dataclasses.replace(r, outcome="rejected", error=why[:400]) for r in merged.results))
         duration = max(r.duration_s for r in merged.results)
         start_at_ns = time.time_ns() + int(margin_s * 1e9)
-        committed = list(pool.map(lambda h: ctx.copy().run(send, h, {"duration_s": duration, "start_at_ns": start_at_ns}),
-                                  per_host))
+        futures = {pool.submit(ctx.copy().run, send, h, {"duration_s": duration, "start_at_ns": start_at_ns}): h
+                   for h in per_host}
+        committed = _commit(fleet, futures, by_host, ctx, timeout_s)
     return _merge("move", committed)
+
+
+#: Deadline of the ``stop`` sent to the rest of a group move whose commit failed on some host.
+GROUP_STOP_TIMEOUT_S = 5.0
+
+
+def _commit(fleet: "Fleet", futures: Mapping["Future[CommandResult]", str], by_host: Mapping[str, Sequence[str]],
+            ctx: contextvars.Context, timeout_s: float) -> list[CommandResult]:
+    """Wait for every host's commit. The first that ends without all its drives done while
+    others still run has those others stopped (one ``stop`` to their axes), so the group never
+    moves on in part; their moves then end ``aborted`` naming the stop."""
+    results: list[CommandResult] = []
+    pending = set(futures)
+    stopped = False
+    while pending:
+        done, pending = wait(pending, return_when=FIRST_COMPLETED)
+        results += [f.result() for f in done]
+        if pending and not stopped and any(not r.ok for r in results):
+            stopped = True
+            rest = [DriveRef(futures[f], a) for f in pending for a in by_host[futures[f]]]
+            why = "; ".join(f"{r.name}: {r.outcome} {r.error}".strip() for p in results for r in p.failures)
+            log.warning("group move: %s; stopping the rest of the group (%s)", why[:400],
+                        ", ".join(str(r) for r in rest))
+            stop = ctx.copy().run(fleet.send, "stop", fleet.selection_of(rest), {},
+                                  min(timeout_s, GROUP_STOP_TIMEOUT_S))
+            if not stop.ok:
+                log.error("group move: the stop of the rest of the group did not complete: %s",
+                          "; ".join(f"{r.name}: {r.outcome} {r.error}".strip() for r in stop.failures)[:400])
+    return results
 
 
 def _merge(op: str, parts: Sequence[CommandResult]) -> CommandResult:
@@ -150,4 +186,4 @@ def _merge(op: str, parts: Sequence[CommandResult]) -> CommandResult:
                          elapsed_s=max((p.elapsed_s for p in parts), default=0.0))
 
 
-__all__ = ["START_MARGIN_S", "move_args", "group_move", "sync_move"]
+__all__ = ["START_MARGIN_S", "GROUP_STOP_TIMEOUT_S", "move_args", "group_move", "sync_move"]

@@ -102,3 +102,45 @@ def test_home_by_fleet_and_drivectl(bed: str) -> None:
     assert r.returncode == 0, r.stdout + r.stderr
     r = drivectl(bed, "home", "m2/axis1", "--method", "99")
     assert r.returncode == 1 and "homing method 99" in r.stdout, r.stdout + r.stderr
+
+
+def test_group_move_whose_commit_fails_on_one_host_stops_the_other(bed: str) -> None:
+    """m2's drive faults between prepare and commit (injected in its simulator just before m2's
+    commit leaves): m2 refuses the commit, and m1, which had started, is stopped (outcome
+    ``aborted``, axis ``stopping``) instead of finishing a synchronized move alone."""
+    import time
+
+    from supervisor.simctl import inject
+
+    with Fleet(connect=[bed]) as f:
+        f.wait_for_agents(HOSTS, 10, drives=4)
+        start = next(iter(f.fetch_status(["m1/axis0"]).values())).position
+        real_send = f.send
+
+        def send(op, sel, args=None, timeout_s=5.0):  # type: ignore[no-untyped-def]
+            if op == "move" and args and "start_at_ns" in args and any(r.host == "m2" for r in sel.drives):
+                inject(f, "fault", "m2/axis0", error_code=0x2310)
+                deadline = time.monotonic() + 5.0
+                while next(iter(f.fetch_status(["m2/axis0"]).values())).state != "fault":
+                    assert time.monotonic() < deadline, "the injected fault never showed"
+                    time.sleep(0.02)
+            return real_send(op, sel, args, timeout_s)
+
+        f.send = send  # type: ignore[method-assign]  # the group path's sends, the real ones after the fault
+        try:
+            t0 = time.monotonic()
+            res = f.group_move({"m1/axis0": start + 200_000.0, "m2/axis0": 1_000.0}, velocity=20_000.0, timeout_s=20)
+            took = time.monotonic() - t0
+        finally:
+            f.send = real_send  # type: ignore[method-assign]
+        outcomes = {r.name: r.outcome for r in res.results}
+        assert outcomes["m1/axis0"] == "aborted", res.results
+        assert outcomes["m2/axis0"] in ("rejected", "failed"), res.results
+        assert "stop" in next(r.error for r in res.results if r.name == "m1/axis0")
+        assert took < 8.0  # the 10 s move did not run to its end
+        s = next(iter(f.fetch_status(["m1/axis0"]).values()))
+        assert s.axis_state == "stopping" and abs(s.position - start) < 200_000
+        # put the bed back: release m1's stop, reset and enable m2's drive
+        assert f.stop("m1/axis0", release=True).ok
+        assert f.fault_reset("m2/axis0").ok
+        assert f.enable("m2/axis0").ok
