@@ -61,8 +61,10 @@ def _record_call_mean_ns(drives: int, calls: int) -> float:
 
     from bus_agent.bus.pdo import DriveInputs
 
-    ds = [SimpleNamespace(inputs=DriveInputs(0x0237, i, i, i, 8, 0), controlword=0x000F, target_position=i,
-                          target_velocity=0, target_torque=0) for i in range(drives)]
+    # what the recorder reads of a drive (recorder.RecordedDrive): the targets as written, in ``out``
+    ds = [SimpleNamespace(inputs=DriveInputs(0x0237, i, i, i, 8, 0), index=i, controlword=0x000F,
+                          out=SimpleNamespace(target_position=i, target_velocity=0, target_torque=0))
+          for i in range(drives)]
     rec = Recorder([f"a{i}" for i in range(drives)], 1000)
     t0 = time.thread_time_ns()
     for c in range(calls):

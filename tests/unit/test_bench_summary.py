@@ -309,3 +309,11 @@ def test_opcua_targets_read_the_worst_round_the_rest_cpu_and_misses() -> None:
     assert [t.met for t in sf.opcua_targets({})] == [None, None, None, None]
     assert "fault to OPC UA client p50/max 17.0/510.0 ms" in sf.opcua_headline(run)
     assert sf.opcua_figures(run)["client_over_subscriber_p50"] == 5.7
+
+
+def test_the_recorder_benchmark_feeds_the_recorder_what_it_reads_of_a_drive():
+    """bench_recorder's stand-in drives follow recorder.RecordedDrive (they lacked ``out`` once and
+    the benchmark crashed while the suite stayed green)."""
+    from bench.bench_recorder import record_call_ns
+
+    assert record_call_ns(4, calls=50, repeats=1) > 0
