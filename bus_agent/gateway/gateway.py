@@ -25,11 +25,10 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any, Iterable
+from typing import Any
 
 import zenoh
 
-from bus_agent import runtime as rt
 from bus_agent.gateway.commands import CONFLICT_REFUSED_OPS, DEDUP_SIZE, DEDUP_TTL_S, Commands
 from bus_agent.gateway.handoff import Feed, Inbox
 from bus_agent.gateway.hostclaim import HostClaim
@@ -61,16 +60,13 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
                  claim_config: Any = None) -> None:
         self.session = session
         self.cycle = cycle
-        self.s = settings
         self.host = settings.host
         self.axes = tuple(settings.axes)
         self._stop = threading.Event()
         self.feed = Feed()
         self.inbox = Inbox()
         self.claim = HostClaim(settings, claim_config, self.feed.emit, self.feed.agent_status_now)
-        self.instance = self.claim.instance
         self.peers = Peers(settings, cycle, self.feed, self.inbox.put)
-        self.leases = self.peers.leases
         self.commands = Commands(settings, cycle, self.feed, self.inbox, self.peers, self.claim, self._stop)
         self.publisher = Publisher(settings, self.feed, self.inbox.idle, self._stop, self.peers, self.claim,
                                    self.commands.counts)
@@ -87,19 +83,6 @@ accepting commands (shutdown begins); ``close`` publishes the last snapshot and 
     @agent_state_override.setter
     def agent_state_override(self, state: str | None) -> None:
         self.publisher.agent_state_override = state
-
-    def on_snapshot(self, snap: rt.CycleSnapshot) -> None:
-        """Snapshot sink of the cycle (:meth:`~bus_agent.gateway.handoff.Feed.on_snapshot`)."""
-        self.feed.on_snapshot(snap)
-
-    def on_events(self, items: Iterable[tuple[rt.CycleEvent, int, int]]) -> None:
-        """Event sink of a cycle in another process (``bridge.CycleProxy.event_sink``): events
-        with the cycle number and wall time of the snapshot they came in, in order."""
-        self.feed.on_events(items)
-
-    def publish_bad_now(self, snap: rt.CycleSnapshot) -> None:
-        """See :meth:`Publisher.publish_bad_now <bus_agent.gateway.publisher.Publisher.publish_bad_now>`."""
-        self.publisher.publish_bad_now(snap)
 
     # ---- life cycle -------------------------------------------------------------------------
 

@@ -47,9 +47,7 @@ class Feed:
 
     def emit(self, ev: rt.CycleEvent) -> None:
         """An event of the gateway's own (an outcome it decided, a lease, a conflict)."""
-        snap = self.latest
-        self.events.append((ev, snap.cycle if snap else 0, time.time_ns()))
-        self.wake.set()
+        self.emit_all((ev,))
 
     def emit_all(self, events: Iterable[rt.CycleEvent]) -> None:
         """Several events of the gateway's own, queued with one wake-up of the publisher."""
@@ -86,7 +84,6 @@ class Inbox:
         #: Set while ``gw-command`` has nothing to do.
         self.idle = threading.Event()
         self.idle.set()
-        self._put = q.put
 
     def work(self, item: tuple[Callable[..., None], tuple]) -> None:
         """Queue work that answers a querier (a command, a batch of outcomes), marking
@@ -94,4 +91,4 @@ class Inbox:
         status change, waits before its next put instead of taking the GIL from the replies
         while ``gw-command`` is still waking up."""
         self.idle.clear()
-        self._put(item)
+        self.put(item)

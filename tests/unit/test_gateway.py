@@ -298,7 +298,7 @@ def test_lease_expiry_runs_reaction(gw):
     wait_for(lambda: [c.op for c in cycle.submitted if c.request_id.startswith("@")] == ["quick_stop", "disable"],
              what="quick stop then disable")
     assert cycle.drives["x1"].state == "switch_on_disabled"
-    assert gateway.leases.holders() == {}
+    assert gateway.peers.leases.holders() == {}
 
 
 def test_holder_token_loss_runs_reaction(gw):

@@ -226,11 +226,11 @@ def test_the_gateway_publishes_a_new_fault_at_once_on_the_callers_thread() -> No
         def snap() -> rt.CycleSnapshot:
             return rt.CycleSnapshot(cycle.cycle, time.time_ns(), tuple(cycle.drives.values()), (), rt.CycleStats())
 
-        gateway.publish_bad_now(snap())                  # nothing bad: nothing published
+        gateway.publisher.publish_bad_now(snap())                  # nothing bad: nothing published
         n = len(got)
         cycle.set("x2", state="fault", error_code=0x7305)
-        gateway.publish_bad_now(snap())
-        gateway.publish_bad_now(snap())                  # unchanged: not again
+        gateway.publisher.publish_bad_now(snap())
+        gateway.publisher.publish_bad_now(snap())                  # unchanged: not again
         wait_for(lambda: any(s.state == "fault" for s in got[n:]), what="the fault status")
         assert [(s.axis, s.state, s.error_code) for s in got[n:]] == [("x2", "fault", 0x7305)]
     finally:
