@@ -67,9 +67,10 @@ class PysoemBus:
         self.receive_timeout_us = receive_timeout_us
         self.release_gil = release_gil
         self._dc = PysoemDc(ifname)
+        # start-up exchanges through the bus's exchange as it is when called (benchmarks and tests wrap it)
         self._startup = PysoemStartup(pysoem, ifname, self._dc, config_init_deadline_s=config_init_deadline_s,
                                       soem_call_s=soem_call_s, on_emergency=self._on_emergency,
-                                      exchange=self.exchange, on_segment=self._on_segment)
+                                      exchange=lambda: self.exchange(), on_segment=self._on_segment)
         # The segment as start-up set it up (:meth:`_on_segment`), read by the cycle path directly
         self._master: Any = None
         self._slaves: list[Any] = []
@@ -107,16 +108,6 @@ class PysoemBus:
     def startup_steps(self, steps: StartupSteps) -> None:
         self._startup.steps = steps
 
-    @property
-    def config_init_deadline_s(self) -> float:
-        """How long open() keeps retrying config_init when no slave answers."""
-        return self._startup.config_init_deadline_s
-
-    @property
-    def soem_call_s(self) -> float:
-        """The deadline of each SOEM call start-up cannot interrupt."""
-        return self._startup.soem_call_s
-
     def open(self) -> list[SlaveInfo]:
         """Open the NIC and find the slaves (INIT -> PRE-OP). Raises BusError."""
         return self._startup.open()
@@ -142,11 +133,6 @@ class PysoemBus:
         if isinstance(v, BusError):
             raise v
         return v
-
-    def _sdo(self, position: int, transfer: Callable[[], Any], what: str, hint: bool = False,
-             attempts: int = 1) -> Any:
-        """One SDO transfer (:meth:`PysoemStartup.sdo`)."""
-        return self._startup.sdo(position, transfer, what, hint, attempts)
 
     # ---- distributed clocks (the PysoemDc part) ------------------------------------------------
 

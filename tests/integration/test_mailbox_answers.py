@@ -72,7 +72,7 @@ def test_a_mailbox_without_coe_is_named_at_once_and_its_error_answer_is_not_aske
         return slave.sdo_read(0x1018, 1, 4, release_gil=True)
 
     with pytest.raises(BusError) as err:
-        bus._sdo(0, upload, "slave 1: SDO upload 0x1018:1", attempts=3)
+        bus._startup.sdo(0, upload, "slave 1: SDO upload 0x1018:1", attempts=3)
     assert sent == [1] and not _retries(caplog)
     assert str(err.value) == "slave 1: SDO upload 0x1018:1 failed: mailbox error 0x0002: mailbox protocol not supported"
     assert not isinstance(err.value, NoAnswer)

@@ -170,7 +170,7 @@ def write_mapping(sdo_write: SdoWrite, m: SlaveMapping) -> None:
 def mapping_for(policy: str, node_id: int, sdo_read: SdoRead, sdo_write: SdoWrite,
                 explicit: SlaveMapping | None = None) -> SlaveMapping:
     """Apply ``policy`` to one node; the mapping the cycle runs with (checked). Raises
-    MappingError (naming the node, the policy and what is wrong) or SdoError."""
+    MappingError (naming the node, the policy and what is wrong), SdoError or SdoNoAnswer."""
     if policy == "drive":
         m = read_mapping(sdo_read)
     elif policy == "default":
