@@ -42,12 +42,10 @@ import sys
 import time
 from typing import Callable
 
-from bench.agent_phases import enable_all as _enable_all
-from bench.agent_phases import measure as _measure
-from bench.agent_phases import phase_bare as bare
-from bench.codec_cost import best_of as _best_of
+from bench import agent_phases
 from bench.codec_cost import codec_figures
-from bench.common import bench_parser, main_result, period_figures, read_period_logs, run_json, segment, task_cpu_ns
+from bench.common import (best_of, bench_parser, main_result, period_figures, read_period_logs, run_json, segment,
+                          task_cpu_ns)
 
 
 
@@ -66,11 +64,11 @@ def phase_agent(args) -> dict:
     cyc.snapshot_sink = sink.append
     cyc.start()
     try:
-        resets = _enable_all(cyc)
+        resets = agent_phases.enable_all(cyc)
         assert cyc.thread is not None and cyc.thread.native_id is not None
         tid = cyc.thread.native_id
         c0, t0, ns0 = cyc.cycles, time.monotonic(), task_cpu_ns(tid)
-        out = _measure(cyc, args)
+        out = agent_phases.measure(cyc, args)
         el, cycles, ns = time.monotonic() - t0, cyc.cycles - c0, task_cpu_ns(tid) - ns0
         out.update(startup_fault_resets=resets, **_cpu(ns, el, cycles, args.cycle_us))
         return out
@@ -80,7 +78,7 @@ def phase_agent(args) -> dict:
 
 def phase_bare(args) -> dict:
     args.dc = "off"
-    out = bare(args)
+    out = agent_phases.phase_bare(args)
     # one thread: the process's CPU is the loop's
     out.update(_cpu(int(out["cpu_s"] * 1e9), out["seconds"], out["cycles"], args.cycle_us))
     return out
@@ -169,7 +167,7 @@ def phase_ticks(args) -> dict:
             cyc.tick()
         runs: dict[str, Callable[[], object]] = {"bare_exchange": bare, "bus_exchange": exchange,
                                                  "tick_rest": cyc.tick, "tick_full": full}
-        best, own = _best_of(runs, args.tick_runs, inner=in_exchange)
+        best, own = best_of(runs, args.tick_runs, inner=in_exchange)
         stepped0, cycles0 = cyc.drives_stepped, cyc.cycles
         for _ in range(100):
             cyc.tick()
@@ -179,7 +177,7 @@ def phase_ticks(args) -> dict:
         assert cyc.submit(_move(cyc.axes[0], moving))
         for _ in range(5):
             cyc.tick()
-        b2, o2 = _best_of({"tick_one_moving": cyc.tick}, args.tick_runs, inner=in_exchange)
+        b2, o2 = best_of({"tick_one_moving": cyc.tick}, args.tick_runs, inner=in_exchange)
         best.update(b2)
         own.update(o2)
         if moving:
@@ -284,11 +282,11 @@ def stage_figures(drives: int, runs: int) -> dict:
     def follow() -> None:
         s_follow.step(0, 5, 0)
 
-    micro = _best_of({"csp_within_limits": passing, "csp_limited": limited, "follow": follow}, runs, 2000)[0]
+    micro = best_of({"csp_within_limits": passing, "csp_limited": limited, "follow": follow}, runs, 2000)[0]
     with_stage, tick_stage, m1 = _moving_sim_cycle(drives, True)
     without, tick_plain, m2 = _moving_sim_cycle(drives, False)
     try:
-        best = _best_of({"with_stage": tick_stage, "pass_through": tick_plain}, runs)[0]
+        best = best_of({"with_stage": tick_stage, "pass_through": tick_plain}, runs)[0]
         if m1 or m2 or any(d.stage.clamps for d in with_stage.drives):
             raise RuntimeError(f"a move ended or was clamped during the runs: {m1 + m2}")
     finally:
