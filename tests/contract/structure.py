@@ -37,6 +37,8 @@ class Report:
     cycles: list[tuple[str, ...]] = field(default_factory=list)  # sorted module names of one circle
     lazy_cycles: list[tuple[str, ...]] = field(default_factory=list)
     binaries: list[str] = field(default_factory=list)        # tracked paths
+    #: not a rule: each module's project imports at import time (relative ones resolved)
+    imports: dict[str, set[str]] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         out = [f"mixin: {c}" for c in self.mixins]
@@ -300,6 +302,7 @@ def check_sources(sources: Mapping[str, str], lazy_in: Iterable[str] = LAZY_IMPO
             todo.extend(classes[k].bases)
         if len(stores) > MAX_ATTRIBUTES:
             report.attributes[key] = len(stores)
+    report.imports = graph
     report.cycles = _circles(graph)
     report.lazy_cycles = [c for c in _circles(lazy_graph) if c not in report.cycles]
     return report
