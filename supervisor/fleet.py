@@ -113,14 +113,11 @@ class Fleet:
         self._link = FleetLink(self.name, self._view)
         self._commands = FleetCommands(self.name, self.identity, lambda: self.session, self._view,
                                        self.selection_of)
-        self._leases = FleetLeases(self.name, lease_ttl_s, self._lease_command, self.selection_of,
+        self._leases = FleetLeases(self.name, lease_ttl_s, self.command, self.selection_of,
                                    self._events.emit)
 
     def _departed(self, host: str) -> None:
         self._commands.departed(host)  # a command waiting for this agent stops waiting
-
-    def _lease_command(self, op: str, sel: Selection, args: Mapping[str, Any], timeout_s: float) -> CommandResult:
-        return self.command(op, sel, args, timeout_s=timeout_s)
 
     # ---- lifecycle -----------------------------------------------------------------------
 

@@ -136,15 +136,14 @@ def _one_group(fleet: "Fleet", refs: Sequence[DriveRef], per_host: Mapping[str, 
         merged = _merge("move", prepared)
         if not merged.ok:
             # Nothing moved: the drives whose host prepared fine are refused with the others' reasons.
-            why = "group move refused: " + "; ".join(f"{r.name}: {r.outcome} {r.error}".strip()
-                                                      for r in merged.failures)
+            why = "group move refused: " + _failures_text(merged.failures)
             return dataclasses.replace(merged, results=tuple(
                 r if not r.ok else dataclasses.replace(r, outcome="rejected", error=why[:400]) for r in merged.results))
         duration = max(r.duration_s for r in merged.results)
         start_at_ns = time.time_ns() + int(margin_s * 1e9)
         futures = {pool.submit(ctx.copy().run, send, h, {"duration_s": duration, "start_at_ns": start_at_ns}): h
                    for h in per_host}
-        committed = _commit(fleet, futures, by_host, ctx, timeout_s)
+        committed = _commit(fleet, futures, by_host, timeout_s)
     return _merge("move", committed)
 
 
@@ -153,28 +152,42 @@ GROUP_STOP_TIMEOUT_S = 5.0
 
 
 def _commit(fleet: "Fleet", futures: Mapping["Future[CommandResult]", str], by_host: Mapping[str, Sequence[str]],
-            ctx: contextvars.Context, timeout_s: float) -> list[CommandResult]:
-    """Wait for every host's commit. The first that ends without all its drives done while
-    others still run has those others stopped (one ``stop`` to their axes), so the group never
-    moves on in part; their moves then end ``aborted`` naming the stop."""
+            timeout_s: float) -> list[CommandResult]:
+    """Wait for every host's commit. The first that ends without all its drives done (or raises)
+    while others still run has those others stopped (one ``stop`` to their axes, sent in the
+    caller's context), so the group never moves on in part; their moves then end ``aborted``
+    naming the stop. A commit that raised is raised again once the others have answered."""
     results: list[CommandResult] = []
+    error: BaseException | None = None
     pending = set(futures)
     stopped = False
     while pending:
         done, pending = wait(pending, return_when=FIRST_COMPLETED)
-        results += [f.result() for f in done]
-        if pending and not stopped and any(not r.ok for r in results):
+        failed: list[str] = []
+        for f in done:
+            try:
+                results.append(f.result())
+            except Exception as e:
+                error = error or e
+                failed.append(f"{futures[f]}: {e}")
+        failed += [_failures_text(r.failures) for r in results if not r.ok]
+        if pending and not stopped and failed:
             stopped = True
             rest = [DriveRef(futures[f], a) for f in pending for a in by_host[futures[f]]]
-            why = "; ".join(f"{r.name}: {r.outcome} {r.error}".strip() for p in results for r in p.failures)
-            log.warning("group move: %s; stopping the rest of the group (%s)", why[:400],
+            log.warning("group move: %s; stopping the rest of the group (%s)", "; ".join(failed)[:400],
                         ", ".join(str(r) for r in rest))
-            stop = ctx.copy().run(fleet.send, "stop", fleet.selection_of(rest), {},
-                                  min(timeout_s, GROUP_STOP_TIMEOUT_S))
+            stop = fleet.send("stop", fleet.selection_of(rest), {}, min(timeout_s, GROUP_STOP_TIMEOUT_S))
             if not stop.ok:
                 log.error("group move: the stop of the rest of the group did not complete: %s",
-                          "; ".join(f"{r.name}: {r.outcome} {r.error}".strip() for r in stop.failures)[:400])
+                          _failures_text(stop.failures)[:400])
+    if error is not None:
+        raise error
     return results
+
+
+def _failures_text(failures: Sequence[DriveResult]) -> str:
+    """``drive: outcome error`` of each failed drive, joined by ``; ``."""
+    return "; ".join(f"{r.name}: {r.outcome} {r.error}".strip() for r in failures)
 
 
 def _merge(op: str, parts: Sequence[CommandResult]) -> CommandResult:

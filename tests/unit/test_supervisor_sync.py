@@ -26,10 +26,11 @@ class _Bed:
     """The Fleet as the group path sees it (roster, selection, send): host b refuses its commit,
     host a moves until something stops it (or 5 s pass: the test then fails)."""
 
-    def __init__(self, refuse_commit: bool) -> None:
+    def __init__(self, refuse_commit: bool, raise_commit: bool = False) -> None:
         import threading
 
-        self.refuse_commit = refuse_commit
+        self.refuse_commit = refuse_commit or raise_commit
+        self.raise_commit = raise_commit
         self.sent: list[tuple[str, tuple[DriveRef, ...], dict]] = []
         self.stopped = threading.Event()
         self.refs = [DriveRef("a", "x"), DriveRef("a", "y"), DriveRef("b", "x")]
@@ -54,6 +55,8 @@ class _Bed:
         if args.get("prepare"):
             return CommandResult("move", "p", tuple(DriveResult(r.host, r.axis, "done", duration_s=0.5) for r in sel))
         host = sel[0].host
+        if host == "b" and self.raise_commit:
+            raise RuntimeError("session closed")
         if host == "b" and self.refuse_commit:
             return CommandResult("move", "c", (DriveResult("b", "x", "rejected", error="not enabled"),))
         if host == "a" and self.refuse_commit:
@@ -72,6 +75,15 @@ def test_a_commit_refused_on_one_host_stops_the_hosts_already_moving():
     assert [set(s[1]) for s in stops] == [{DriveRef("a", "x"), DriveRef("a", "y")}]  # once, the rest only
     assert {r.name: r.outcome for r in res.results} == {"a/x": "aborted", "a/y": "aborted", "b/x": "rejected"}
     assert not res.ok
+
+
+def test_a_commit_that_raises_on_one_host_stops_the_others_then_is_raised():
+    from supervisor.motion import group_move
+
+    bed = _Bed(refuse_commit=False, raise_commit=True)
+    with pytest.raises(RuntimeError, match="session closed"):
+        group_move(bed, {"a/x": 1.0, "a/y": 2.0, "b/x": 3.0}, timeout_s=10.0, margin_s=0.0)  # type: ignore[arg-type]
+    assert [set(s[1]) for s in bed.sent if s[0] == "stop"] == [{DriveRef("a", "x"), DriveRef("a", "y")}]
 
 
 def test_a_group_move_that_commits_everywhere_sends_no_stop():
