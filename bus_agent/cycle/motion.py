@@ -193,7 +193,7 @@ class MotionStage:
         if m.mode_request is not None or m.sdo_request is not None:
             self._requests(d, now_ns)
         if m.write and not hold_target:
-            if m.homing is not None or m.mode == MODE_HOMING:
+            if m.runs.homing is not None or m.mode == MODE_HOMING:
                 d.target_position = m.target_position
                 d.target_velocity = 0
             elif m.mode == MODE_CSV:
@@ -203,7 +203,7 @@ class MotionStage:
                 d.target_position = m.target_position
             elif m.mode == MODE_PV:
                 d.target_velocity = m.target_velocity
-        if m.mode == MODE_PV and m.profile_run is None:
+        if m.mode == MODE_PV and m.runs.profile_run is None:
             d.target_velocity = 0  # no stale 0x60FF in profile velocity (a jump on the next enable)
         if ended:
             self.finished(d, ended, now_ns)

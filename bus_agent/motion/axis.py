@@ -60,6 +60,7 @@ class AxisMotion:
     def __init__(self, cfg: MotionConfig, period_s: float) -> None:
         #: Targets take effect at the next exchange: plans are sampled one period ahead.
         self.bounds = b = AxisLimits(cfg, period_s)
+        # read-only mirrors of the bounds, for the per-cycle step's short attribute reads
         self.user, self.cfg, self.scale, self.limits, self.lead_s = b.user, b.cfg, b.scale, b.limits, b.lead_s
         self.runs = DriveRuns(b.cfg, b.limits.acceleration)
         #: The last step's time while a plan runs (None when the last step ended without one),
@@ -155,8 +156,9 @@ class AxisMotion:
         """No plan, command, homing run, profile run or request under way: a step with the same
         observation as the last one changes nothing and finishes nothing, so the cycle may skip
         it (docs/agent-cycle.md, "Fast paths"). Cycle-safe."""
-        return (self.plan is None and self.active is None and self.runs.homing is None
-                and self.runs.profile_run is None and self.mode_request is None and self.sdo_request is None)
+        runs = self.runs
+        return (self.plan is None and self.active is None and runs.homing is None
+                and runs.profile_run is None and self.mode_request is None and self.sdo_request is None)
 
     @property
     def request_id(self) -> str:
